@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "co3sop_nodes"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "tests"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="Co3SOP ROS 2 developers",
+    maintainer_email="dev@co3sop.local",
+    description="Co3SOP collaborative 3D semantic occupancy prediction on ROS 2",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            f"monitor = {PACKAGE}.ros.monitor:main",
+            f"sample_stream = {PACKAGE}.ros.sample_stream:main",
+        ],
+    },
+)
