@@ -1,0 +1,362 @@
+"""Payload codecs for voxel features and semantic label grids (ROS-free).
+
+The encoded dataclasses mirror the co3sop_msgs fields one to one (see
+VoxelFeatures.msg and SemanticOccupancy.msg for the byte layouts), so the node
+glue only copies fields. Decoding checks every declared size against the grid
+and a configurable limit *before* decompressing, so a hostile or broken sender
+cannot make a receiver allocate more than it accepts.
+
+Feature volumes: (C, nx, ny, nz) float32 -> float32 / float16 / int8 with a
+per-channel affine scale, dense or sparse (top-k voxels by confidence, or all
+voxels at or above a confidence threshold), then zstd. Labels: uint8 grids,
+lossless zstd.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import zstandard
+
+from .errors import CodecError, CorruptPayloadError, PayloadTooLargeError, SizeMismatchError, UnknownCodecError
+from .grid import GridSpec
+
+CODECS = ("zstd", "none")
+FEATURE_DTYPES = {"float32": np.dtype("<f4"), "float16": np.dtype("<f2"), "int8": np.dtype("i1")}
+SELECTIONS = ("dense", "topk", "threshold")
+# Receivers refuse payloads that declare more uncompressed bytes than this.
+DEFAULT_MAX_RAW_BYTES = 256 * 1024 * 1024
+_INT8_LEVELS = 127  # q in [-127, 127]: symmetric around the channel's mid-range
+
+
+@dataclass(frozen=True)
+class FeatureCodecConfig:
+    """How a vehicle encodes its feature volume before sending it."""
+
+    dtype: str = "float16"  # "float32" | "float16" | "int8"
+    selection: str = "dense"  # "dense" | "topk" | "threshold"
+    topk: int = 4096  # voxels kept by "topk" (highest confidence, else highest feature norm)
+    threshold: float = 0.5  # "threshold" keeps voxels whose confidence is >= this
+    codec: str = "zstd"  # "zstd" | "none"
+    level: int = 3  # zstd level
+
+    def __post_init__(self) -> None:
+        _check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
+        _check_choice("feature selection", self.selection, SELECTIONS)
+        _check_choice("codec", self.codec, CODECS)
+        if self.topk < 1:
+            raise CodecError(f"topk must be at least 1, got {self.topk}")
+
+    @property
+    def name(self) -> str:
+        """Short label, e.g. 'float16-topk4096-zstd'."""
+        sel = {"dense": "dense", "topk": f"topk{self.topk}", "threshold": f"conf{self.threshold:g}"}[self.selection]
+        return f"{self.dtype}-{sel}-{self.codec}"
+
+
+@dataclass(frozen=True)
+class EncodedFeatures:
+    """A feature volume as carried by co3sop_msgs/VoxelFeatures (minus header and pose)."""
+
+    grid: GridSpec
+    channels: int
+    dtype: str
+    codec: str
+    quant_scale: tuple[float, ...]  # int8 only, length C
+    quant_offset: tuple[float, ...]  # int8 only, length C
+    sparse: bool
+    num_voxels: int
+    voxel_mask: bytes
+    values: bytes
+    confidence: bytes
+    voxel_mask_raw_size: int
+    values_raw_size: int
+    confidence_raw_size: int
+
+    @property
+    def payload_bytes(self) -> int:
+        """Compressed bytes of all payloads."""
+        return len(self.voxel_mask) + len(self.values) + len(self.confidence)
+
+    @property
+    def raw_bytes(self) -> int:
+        """Uncompressed bytes of all payloads."""
+        return self.voxel_mask_raw_size + self.values_raw_size + self.confidence_raw_size
+
+
+@dataclass(frozen=True)
+class DecodedFeatures:
+    features: np.ndarray  # (C, nx, ny, nz) float32; 0 where not carried
+    confidence: np.ndarray | None  # (nx, ny, nz) float32 in [0, 1]; 0 where not carried
+    mask: np.ndarray  # (nx, ny, nz) bool: voxels carried
+
+
+@dataclass(frozen=True)
+class EncodedLabels:
+    """A label grid as carried by co3sop_msgs/SemanticOccupancy (minus header)."""
+
+    grid: GridSpec
+    num_classes: int
+    codec: str
+    labels: bytes
+    labels_raw_size: int
+    confidence: bytes
+    confidence_raw_size: int
+
+    @property
+    def payload_bytes(self) -> int:
+        return len(self.labels) + len(self.confidence)
+
+    @property
+    def raw_bytes(self) -> int:
+        return self.labels_raw_size + self.confidence_raw_size
+
+
+@dataclass(frozen=True)
+class DecodedLabels:
+    labels: np.ndarray  # (nx, ny, nz) uint8
+    confidence: np.ndarray | None  # (nx, ny, nz) uint8, 255 * probability
+
+
+def _check_choice(what: str, value: str, known) -> None:
+    if value not in known:
+        raise UnknownCodecError(f"unknown {what} {value!r} (known: {', '.join(known)})")
+
+
+def _compress(raw: bytes, codec: str, level: int) -> bytes:
+    if codec == "none" or not raw:
+        return bytes(raw)
+    return zstandard.ZstdCompressor(level=level).compress(raw)
+
+
+def _decompress(payload, codec: str, declared: int, expected: int, field: str, max_raw_bytes: int) -> bytes:
+    """Checks `declared` against the limit and the grid, then decompresses exactly that much."""
+    _check_choice("codec", codec, CODECS)
+    if declared > max_raw_bytes:
+        raise PayloadTooLargeError(
+            f"{field}: declares {declared} uncompressed bytes, over the receiver's limit of {max_raw_bytes}"
+        )
+    if declared != expected:
+        raise SizeMismatchError(f"{field}: declares {declared} uncompressed bytes but the grid needs {expected}")
+    if codec == "none" or expected == 0:
+        if len(payload) != expected:
+            raise SizeMismatchError(f"{field}: carries {len(payload)} bytes but the grid needs {expected}")
+        return bytes(payload)
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected)
+    except zstandard.ZstdError as exc:
+        raise CorruptPayloadError(f"{field}: truncated or corrupt zstd payload ({exc})") from None
+    if len(raw) != expected:
+        raise CorruptPayloadError(f"{field}: decompressed to {len(raw)} bytes, expected {expected}")
+    return raw
+
+
+def _select(features: np.ndarray, confidence: np.ndarray | None, cfg: FeatureCodecConfig) -> np.ndarray | None:
+    """Flat indices (ascending) of the voxels to send, or None for dense."""
+    if cfg.selection == "dense":
+        return None
+    if cfg.selection == "threshold":
+        if confidence is None:
+            raise CodecError("feature selection 'threshold' needs a confidence volume")
+        return np.flatnonzero(confidence.reshape(-1) >= cfg.threshold)
+    # top-k by confidence, or by feature L2 norm when there is none
+    score = confidence.reshape(-1) if confidence is not None else np.linalg.norm(features.reshape(features.shape[0], -1), axis=0)
+    if cfg.topk >= score.size:
+        return np.arange(score.size)
+    return np.sort(np.argpartition(-score, cfg.topk - 1)[: cfg.topk])
+
+
+def _quantize_int8(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-channel affine int8: value ~= q * scale + offset, |error| <= scale / 2."""
+    # values: (C, N) float32
+    if values.shape[1] == 0:
+        zeros = np.zeros(values.shape[0], np.float32)
+        return values.astype(np.int8), zeros, zeros
+    lo = values.min(axis=1).astype(np.float64)
+    hi = values.max(axis=1).astype(np.float64)
+    offset = ((hi + lo) / 2).astype(np.float32)  # (C,)
+    scale = ((hi - lo) / (2 * _INT8_LEVELS)).astype(np.float32)  # (C,)
+    safe = np.where(scale > 0, scale, 1).astype(np.float64)
+    q = np.rint((values - offset[:, None].astype(np.float64)) / safe[:, None])
+    return np.clip(q, -_INT8_LEVELS, _INT8_LEVELS).astype(np.int8), scale, offset
+
+
+def _confidence_dtype(dtype: str) -> np.dtype:
+    return np.dtype("u1") if dtype == "int8" else FEATURE_DTYPES[dtype]
+
+
+def encode_features(
+    features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec, cfg: FeatureCodecConfig
+) -> EncodedFeatures:
+    """Encodes a (C, nx, ny, nz) float volume and optional (nx, ny, nz) confidence in [0, 1]."""
+    features = np.asarray(features, dtype=np.float32)
+    if features.ndim != 4 or features.shape[1:] != grid.dims:
+        raise SizeMismatchError(f"features: shape {features.shape} does not match (C, {', '.join(map(str, grid.dims))})")
+    if not np.isfinite(features).all():
+        raise CodecError("features: contain NaN or infinite values")
+    if confidence is not None:
+        confidence = np.asarray(confidence, dtype=np.float32)
+        if confidence.shape != grid.dims:
+            raise SizeMismatchError(f"confidence: shape {confidence.shape} does not match the grid {grid.dims}")
+        if not (np.isfinite(confidence).all() and confidence.min() >= 0 and confidence.max() <= 1):
+            raise CodecError("confidence: values must lie in [0, 1]")
+    channels = features.shape[0]
+    flat = features.reshape(channels, -1)  # (C, V)
+    keep = _select(features, confidence, cfg)
+    values = flat if keep is None else flat[:, keep]  # (C, N)
+    num_voxels = values.shape[1]
+
+    mask_raw = b""
+    if keep is not None:
+        bits = np.zeros(grid.num_voxels, dtype=bool)
+        bits[keep] = True
+        mask_raw = np.packbits(bits, bitorder="little").tobytes()
+
+    scale = offset = ()
+    if cfg.dtype == "int8":
+        q, s, o = _quantize_int8(values)
+        values_raw = q.tobytes()
+        scale, offset = tuple(s.tolist()), tuple(o.tolist())
+    else:
+        values_raw = np.ascontiguousarray(values, dtype=FEATURE_DTYPES[cfg.dtype]).tobytes()
+
+    conf_raw = b""
+    if confidence is not None:
+        conf = confidence.reshape(-1) if keep is None else confidence.reshape(-1)[keep]  # (N,)
+        if cfg.dtype == "int8":
+            conf_raw = np.rint(conf * 255).astype(np.uint8).tobytes()
+        else:
+            conf_raw = conf.astype(FEATURE_DTYPES[cfg.dtype]).tobytes()
+
+    return EncodedFeatures(
+        grid=grid,
+        channels=channels,
+        dtype=cfg.dtype,
+        codec=cfg.codec,
+        quant_scale=scale,
+        quant_offset=offset,
+        sparse=keep is not None,
+        num_voxels=num_voxels,
+        voxel_mask=_compress(mask_raw, cfg.codec, cfg.level),
+        values=_compress(values_raw, cfg.codec, cfg.level),
+        confidence=_compress(conf_raw, cfg.codec, cfg.level),
+        voxel_mask_raw_size=len(mask_raw),
+        values_raw_size=len(values_raw),
+        confidence_raw_size=len(conf_raw),
+    )
+
+
+def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> DecodedFeatures:
+    """Inverse of encode_features; raises a CodecError subclass naming the bad field."""
+    _check_choice("feature dtype", enc.dtype, FEATURE_DTYPES)
+    _check_choice("codec", enc.codec, CODECS)
+    grid, channels = enc.grid, enc.channels
+    if channels < 1:
+        raise SizeMismatchError(f"channels: must be at least 1, got {channels}")
+    if enc.sparse:
+        mask_raw = _decompress(
+            enc.voxel_mask, enc.codec, enc.voxel_mask_raw_size, -(-grid.num_voxels // 8), "voxel_mask", max_raw_bytes
+        )
+        bits = np.unpackbits(np.frombuffer(mask_raw, np.uint8), count=grid.num_voxels, bitorder="little").astype(bool)
+        if int(bits.sum()) != enc.num_voxels:
+            raise SizeMismatchError(f"num_voxels: declares {enc.num_voxels} but voxel_mask selects {int(bits.sum())}")
+    else:
+        if enc.num_voxels != grid.num_voxels:
+            raise SizeMismatchError(f"num_voxels: declares {enc.num_voxels} for a dense grid of {grid.num_voxels}")
+        bits = None
+    n = enc.num_voxels
+    dtype = FEATURE_DTYPES[enc.dtype]
+    raw = _decompress(enc.values, enc.codec, enc.values_raw_size, channels * n * dtype.itemsize, "values", max_raw_bytes)
+    values = np.frombuffer(raw, dtype).reshape(channels, n).astype(np.float32)  # (C, N)
+    if enc.dtype == "int8":
+        if len(enc.quant_scale) != channels or len(enc.quant_offset) != channels:
+            raise SizeMismatchError(
+                f"quant_scale/quant_offset: need {channels} entries each, got {len(enc.quant_scale)}/{len(enc.quant_offset)}"
+            )
+        scale = np.asarray(enc.quant_scale, np.float32)[:, None]
+        offset = np.asarray(enc.quant_offset, np.float32)[:, None]
+        values = values * scale + offset
+
+    conf = None  # (N,) float32
+    if enc.confidence_raw_size or enc.confidence:
+        cdtype = _confidence_dtype(enc.dtype)
+        craw = _decompress(enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes)
+        conf = np.frombuffer(craw, cdtype).astype(np.float32)
+        if enc.dtype == "int8":
+            conf = conf / np.float32(255)
+    if bits is None:
+        features = values.reshape(channels, *grid.dims)
+        confidence = None if conf is None else conf.reshape(grid.dims)
+        mask = np.ones(grid.dims, dtype=bool)
+    else:
+        features = np.zeros((channels, grid.num_voxels), np.float32)
+        features[:, bits] = values
+        features = features.reshape(channels, *grid.dims)
+        confidence = None
+        if conf is not None:
+            confidence = np.zeros(grid.num_voxels, np.float32)
+            confidence[bits] = conf
+            confidence = confidence.reshape(grid.dims)
+        mask = bits.reshape(grid.dims)
+    return DecodedFeatures(features=features, confidence=confidence, mask=mask)
+
+
+def encode_labels(
+    labels: np.ndarray,
+    grid: GridSpec,
+    num_classes: int,
+    confidence: np.ndarray | None = None,
+    codec: str = "zstd",
+    level: int = 3,
+) -> EncodedLabels:
+    """Encodes an (nx, ny, nz) uint8 label grid and optional uint8 confidence (255 * p)."""
+    _check_choice("codec", codec, CODECS)
+    labels = np.asarray(labels)
+    if labels.shape != grid.dims:
+        raise SizeMismatchError(f"labels: shape {labels.shape} does not match the grid {grid.dims}")
+    if labels.dtype != np.uint8:
+        raise CodecError(f"labels: dtype must be uint8, got {labels.dtype}")
+    _check_labels(labels, num_classes)
+    raw = np.ascontiguousarray(labels).tobytes()
+    conf_raw = b""
+    if confidence is not None:
+        confidence = np.asarray(confidence)
+        if confidence.shape != grid.dims or confidence.dtype != np.uint8:
+            raise SizeMismatchError(f"confidence: need uint8 of shape {grid.dims}, got {confidence.dtype} {confidence.shape}")
+        conf_raw = np.ascontiguousarray(confidence).tobytes()
+    return EncodedLabels(
+        grid=grid,
+        num_classes=num_classes,
+        codec=codec,
+        labels=_compress(raw, codec, level),
+        labels_raw_size=len(raw),
+        confidence=_compress(conf_raw, codec, level),
+        confidence_raw_size=len(conf_raw),
+    )
+
+
+def _check_labels(labels: np.ndarray, num_classes: int) -> None:
+    """Every label is a class index or the ignore value 255."""
+    if not 1 <= num_classes <= 255:
+        raise CodecError(f"num_classes: must be in 1..255, got {num_classes}")
+    if labels.size == 0 or labels.max() < num_classes:
+        return
+    counts = np.bincount(labels.reshape(-1), minlength=256)  # (256,)
+    counts[255] = 0
+    bad = np.flatnonzero(counts[num_classes:]) + num_classes
+    if bad.size:
+        raise CodecError(f"labels: unknown label value(s) {bad.tolist()} for {num_classes} classes")
+
+
+def decode_labels(enc: EncodedLabels, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> DecodedLabels:
+    """Inverse of encode_labels; raises a CodecError subclass naming the bad field."""
+    n = enc.grid.num_voxels
+    raw = _decompress(enc.labels, enc.codec, enc.labels_raw_size, n, "labels", max_raw_bytes)
+    labels = np.frombuffer(raw, np.uint8).reshape(enc.grid.dims)
+    _check_labels(labels, enc.num_classes)
+    confidence = None
+    if enc.confidence_raw_size or enc.confidence:
+        craw = _decompress(enc.confidence, enc.codec, enc.confidence_raw_size, n, "confidence", max_raw_bytes)
+        confidence = np.frombuffer(craw, np.uint8).reshape(enc.grid.dims)
+    return DecodedLabels(labels=labels, confidence=confidence)

@@ -1,0 +1,34 @@
+"""The package's root exception and its few subclasses.
+
+Every error the core raises on bad input derives from `Co3sopError`, so a
+command-line tool or node can catch one type, print its message (which names
+the file, topic or field at fault) and never show a traceback.
+"""
+
+
+class Co3sopError(Exception):
+    """Root of every error raised by co3sop_nodes on bad input or data."""
+
+
+class GridError(Co3sopError):
+    """A voxel grid specification is invalid (non-positive size, non-finite origin...)."""
+
+
+class CodecError(Co3sopError):
+    """A payload cannot be encoded or decoded."""
+
+
+class UnknownCodecError(CodecError):
+    """The named codec or dtype is not one this version knows."""
+
+
+class CorruptPayloadError(CodecError):
+    """A compressed payload is truncated or corrupt."""
+
+
+class SizeMismatchError(CodecError):
+    """A payload's (declared) size does not match the grid it claims to fill."""
+
+
+class PayloadTooLargeError(CodecError):
+    """A payload declares more uncompressed bytes than the receiver accepts."""

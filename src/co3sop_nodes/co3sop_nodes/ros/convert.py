@@ -1,0 +1,115 @@
+"""Conversion between co3sop_msgs messages and the ROS-free core's dataclasses."""
+
+from __future__ import annotations
+
+from builtin_interfaces.msg import Time
+from co3sop_msgs.msg import GridSpec as GridSpecMsg
+from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from geometry_msgs.msg import Pose as PoseMsg
+
+from ..codec import EncodedFeatures, EncodedLabels
+from ..geometry import Pose
+from ..grid import GridSpec
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def ns_to_stamp(ns: int) -> Time:
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def grid_to_msg(grid: GridSpec) -> GridSpecMsg:
+    msg = GridSpecMsg(voxel_size=grid.voxel_size, nx=grid.dims[0], ny=grid.dims[1], nz=grid.dims[2])
+    msg.origin.x, msg.origin.y, msg.origin.z = grid.origin
+    return msg
+
+
+def grid_from_msg(msg: GridSpecMsg) -> GridSpec:
+    """Raises GridError on an invalid grid."""
+    return GridSpec((msg.origin.x, msg.origin.y, msg.origin.z), msg.voxel_size, (msg.nx, msg.ny, msg.nz))
+
+
+def pose_to_msg(pose: Pose) -> PoseMsg:
+    msg = PoseMsg()
+    msg.position.x, msg.position.y, msg.position.z = pose.position
+    o = msg.orientation
+    o.x, o.y, o.z, o.w = pose.orientation
+    return msg
+
+
+def pose_from_msg(msg: PoseMsg) -> Pose:
+    p, o = msg.position, msg.orientation
+    return Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w))
+
+
+def features_to_msg(enc: EncodedFeatures, *, stamp_ns: int, frame_id: str, agent_id: int, pose: Pose) -> VoxelFeatures:
+    msg = VoxelFeatures(
+        agent_id=agent_id,
+        lidar_pose=pose_to_msg(pose),
+        grid=grid_to_msg(enc.grid),
+        channels=enc.channels,
+        dtype=enc.dtype,
+        codec=enc.codec,
+        quant_scale=list(enc.quant_scale),
+        quant_offset=list(enc.quant_offset),
+        sparse=enc.sparse,
+        num_voxels=enc.num_voxels,
+        voxel_mask_raw_size=enc.voxel_mask_raw_size,
+        values_raw_size=enc.values_raw_size,
+        confidence_raw_size=enc.confidence_raw_size,
+    )
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    # bytes assign ~100x faster than numpy arrays or lists to uint8[] fields
+    msg.voxel_mask, msg.values, msg.confidence = enc.voxel_mask, enc.values, enc.confidence
+    return msg
+
+
+def features_from_msg(msg: VoxelFeatures) -> EncodedFeatures:
+    """Raises GridError on an invalid grid; payloads are checked by codec.decode_features."""
+    return EncodedFeatures(
+        grid=grid_from_msg(msg.grid),
+        channels=msg.channels,
+        dtype=msg.dtype,
+        codec=msg.codec,
+        quant_scale=tuple(msg.quant_scale),
+        quant_offset=tuple(msg.quant_offset),
+        sparse=msg.sparse,
+        num_voxels=msg.num_voxels,
+        voxel_mask=memoryview(msg.voxel_mask),
+        values=memoryview(msg.values),
+        confidence=memoryview(msg.confidence),
+        voxel_mask_raw_size=msg.voxel_mask_raw_size,
+        values_raw_size=msg.values_raw_size,
+        confidence_raw_size=msg.confidence_raw_size,
+    )
+
+
+def labels_to_msg(enc: EncodedLabels, *, stamp_ns: int, frame_id: str, agent_id: int) -> SemanticOccupancy:
+    msg = SemanticOccupancy(
+        agent_id=agent_id,
+        grid=grid_to_msg(enc.grid),
+        num_classes=enc.num_classes,
+        codec=enc.codec,
+        labels_raw_size=enc.labels_raw_size,
+        confidence_raw_size=enc.confidence_raw_size,
+    )
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.labels, msg.confidence = enc.labels, enc.confidence
+    return msg
+
+
+def labels_from_msg(msg: SemanticOccupancy) -> EncodedLabels:
+    """Raises GridError on an invalid grid; payloads are checked by codec.decode_labels."""
+    return EncodedLabels(
+        grid=grid_from_msg(msg.grid),
+        num_classes=msg.num_classes,
+        codec=msg.codec,
+        labels=memoryview(msg.labels),
+        labels_raw_size=msg.labels_raw_size,
+        confidence=memoryview(msg.confidence),
+        confidence_raw_size=msg.confidence_raw_size,
+    )

@@ -1,0 +1,69 @@
+"""DDS settings every Co3SOP process applies, QoS profiles, and the node main loop."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import rclpy
+from ament_index_python.packages import get_package_share_directory
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+PACKAGE = "co3sop_nodes"
+
+# Features and predictions are large multi-fragment samples: best effort would
+# drop whole samples, so reliable with a short queue (a late frame is useless).
+FEATURES_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=2,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+OCCUPANCY_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=5,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+
+def fastdds_profile_path() -> str:
+    """The shipped Fast DDS profile (large shared-memory segment)."""
+    return os.path.join(get_package_share_directory(PACKAGE), "config", "fastdds.xml")
+
+
+def configure_environment() -> None:
+    """Project defaults, applied before rclpy.init(); variables already set win.
+
+    Discovery stays on this host unless ROS_AUTOMATIC_DISCOVERY_RANGE says
+    otherwise (SUBNET for several hosts); every participant uses the shipped
+    Fast DDS profile unless FASTRTPS_DEFAULT_PROFILES_FILE names another.
+    """
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", fastdds_profile_path())
+
+
+def spin_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
+    """The Jazzy node idiom: init, spin until Ctrl-C or shutdown, always clean up.
+
+    `make_node` may raise SystemExit (e.g. a node that finished its job); its
+    code is returned.
+    """
+    configure_environment()
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = make_node()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except SystemExit as done:
+        code = int(done.code or 0)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
