@@ -45,8 +45,10 @@ class FeatureCodecConfig:
         _check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
         _check_choice("feature selection", self.selection, SELECTIONS)
         _check_choice("codec", self.codec, CODECS)
-        if self.topk < 1:
-            raise CodecError(f"topk must be at least 1, got {self.topk}")
+        if not isinstance(self.topk, int) or self.topk < 1:
+            raise CodecError(f"topk must be a whole number of voxels >= 1, got {self.topk!r}")
+        if not 0.0 <= self.threshold <= 1.0:
+            raise CodecError(f"threshold must be a confidence in [0, 1], got {self.threshold!r}")
 
     @property
     def name(self) -> str:
@@ -67,6 +69,7 @@ class EncodedFeatures:
     quant_offset: tuple[float, ...]  # int8 only, length C
     sparse: bool
     num_voxels: int
+    has_confidence: bool
     voxel_mask: bytes
     values: bytes
     confidence: bytes
@@ -127,7 +130,9 @@ def _check_choice(what: str, value: str, known) -> None:
 def _compress(raw: bytes, codec: str, level: int) -> bytes:
     if codec == "none" or not raw:
         return bytes(raw)
-    return zstandard.ZstdCompressor(level=level).compress(raw)
+    # The content size lets a receiver check the frame before decompressing;
+    # the checksum catches corruption inside blocks stored raw.
+    return zstandard.ZstdCompressor(level=level, write_checksum=True, write_content_size=True).compress(raw)
 
 
 def _decompress(payload, codec: str, declared: int, expected: int, field: str, max_raw_bytes: int) -> bytes:
@@ -144,7 +149,14 @@ def _decompress(payload, codec: str, declared: int, expected: int, field: str, m
             raise SizeMismatchError(f"{field}: carries {len(payload)} bytes but the grid needs {expected}")
         return bytes(payload)
     try:
-        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected)
+        # zstandard trusts the frame's own content size over max_output_size:
+        # check it before any output is allocated.
+        frame = zstandard.get_frame_parameters(payload)
+        if frame.content_size != expected:
+            raise CorruptPayloadError(f"{field}: zstd frame declares {frame.content_size} bytes; the grid needs {expected}")
+        if not frame.has_checksum:
+            raise CorruptPayloadError(f"{field}: zstd frame has no checksum (corruption would go unnoticed)")
+        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected, allow_extra_data=False)
     except zstandard.ZstdError as exc:
         raise CorruptPayloadError(f"{field}: truncated or corrupt zstd payload ({exc})") from None
     if len(raw) != expected:
@@ -161,7 +173,10 @@ def _select(features: np.ndarray, confidence: np.ndarray | None, cfg: FeatureCod
             raise CodecError("feature selection 'threshold' needs a confidence volume")
         return np.flatnonzero(confidence.reshape(-1) >= cfg.threshold)
     # top-k by confidence, or by feature L2 norm when there is none
-    score = confidence.reshape(-1) if confidence is not None else np.linalg.norm(features.reshape(features.shape[0], -1), axis=0)
+    if confidence is not None:
+        score = confidence.reshape(-1)
+    else:  # float64: squares of large float32 features would overflow
+        score = np.linalg.norm(features.reshape(features.shape[0], -1).astype(np.float64), axis=0)
     if cfg.topk >= score.size:
         return np.arange(score.size)
     return np.sort(np.argpartition(-score, cfg.topk - 1)[: cfg.topk])
@@ -191,10 +206,14 @@ def encode_features(
 ) -> EncodedFeatures:
     """Encodes a (C, nx, ny, nz) float volume and optional (nx, ny, nz) confidence in [0, 1]."""
     features = np.asarray(features, dtype=np.float32)
-    if features.ndim != 4 or features.shape[1:] != grid.dims:
+    if features.ndim != 4 or features.shape[1:] != grid.dims or features.shape[0] < 1:
         raise SizeMismatchError(f"features: shape {features.shape} does not match (C, {', '.join(map(str, grid.dims))})")
     if not np.isfinite(features).all():
         raise CodecError("features: contain NaN or infinite values")
+    if cfg.dtype == "float16":
+        with np.errstate(over="ignore"):
+            if not np.isfinite(features.astype(np.float16)).all():
+                raise CodecError("features: values beyond the float16 range (|x| > 65504); use float32 or int8")
     if confidence is not None:
         confidence = np.asarray(confidence, dtype=np.float32)
         if confidence.shape != grid.dims:
@@ -238,6 +257,7 @@ def encode_features(
         quant_offset=offset,
         sparse=keep is not None,
         num_voxels=num_voxels,
+        has_confidence=confidence is not None,
         voxel_mask=_compress(mask_raw, cfg.codec, cfg.level),
         values=_compress(values_raw, cfg.codec, cfg.level),
         confidence=_compress(conf_raw, cfg.codec, cfg.level),
@@ -274,17 +294,21 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
             raise SizeMismatchError(
                 f"quant_scale/quant_offset: need {channels} entries each, got {len(enc.quant_scale)}/{len(enc.quant_offset)}"
             )
-        scale = np.asarray(enc.quant_scale, np.float32)[:, None]
-        offset = np.asarray(enc.quant_offset, np.float32)[:, None]
-        values = values * scale + offset
+        scale = np.asarray(enc.quant_scale, np.float32).astype(np.float64)[:, None]
+        offset = np.asarray(enc.quant_offset, np.float32).astype(np.float64)[:, None]
+        # float64 then clip: q * scale + offset may round past float32's range
+        f32max = np.finfo(np.float32).max
+        values = np.clip(values * scale + offset, -f32max, f32max).astype(np.float32)
 
     conf = None  # (N,) float32
-    if enc.confidence_raw_size or enc.confidence:
+    if enc.has_confidence:
         cdtype = _confidence_dtype(enc.dtype)
         craw = _decompress(enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes)
         conf = np.frombuffer(craw, cdtype).astype(np.float32)
         if enc.dtype == "int8":
             conf = conf / np.float32(255)
+    elif enc.confidence or enc.confidence_raw_size:
+        raise SizeMismatchError("confidence: payload present but has_confidence is false")
     if bits is None:
         features = values.reshape(channels, *grid.dims)
         confidence = None if conf is None else conf.reshape(grid.dims)

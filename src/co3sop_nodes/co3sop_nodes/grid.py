@@ -23,15 +23,14 @@ class GridSpec:
     dims: tuple[int, int, int]  # (nx, ny, nz)
 
     def __post_init__(self) -> None:
+        if len(self.origin) != 3 or not all(math.isfinite(v) for v in self.origin):
+            raise GridError(f"grid origin must be 3 finite numbers, got {self.origin}")
+        _check_voxel_size(self.voxel_size)
+        if len(self.dims) != 3 or not all(float(n).is_integer() and n >= 1 for n in self.dims):
+            raise GridError(f"grid dims must be 3 positive whole numbers, got {self.dims}")
         object.__setattr__(self, "origin", tuple(float(v) for v in self.origin))
         object.__setattr__(self, "dims", tuple(int(v) for v in self.dims))
         object.__setattr__(self, "voxel_size", float(self.voxel_size))
-        if len(self.origin) != 3 or not all(math.isfinite(v) for v in self.origin):
-            raise GridError(f"grid origin must be 3 finite numbers, got {self.origin}")
-        if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
-            raise GridError(f"grid voxel_size must be a positive number of metres, got {self.voxel_size}")
-        if len(self.dims) != 3 or min(self.dims) < 1:
-            raise GridError(f"grid dims must be 3 positive integers, got {self.dims}")
 
     @property
     def num_voxels(self) -> int:
@@ -46,10 +45,16 @@ class GridSpec:
     @classmethod
     def centred(cls, extent_xy: float, z_range: tuple[float, float], voxel_size: float) -> "GridSpec":
         """A grid centred on the sensor in x/y, spanning `z_range` in z."""
+        _check_voxel_size(voxel_size)
         n_xy = round(extent_xy / voxel_size)
         n_z = round((z_range[1] - z_range[0]) / voxel_size)
         half = n_xy * voxel_size / 2
         return cls((-half, -half, z_range[0]), voxel_size, (n_xy, n_xy, n_z))
+
+
+def _check_voxel_size(voxel_size: float) -> None:
+    if not (math.isfinite(voxel_size) and voxel_size > 0):
+        raise GridError(f"grid voxel_size must be a positive number of metres, got {voxel_size}")
 
 
 # The paper's three benchmark grids: 256 x 256 in x/y, z in [-2.0, 2.8] m
