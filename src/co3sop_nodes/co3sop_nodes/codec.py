@@ -14,6 +14,7 @@ lossless zstd.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,9 +46,9 @@ class FeatureCodecConfig:
         _check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
         _check_choice("feature selection", self.selection, SELECTIONS)
         _check_choice("codec", self.codec, CODECS)
-        if not isinstance(self.topk, int) or self.topk < 1:
+        if isinstance(self.topk, bool) or not isinstance(self.topk, numbers.Integral) or self.topk < 1:
             raise CodecError(f"topk must be a whole number of voxels >= 1, got {self.topk!r}")
-        if not 0.0 <= self.threshold <= 1.0:
+        if not isinstance(self.threshold, numbers.Real) or not 0.0 <= self.threshold <= 1.0:
             raise CodecError(f"threshold must be a confidence in [0, 1], got {self.threshold!r}")
 
     @property
