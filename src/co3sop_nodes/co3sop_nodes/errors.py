@@ -32,3 +32,7 @@ class SizeMismatchError(CodecError):
 
 class PayloadTooLargeError(CodecError):
     """A payload declares more uncompressed bytes than the receiver accepts."""
+
+
+class DatasetError(Co3sopError):
+    """A dataset file (OPV2V yaml/PCD/PNG, Co3SOP npz, bag) is missing, malformed or inconsistent."""

@@ -1,0 +1,1 @@
+"""The procedural OPV2V-style simulator: towns, traffic, sensors, the semantic voxel sensor, outputs (ROS-free)."""

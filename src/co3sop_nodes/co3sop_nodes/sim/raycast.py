@@ -1,0 +1,69 @@
+"""Ray casting against a scene's meshes with Embree (embreex via trimesh)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+from .scene import SceneObject
+
+
+@dataclass(frozen=True)
+class Hits:
+    distance: np.ndarray  # (N,) m along each ray; inf where it missed
+    object_index: np.ndarray  # (N,) index into the scene's objects, -1 where missed
+    normal: np.ndarray  # (N, 3) unit surface normal facing the ray origin (0 where missed)
+    point: np.ndarray  # (N, 3) world hit point (origin where missed)
+
+
+class ObjectMeshes:
+    """Triangle meshes of a list of objects, built once (the static world is reused every frame)."""
+
+    def __init__(self, objects: Sequence[SceneObject]):
+        self.objects = list(objects)
+        meshes, owner = [], []
+        for i, obj in enumerate(self.objects):
+            for p in obj.primitives:
+                m = p.mesh()
+                meshes.append(m)
+                owner.append(np.full(len(m.faces), i))
+        self.vertices = np.concatenate([m.vertices for m in meshes]) if meshes else np.zeros((0, 3))
+        offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+        self.faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]) if meshes else np.zeros((0, 3), int)
+        self.face_owner = np.concatenate(owner) if owner else np.zeros(0, int)
+
+
+class RayScene:
+    """Static plus dynamic meshes in one BVH."""
+
+    def __init__(self, parts: Sequence[ObjectMeshes]):
+        self.objects = [o for part in parts for o in part.objects]
+        vert_off = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+        obj_off = np.cumsum([0] + [len(p.objects) for p in parts[:-1]])
+        vertices = np.concatenate([p.vertices for p in parts])
+        faces = np.concatenate([p.faces + o for p, o in zip(parts, vert_off)])
+        self.face_owner = np.concatenate([p.face_owner + o for p, o in zip(parts, obj_off)])
+        self.mesh = trimesh.Trimesh(vertices, faces, process=False)
+        self._intersector = RayMeshIntersector(self.mesh)
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float = np.inf) -> Hits:
+        """First hits of rays (N, 3) from `origins` along unit `directions`."""
+        n = len(directions)
+        origins = np.broadcast_to(origins, directions.shape)
+        tri, ray, loc = self._intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=True)
+        distance = np.full(n, np.inf)
+        distance[ray] = np.einsum("ij,ij->i", loc - origins[ray], directions[ray])
+        owner = np.full(n, -1)
+        owner[ray] = self.face_owner[tri]
+        normal = np.zeros((n, 3))
+        face_n = self.mesh.face_normals[tri]
+        flip = np.einsum("ij,ij->i", face_n, directions[ray]) > 0
+        normal[ray] = np.where(flip[:, None], -face_n, face_n)
+        far = distance > max_distance
+        distance[far], owner[far], normal[far] = np.inf, -1, 0
+        point = origins + np.where(np.isfinite(distance), distance, 0)[:, None] * directions
+        return Hits(distance, owner, normal, point)

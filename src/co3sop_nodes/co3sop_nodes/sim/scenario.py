@@ -1,0 +1,91 @@
+"""A scenario: a town, its traffic, and every CAV's sensor data and voxel labels per 10 Hz frame."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..frames import CameraFrame, CavFrame, OtherVehicle
+from ..grid import BENCHMARK_RANGES, GridSpec
+from . import camera, lidar, rig
+from .raycast import ObjectMeshes, RayScene
+from .town import TownConfig, generate_town
+from .traffic import Traffic, TrafficConfig
+from .voxel_sensor import annotate
+
+FIRST_TIMESTAMP = 70  # OPV2V keys are CARLA frame numbers: dumping starts after ~60 ticks, every 2nd tick
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    town: TownConfig = field(default_factory=TownConfig)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    frames: int = 20  # 10 Hz frames written
+    warmup: int = 20  # steps simulated before the first frame, so traffic is under way
+    image_size: tuple[int, int] = (400, 300)  # width, height; OPV2V's are 800 x 600 (intrinsics scale with it)
+    lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
+    ranges: tuple[str, ...] = tuple(BENCHMARK_RANGES)  # benchmark grids to annotate per CAV
+    extra_images: bool = False  # also keep depth and semantic camera images
+    gnss_noise: float = 0.2  # m, std of the predicted_ego_pos error
+    workers: int = 2  # voxel sensor threads
+
+
+def _others(traffic: Traffic, me, radius: float = 150.0) -> list[OtherVehicle]:
+    out = []
+    for v in traffic.vehicles:
+        if v is me or np.hypot(v.x - me.x, v.y - me.y) > radius:
+            continue
+        out.append(OtherVehicle(v.id, v.pose(), np.array([0.0, 0.0, v.size[2] / 2]), np.array(v.size) / 2, v.speed))
+    return out
+
+
+def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFrame]]:
+    """Yields, per frame, one CavFrame for every CAV (REP-103 frames)."""
+    rng = np.random.default_rng(seed)
+    town = generate_town(cfg.town, seed)
+    traffic = Traffic(town, cfg.traffic, seed + 1)
+    static = ObjectMeshes(town.objects)
+    width, height = cfg.image_size
+    k = rig.intrinsics(width, height)
+    grids: dict[str, GridSpec] = {r: BENCHMARK_RANGES[r] for r in cfg.ranges}
+    for _ in range(cfg.warmup):
+        traffic.step()
+    for index in range(cfg.frames):
+        dynamic = traffic.objects()
+        objects = town.objects + dynamic
+        scene = RayScene([static, ObjectMeshes(dynamic)])
+        frames = []
+        for cav in traffic.cavs:
+            vehicle = cav.pose()
+            world_lidar = vehicle @ rig.vehicle_from_lidar()
+            cams = []
+            for name_i, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras()):
+                pose = vehicle @ mount
+                img = camera.render(scene, pose, width, height, k)
+                cams.append(CameraFrame(name_i, pose, k, img.rgb, *((img.depth, img.semantic) if cfg.extra_images else ())))
+            scan = lidar.scan(scene, world_lidar, cfg.lidar, rng)
+            predicted = vehicle.copy()
+            predicted[:2, 3] += rng.normal(0, cfg.gnss_noise, 2)
+            plan = np.array([[p[0], p[1], cav.desired] for p in cav.path[:10]]) if cav.path else np.zeros((0, 3))
+            frames.append(
+                CavFrame(
+                    scenario=name,
+                    cav_id=cav.id,
+                    timestamp=FIRST_TIMESTAMP + 2 * index,
+                    world_from_vehicle=vehicle,
+                    world_from_lidar=world_lidar,
+                    speed=cav.speed,
+                    cameras=cams,
+                    points=scan.points,
+                    intensity=scan.intensity,
+                    point_labels=scan.label,
+                    labels={r: annotate(objects, world_lidar, g, cfg.workers) for r, g in grids.items()},
+                    vehicles=_others(traffic, cav),
+                    plan=plan,
+                    world_from_predicted=predicted,
+                )
+            )
+        yield frames
+        traffic.step()

@@ -1,0 +1,144 @@
+"""Collision primitives of the simulated world: exact voxel overlap, vertical ray hits, meshes.
+
+Every scene object is a union of primitives in the world frame (REP-103 axes,
+metres). The voxel sensor asks each primitive which voxels it overlaps; the
+cameras and LiDAR ray-cast the primitives' triangle meshes, as a game engine
+renders visual meshes and queries collision shapes.
+
+Overlap is strict: a voxel belongs to a primitive only if they interpenetrate
+by more than EPS, so a road whose top lies exactly on a voxel boundary does
+not leak into the voxel above it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import trimesh
+
+EPS = 1e-6  # m
+
+
+def rotation(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
+    """R = Rz(yaw) @ Ry(pitch) @ Rx(roll), radians, REP-103 (right-handed) axes."""
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Box:
+    """An oriented box: centre (3,), half sizes (3,), rotation (3, 3) whose columns are the box axes."""
+
+    center: np.ndarray
+    half: np.ndarray
+    rot: np.ndarray
+
+    @classmethod
+    def make(cls, center, size, yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> "Box":
+        return cls(np.asarray(center, float), np.asarray(size, float) / 2, rotation(yaw, pitch, roll))
+
+    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        r = np.abs(self.rot) @ self.half
+        return self.center - r, self.center + r
+
+    @cached_property
+    def _axes(self) -> np.ndarray:
+        """Candidate separating axes (K, 3): the cube's faces, the box's faces, their edge crossings."""
+        axes = [np.eye(3)[i] for i in range(3)] + [self.rot[:, j] for j in range(3)]
+        for i in range(3):
+            for j in range(3):
+                axis = np.cross(np.eye(3)[i], self.rot[:, j])
+                norm = np.linalg.norm(axis)
+                if norm > 1e-9:
+                    axes.append(axis / norm)
+        return np.array(axes)
+
+    def overlaps(self, centers: np.ndarray, half: float) -> np.ndarray:
+        """Strict overlap with axis-aligned cubes of half size `half` at `centers` (N, 3) -> (N,) bool."""
+        axes = self._axes
+        reach = half * np.abs(axes).sum(axis=1) + np.abs(axes @ self.rot) @ self.half - EPS  # (K,)
+        distance = np.abs((self.center - centers) @ axes.T)  # (N, K)
+        return (distance < reach).all(axis=1)  # separating axis theorem
+
+    def vertical_entry(self, xy: np.ndarray) -> np.ndarray:
+        """Top z where downward vertical rays at xy (N, 2) enter the box; NaN where they miss."""
+        origin = np.column_stack([xy, np.zeros(len(xy))]) - self.center  # (N, 3), box-centred
+        o = origin @ self.rot  # box axes coordinates of the ray origins at z = 0
+        d = self.rot[2]  # direction +z in box axes (rows of rot.T)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-self.half - o) / d
+            t2 = (self.half - o) / d
+        lo = np.where(np.abs(d) < 1e-12, np.where(np.abs(o) < self.half, -np.inf, np.inf), np.minimum(t1, t2))
+        hi = np.where(np.abs(d) < 1e-12, np.where(np.abs(o) < self.half, np.inf, -np.inf), np.maximum(t1, t2))
+        t_in, t_out = lo.max(axis=1), hi.min(axis=1)
+        return np.where(t_in < t_out, t_out, np.nan)  # rays start at z = 0: t is world z
+
+    def mesh(self) -> trimesh.Trimesh:
+        transform = np.eye(4)
+        transform[:3, :3], transform[:3, 3] = self.rot, self.center
+        return trimesh.creation.box(extents=2 * self.half, transform=transform)
+
+
+@dataclass(frozen=True, eq=False)
+class Cylinder:
+    """An upright cylinder: axis centre (x, y), radius, z from z0 to z1."""
+
+    x: float
+    y: float
+    radius: float
+    z0: float
+    z1: float
+
+    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        r = self.radius
+        return np.array([self.x - r, self.y - r, self.z0]), np.array([self.x + r, self.y + r, self.z1])
+
+    def overlaps(self, centers: np.ndarray, half: float) -> np.ndarray:
+        dx = np.maximum(np.abs(centers[:, 0] - self.x) - half, 0)
+        dy = np.maximum(np.abs(centers[:, 1] - self.y) - half, 0)
+        in_z = (centers[:, 2] + half > self.z0 + EPS) & (centers[:, 2] - half < self.z1 - EPS)
+        # the cube's nearest point to the axis lies inside the circle
+        return in_z & (dx * dx + dy * dy < (self.radius - EPS) ** 2)
+
+    def vertical_entry(self, xy: np.ndarray) -> np.ndarray:
+        inside = (xy[:, 0] - self.x) ** 2 + (xy[:, 1] - self.y) ** 2 < self.radius**2
+        return np.where(inside, self.z1, np.nan)
+
+    def mesh(self) -> trimesh.Trimesh:
+        m = trimesh.creation.cylinder(radius=self.radius, height=self.z1 - self.z0, sections=12)
+        m.apply_translation([self.x, self.y, (self.z0 + self.z1) / 2])
+        return m
+
+
+@dataclass(frozen=True, eq=False)
+class Sphere:
+    center: np.ndarray
+    radius: float
+
+    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.center - self.radius, self.center + self.radius
+
+    def overlaps(self, centers: np.ndarray, half: float) -> np.ndarray:
+        gap = np.maximum(np.abs(centers - self.center) - half, 0)  # (N, 3)
+        return (gap * gap).sum(axis=1) < (self.radius - EPS) ** 2
+
+    def vertical_entry(self, xy: np.ndarray) -> np.ndarray:
+        d2 = ((xy - self.center[:2]) ** 2).sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            return np.where(d2 < self.radius**2, self.center[2] + np.sqrt(self.radius**2 - d2), np.nan)
+
+    def mesh(self) -> trimesh.Trimesh:
+        m = trimesh.creation.icosphere(subdivisions=2, radius=self.radius)
+        m.apply_translation(self.center)
+        return m
+
+
+Primitive = Box | Cylinder | Sphere
