@@ -23,6 +23,10 @@ setup(
         "console_scripts": [
             f"monitor = {PACKAGE}.ros.monitor:main",
             f"sample_stream = {PACKAGE}.ros.sample_stream:main",
+            f"generate = {PACKAGE}.cli.generate:entry",
+            f"convert = {PACKAGE}.cli.convert:entry",
+            f"info = {PACKAGE}.cli.info:entry",
+            f"voxelize = {PACKAGE}.cli.voxelize:entry",
         ],
     },
 )

@@ -8,6 +8,7 @@ the bag writer turns them into ROS messages. World poses are 4x4 world_from_x.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 
 import numpy as np
 
@@ -51,4 +52,13 @@ class CavFrame:
     @property
     def stamp_ns(self) -> int:
         """Sensor time: OPV2V frames tick at 20 Hz (0.05 s) from the scenario's start."""
-        return self.timestamp * 50_000_000
+        return scenario_epoch_ns(self.scenario) + self.timestamp * 50_000_000
+
+
+def scenario_epoch_ns(scenario: str) -> int:
+    """Start time of a scenario named as OPV2V's ('%Y_%m_%d_%H_%M_%S', UTC); 0 for other names."""
+    try:
+        start = datetime.strptime(scenario, "%Y_%m_%d_%H_%M_%S").replace(tzinfo=timezone.utc)
+    except ValueError:
+        return 0
+    return int(start.timestamp()) * 1_000_000_000

@@ -11,7 +11,8 @@ from ..frames import CameraFrame, CavFrame, OtherVehicle
 from ..grid import BENCHMARK_RANGES, GridSpec
 from . import camera, lidar, rig
 from .raycast import ObjectMeshes, RayScene
-from .town import TownConfig, generate_town
+from .scene import SceneObject
+from .town import Town, TownConfig, generate_town
 from .traffic import Traffic, TrafficConfig
 from .voxel_sensor import annotate
 
@@ -32,6 +33,16 @@ class ScenarioConfig:
     workers: int = 2  # voxel sensor threads
 
 
+def config_from_dict(data: dict) -> ScenarioConfig:
+    """Inverse of dataclasses.asdict(ScenarioConfig) (as recorded in data_protocol.yaml)."""
+    return ScenarioConfig(
+        town=TownConfig(**data["town"]),
+        traffic=TrafficConfig(**data["traffic"]),
+        lidar=lidar.LidarConfig(**data["lidar"]),
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k not in ("town", "traffic", "lidar")},
+    )
+
+
 def _others(traffic: Traffic, me, radius: float = 150.0) -> list[OtherVehicle]:
     out = []
     for v in traffic.vehicles:
@@ -41,19 +52,27 @@ def _others(traffic: Traffic, me, radius: float = 150.0) -> list[OtherVehicle]:
     return out
 
 
-def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFrame]]:
-    """Yields, per frame, one CavFrame for every CAV (REP-103 frames)."""
-    rng = np.random.default_rng(seed)
+def world_states(cfg: ScenarioConfig, seed: int) -> Iterator[tuple[int, Town, Traffic, list[SceneObject]]]:
+    """Per frame: (OPV2V timestamp, town, traffic, dynamic objects). Deterministic in (cfg, seed)."""
     town = generate_town(cfg.town, seed)
     traffic = Traffic(town, cfg.traffic, seed + 1)
-    static = ObjectMeshes(town.objects)
-    width, height = cfg.image_size
-    k = rig.intrinsics(width, height)
-    grids: dict[str, GridSpec] = {r: BENCHMARK_RANGES[r] for r in cfg.ranges}
     for _ in range(cfg.warmup):
         traffic.step()
     for index in range(cfg.frames):
-        dynamic = traffic.objects()
+        yield FIRST_TIMESTAMP + 2 * index, town, traffic, traffic.objects()
+        traffic.step()
+
+
+def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFrame]]:
+    """Yields, per frame, one CavFrame for every CAV (REP-103 frames)."""
+    rng = np.random.default_rng(seed)
+    width, height = cfg.image_size
+    k = rig.intrinsics(width, height)
+    grids: dict[str, GridSpec] = {r: BENCHMARK_RANGES[r] for r in cfg.ranges}
+    static = None
+    for timestamp, town, traffic, dynamic in world_states(cfg, seed):
+        if static is None:  # the static world is meshed once
+            static = ObjectMeshes(town.objects)
         objects = town.objects + dynamic
         scene = RayScene([static, ObjectMeshes(dynamic)])
         frames = []
@@ -73,7 +92,7 @@ def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFram
                 CavFrame(
                     scenario=name,
                     cav_id=cav.id,
-                    timestamp=FIRST_TIMESTAMP + 2 * index,
+                    timestamp=timestamp,
                     world_from_vehicle=vehicle,
                     world_from_lidar=world_lidar,
                     speed=cav.speed,
@@ -88,4 +107,3 @@ def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFram
                 )
             )
         yield frames
-        traffic.step()

@@ -31,7 +31,7 @@ class TownConfig:
     block_min: float = 50.0  # block pitch range (road centre to road centre), m
     block_max: float = 85.0
     canal: bool = True  # a canal with bridges across one block row
-    tram: bool = True  # a tram track along one avenue
+    tram: bool = True  # tram tracks along one avenue in x and one in y
 
 
 @dataclass(frozen=True)
@@ -110,12 +110,13 @@ def generate_town(cfg: TownConfig, seed: int) -> Town:
     }
     canal_row = int(rng.integers(0, len(ys) - 1)) if cfg.canal and len(ys) > 1 else None
     canal_y = (ys[canal_row] + ys[canal_row + 1]) / 2 if canal_row is not None else None
-    tram_road = (0, ys[int(rng.integers(0, len(ys)))]) if cfg.tram and ys else None
+    # the tram runs along one avenue each way
+    trams = {(0, ys[int(rng.integers(0, len(ys)))]), (1, xs[int(rng.integers(0, len(xs)))])} if cfg.tram and xs and ys else set()
 
     _terrain_base(town, rng, half)
     for (axis, offset), lanes in widths.items():
         crossing = ys if axis == 1 else xs
-        _road(town, rng, axis, offset, lanes, crossing, widths, half, canal_y, tram=(axis, offset) == tram_road)
+        _road(town, rng, axis, offset, lanes, crossing, widths, half, canal_y, tram=(axis, offset) in trams)
     for x in xs:
         for y in ys:
             town.intersections.append((x, y))
@@ -248,13 +249,15 @@ def _street_furniture(town: Town, rng, axis, offset, a, b, side, hw) -> None:
 def _prop(town: Town, rng, axis, offset, s, across) -> None:
     x, y = _point(axis, offset, s, across)
     yaw = 0.0 if axis == 0 else np.pi / 2
-    kind = rng.choice(["bench", "hydrant", "bin", "shelter", "cart"])
+    kind = rng.choice(["bench", "hydrant", "bin", "shelter", "cart", "clutter"])
     if kind == "bench":
         town.add("static", [Box.make([x, y, CURB + 0.45], [1.6, 0.5, 0.1], yaw), Box.make([x, y, CURB + 0.2], [1.4, 0.4, 0.4], yaw)], (120, 80, 50))
     elif kind == "hydrant":
         town.add("static", [Cylinder(x, y, 0.15, CURB, CURB + 0.7)], (200, 40, 30))
     elif kind == "bin":
         town.add("dynamic", [Box.make([x, y, CURB + 0.5], [0.6, 0.6, 1.0], yaw)], _vary(rng, (40, 90, 50)))
+    elif kind == "clutter":  # what CARLA leaves untagged (tag 0): construction debris, crates
+        town.add("unlabeled", [Box.make([x, y, CURB + 0.3], [rng.uniform(0.5, 1.5), 0.6, 0.6], yaw + rng.uniform(-0.5, 0.5))], (150, 120, 90))
     elif kind == "cart":
         town.add("dynamic", [Box.make([x, y, CURB + 0.5], [0.9, 0.6, 0.7], yaw)], (160, 160, 170))
     else:  # bus shelter: roof and back wall

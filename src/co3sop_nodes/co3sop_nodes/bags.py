@@ -1,0 +1,267 @@
+"""rosbag2 bags (MCAP storage) of CAV frames, written and read with rosbags (ROS-free).
+
+A bag holds, per CAV, REP-103 frames and standard types (topic names in
+topics.py): camera images + CameraInfo, PointCloud2, the LiDAR's PoseStamped
+in `map`, /tf and /tf_static, and the ground truth of each benchmark range as
+co3sop_msgs/SemanticOccupancy. The co3sop_msgs definitions are embedded in the
+MCAP schemas, so `ros2 bag`, Foxglove and rosbags read the bag without this
+package. A bag is written under a temporary name and renamed when complete.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections import defaultdict
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from . import topics
+from .classes import NUM_CLASSES
+from .codec import decode_labels, encode_labels, EncodedLabels
+from .errors import DatasetError
+from .frames import CameraFrame, CavFrame
+from .geometry import Pose
+from .grid import BENCHMARK_RANGES, GridSpec
+
+CO3SOP_MSGS = ("GridSpec", "VoxelFeatures", "SemanticOccupancy")
+_OPTICAL_FROM_BODY = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])  # rows: optical x, y, z in body axes
+_RANGE_OF_SUFFIX = {suffix: name for name, suffix in topics.RANGE_SUFFIX.items()}
+_NEVER = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)
+_LATCHED = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _NEVER, _NEVER,
+                QosLiveliness.AUTOMATIC, _NEVER, False)]
+
+
+def msg_dir() -> Path:
+    """The installed co3sop_msgs .msg files (found on AMENT_PREFIX_PATH, as ROS tools find them)."""
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        candidate = Path(prefix, "share", "co3sop_msgs", "msg")
+        if (candidate / "GridSpec.msg").is_file():
+            return candidate
+    raise DatasetError("co3sop_msgs is not on AMENT_PREFIX_PATH: source ros2_ws/env.sh (or your workspace) first")
+
+
+def typestore():
+    """Jazzy's standard types plus co3sop_msgs, parsed from the installed .msg files."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name in CO3SOP_MSGS:
+        text = (msg_dir() / f"{name}.msg").read_text()
+        store.register(get_types_from_msg(text, f"co3sop_msgs/msg/{name}"))
+    return store
+
+
+class BagWriter:
+    """Writes CAV frames to a rosbag2 MCAP bag; use as a context manager."""
+
+    def __init__(self, path: Path, compress: bool = True):
+        self.path = Path(path)
+        # written as <parent>/.<name>.partial/<name> (the MCAP file takes the folder's name), moved when complete
+        self._partial = self.path.parent / f".{self.path.name}.partial"
+        if self._partial.exists():
+            shutil.rmtree(self._partial)
+        self._partial.mkdir(parents=True)
+        self.ts = typestore()
+        self.t = self.ts.types
+        self._writer = Writer(self._partial / self.path.name, version=9, storage_plugin=StoragePlugin.MCAP)
+        if compress:
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self._connections: dict[str, object] = {}
+        self._static_sent: set[int] = set()
+        self.messages = 0
+
+    def __enter__(self) -> "BagWriter":
+        self._writer.open()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._writer.close()
+        if exc_type is None:
+            if self.path.exists():
+                shutil.rmtree(self.path)
+            (self._partial / self.path.name).rename(self.path)
+        # nothing half-written is left looking complete
+        shutil.rmtree(self._partial, ignore_errors=True)
+
+    # --- message builders -------------------------------------------------------------------------
+
+    def _header(self, stamp_ns: int, frame_id: str):
+        t = self.t
+        return t["std_msgs/msg/Header"](
+            stamp=t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=frame_id
+        )
+
+    def _transform(self, stamp_ns: int, parent: str, child: str, m: np.ndarray):
+        t, pose = self.t, Pose.from_matrix(m)
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=self._header(stamp_ns, parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](*pose.position),
+                rotation=t["geometry_msgs/msg/Quaternion"](*pose.orientation),
+            ),
+        )
+
+    def _pose(self, m: np.ndarray):
+        t, pose = self.t, Pose.from_matrix(m)
+        return t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](*pose.position), orientation=t["geometry_msgs/msg/Quaternion"](*pose.orientation)
+        )
+
+    def _image(self, stamp_ns: int, frame_id: str, array: np.ndarray, encoding: str):
+        h, w = array.shape[:2]
+        data = np.ascontiguousarray(array).view(np.uint8).reshape(-1)
+        return self.t["sensor_msgs/msg/Image"](
+            header=self._header(stamp_ns, frame_id), height=h, width=w, encoding=encoding, is_bigendian=0,
+            step=len(data) // h, data=data,
+        )
+
+    def _camera_info(self, stamp_ns: int, frame_id: str, cam: CameraFrame):
+        t = self.t
+        k = cam.intrinsics
+        p = np.zeros((3, 4))
+        p[:, :3] = k
+        h, w = cam.rgb.shape[:2]
+        return t["sensor_msgs/msg/CameraInfo"](
+            header=self._header(stamp_ns, frame_id), height=h, width=w, distortion_model="plumb_bob",
+            d=np.zeros(5), k=k.reshape(-1).astype(float), r=np.eye(3).reshape(-1), p=p.reshape(-1), binning_x=0, binning_y=0,
+            roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+        )
+
+    def _points(self, stamp_ns: int, frame: CavFrame):
+        t = self.t
+        n = len(frame.points)
+        dtype = np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
+                          "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
+        cloud = np.zeros(n, dtype)
+        cloud["x"], cloud["y"], cloud["z"] = frame.points.T
+        cloud["intensity"] = frame.intensity
+        if frame.point_labels is not None:
+            cloud["label"] = frame.point_labels
+        field = t["sensor_msgs/msg/PointField"]
+        fields = [field(name=nm, offset=o, datatype=7, count=1) for nm, o in zip("xyz", (0, 4, 8))]
+        fields.append(field(name="intensity", offset=12, datatype=7, count=1))
+        fields.append(field(name="label", offset=16, datatype=2, count=1))
+        return t["sensor_msgs/msg/PointCloud2"](
+            header=self._header(stamp_ns, topics.lidar_frame(frame.cav_id)), height=1, width=n, fields=fields,
+            is_bigendian=False, point_step=20, row_step=20 * n, data=cloud.view(np.uint8), is_dense=True,
+        )
+
+    def _occupancy(self, stamp_ns: int, frame: CavFrame, range_name: str):
+        grid = BENCHMARK_RANGES[range_name]
+        enc = encode_labels(frame.labels[range_name], grid, NUM_CLASSES)
+        return occupancy_message(self.t, self._header(stamp_ns, topics.lidar_frame(frame.cav_id)), frame.cav_id, enc)
+
+    # --- writing -----------------------------------------------------------------------------------
+
+    def _write(self, topic: str, msgtype: str, stamp_ns: int, msg, latched: bool = False) -> None:
+        if topic not in self._connections:
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self.ts, offered_qos_profiles=_LATCHED if latched else ()
+            )
+        self._writer.write(self._connections[topic], stamp_ns, self.ts.serialize_cdr(msg, msgtype))
+        self.messages += 1
+
+    def write(self, frames: Sequence[CavFrame]) -> None:
+        """One timestamp: every CAV's frame."""
+        tfs = []
+        for frame in frames:
+            stamp, cav = frame.stamp_ns, frame.cav_id
+            if cav not in self._static_sent:
+                self._write(topics.TF_STATIC, "tf2_msgs/msg/TFMessage", stamp, self.t["tf2_msgs/msg/TFMessage"](transforms=self._mounts(frame)), latched=True)
+                self._static_sent.add(cav)
+            tfs.append(self._transform(stamp, topics.WORLD_FRAME, topics.base_frame(cav), frame.world_from_vehicle))
+            pose = self.t["geometry_msgs/msg/PoseStamped"](header=self._header(stamp, topics.WORLD_FRAME), pose=self._pose(frame.world_from_lidar))
+            self._write(topics.lidar_pose(cav), "geometry_msgs/msg/PoseStamped", stamp, pose)
+            self._write(topics.lidar_points(cav), "sensor_msgs/msg/PointCloud2", stamp, self._points(stamp, frame))
+            for cam in frame.cameras:
+                optical = topics.camera_optical_frame(cav, cam.name)
+                self._write(topics.camera_image(cav, cam.name), "sensor_msgs/msg/Image", stamp, self._image(stamp, optical, cam.rgb, "rgb8"))
+                self._write(topics.camera_info(cav, cam.name), "sensor_msgs/msg/CameraInfo", stamp, self._camera_info(stamp, optical, cam))
+                if cam.depth is not None:
+                    self._write(topics.camera_depth(cav, cam.name), "sensor_msgs/msg/Image", stamp, self._image(stamp, optical, cam.depth.astype("<f4"), "32FC1"))
+                if cam.semantic is not None:
+                    self._write(topics.camera_semantic(cav, cam.name), "sensor_msgs/msg/Image", stamp, self._image(stamp, optical, cam.semantic, "mono8"))
+            for range_name in frame.labels:
+                self._write(topics.ground_truth(cav, range_name), "co3sop_msgs/msg/SemanticOccupancy", stamp, self._occupancy(stamp, frame, range_name))
+        if tfs:
+            self._write(topics.TF, "tf2_msgs/msg/TFMessage", frames[0].stamp_ns, self.t["tf2_msgs/msg/TFMessage"](transforms=tfs))
+
+    def _mounts(self, frame: CavFrame) -> list:
+        """Static transforms of one CAV: base_link -> lidar -> camera body -> camera optical."""
+        cav, stamp = frame.cav_id, frame.stamp_ns
+        lidar_from_world = np.linalg.inv(frame.world_from_lidar)
+        out = [self._transform(stamp, topics.base_frame(cav), topics.lidar_frame(cav), np.linalg.inv(frame.world_from_vehicle) @ frame.world_from_lidar)]
+        for cam in frame.cameras:
+            out.append(self._transform(stamp, topics.lidar_frame(cav), topics.camera_frame(cav, cam.name), lidar_from_world @ cam.world_from_camera))
+            out.append(self._transform(stamp, topics.camera_frame(cav, cam.name), topics.camera_optical_frame(cav, cam.name), np.linalg.inv(_OPTICAL_FROM_BODY)))
+        return out
+
+
+def occupancy_message(types, header, agent_id: int, enc: EncodedLabels):
+    """A co3sop_msgs/SemanticOccupancy (rosbags types) from encoded labels."""
+    g = enc.grid
+    grid = types["co3sop_msgs/msg/GridSpec"](
+        origin=types["geometry_msgs/msg/Point"](*g.origin), voxel_size=g.voxel_size, nx=g.dims[0], ny=g.dims[1], nz=g.dims[2]
+    )
+    return types["co3sop_msgs/msg/SemanticOccupancy"](
+        header=header, agent_id=agent_id, grid=grid, num_classes=enc.num_classes, codec=enc.codec,
+        labels=np.frombuffer(enc.labels, np.uint8), labels_raw_size=enc.labels_raw_size,
+        confidence=np.frombuffer(enc.confidence, np.uint8), confidence_raw_size=enc.confidence_raw_size,
+    )
+
+
+def occupancy_labels(msg) -> tuple[np.ndarray, GridSpec]:
+    """Decoded (nx, ny, nz) labels and grid of a SemanticOccupancy read by rosbags."""
+    g = msg.grid
+    grid = GridSpec((g.origin.x, g.origin.y, g.origin.z), g.voxel_size, (g.nx, g.ny, g.nz))
+    enc = EncodedLabels(grid, msg.num_classes, msg.codec, msg.labels.tobytes(), msg.labels_raw_size, msg.confidence.tobytes(), msg.confidence_raw_size)
+    return decode_labels(enc).labels, grid
+
+
+# --- reading ---------------------------------------------------------------------------------------
+
+
+def open_reader(path: Path) -> AnyReader:
+    path = Path(path)
+    if not (path / "metadata.yaml").is_file():
+        raise DatasetError(f"{path}: not a rosbag2 bag (no metadata.yaml)")
+    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+
+
+def _stamp(header) -> int:
+    return header.stamp.sec * 10**9 + header.stamp.nanosec
+
+
+def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
+    """Per sensor stamp: {cav_id: {"pose", "points", "intensity", "labels", "cameras"}} decoded from a bag.
+
+    Meant for checks and offline evaluation; the player replays raw messages.
+    """
+    by_stamp: dict[int, dict[int, dict]] = defaultdict(lambda: defaultdict(lambda: {"cameras": {}, "labels": {}}))
+    with open_reader(path) as reader:
+        for conn, _, raw in reader.messages():
+            parts = conn.topic.strip("/").split("/")
+            if not parts[0].startswith("cav_"):
+                continue
+            msg = reader.deserialize(raw, conn.msgtype)
+            entry = by_stamp[_stamp(msg.header)][int(parts[0][4:])]
+            if parts[1:] == ["lidar", "pose"]:
+                p, o = msg.pose.position, msg.pose.orientation
+                entry["pose"] = Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w)).matrix()
+            elif parts[1:] == ["lidar", "points"]:
+                cloud = msg.data.view(np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4"] * 4 + ["u1"],
+                                                "offsets": [0, 4, 8, 12, 16], "itemsize": msg.point_step}))
+                entry["points"] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
+                entry["intensity"] = cloud["intensity"].copy()
+            elif parts[1] == "ground_truth":
+                entry["labels"][_RANGE_OF_SUFFIX[parts[2].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
+            elif parts[-1] == "image_raw":
+                entry["cameras"][parts[1]] = msg.data.reshape(msg.height, msg.width, 3)
+    for stamp in sorted(by_stamp):
+        yield stamp, {cav: dict(v) for cav, v in by_stamp[stamp].items()}

@@ -1,0 +1,1 @@
+"""Command-line tools (console scripts of co3sop_nodes; ROS-free)."""

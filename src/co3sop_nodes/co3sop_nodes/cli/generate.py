@@ -1,0 +1,192 @@
+"""`generate`: simulate train/validate/test splits of OPV2V-style scenarios with Co3SOP labels.
+
+    ros2 run co3sop_nodes generate --out data/ --splits train=4 validate=1 test=1 --frames 20 --bags bags/
+
+Each scenario is a procedural town with 2..7 CAVs (four cameras and a LiDAR each)
+and traffic, written in the OPV2V folder layout with Co3SOP voxel labels for
+the three benchmark ranges, and optionally as a rosbag2 bag. Scenarios run in
+parallel worker processes; a scenario is written under a temporary name and
+renamed when complete, so an interrupted run resumes where it stopped
+(completed scenarios are skipped).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import multiprocessing as mp
+import queue
+import shutil
+from datetime import datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .. import opv2v
+from ..bev import bev_image
+from ..errors import DatasetError
+from ..frames import CavFrame
+from ..sim.scenario import ScenarioConfig, simulate
+from ..sim.town import TownConfig
+from ..sim.traffic import TrafficConfig
+from .common import progress, run
+
+
+def scenario_name(split: str, index: int, seed: int) -> str:
+    """An OPV2V-style name (collection time), unique per (split, index, seed)."""
+    offset = {"train": 0, "validate": 1, "test": 2}.get(split, 3)
+    start = datetime(2021, 8, 16) + timedelta(days=offset * 40 + seed % 30, minutes=index * 17, seconds=(seed * 7) % 60)
+    return start.strftime("%Y_%m_%d_%H_%M_%S")
+
+
+def scenario_seed(split: str, index: int, seed: int) -> int:
+    return int(np.random.SeedSequence([seed, sum(map(ord, split)), index]).generate_state(1)[0])
+
+
+def data_protocol(cfg: ScenarioConfig, seed: int) -> dict:
+    """OpenCDA's scenario record, plus what re-creates the scenario exactly (`co3sop_sim`)."""
+    return {
+        "world": {"sync_mode": True, "client_port": 2000, "fixed_delta_seconds": 0.05, "seed": seed,
+                  "weather": {"sun_altitude_angle": 55, "cloudiness": 0, "precipitation": 0, "fog_density": 0}},
+        "vehicle_base": {"sensing": {"lidar": {"channels": cfg.lidar.channels, "range": cfg.lidar.range,
+                                               "upper_fov": cfg.lidar.upper_fov, "lower_fov": cfg.lidar.lower_fov},
+                                     "camera": {"fov": 100, "image_size_x": cfg.image_size[0], "image_size_y": cfg.image_size[1]}}},
+        "scenario": {"cavs": cfg.traffic.cavs, "background_vehicles": cfg.traffic.vehicles},
+        "co3sop_sim": {"seed": seed, "config": dataclasses.asdict(cfg)},
+    }
+
+
+def picture(frame: CavFrame, range_name: str) -> np.ndarray:
+    """BEV of the ground truth in the paper's palette beside the four camera images."""
+    from PIL import Image
+
+    bev = bev_image(frame.labels[range_name], scale=2)  # (512, 512, 3) for 256 x 256 grids
+    side = bev.shape[0] // 2
+    tiles = [np.asarray(Image.fromarray(c.rgb).resize((side * 4 // 3, side))) for c in frame.cameras]
+    mosaic = np.concatenate([np.concatenate(tiles[:2], axis=1), np.concatenate(tiles[2:], axis=1)], axis=0)
+    return np.concatenate([bev, mosaic], axis=1)
+
+
+def _partial_dirs(out: Path, split: str, name: str) -> list[Path]:
+    return [out / split / f".{name}.partial"] + [out / folder / split / f".{name}.partial" for folder in opv2v.LABEL_FOLDERS.values()]
+
+
+def generate_scenario(job: dict, events) -> str:
+    """Worker: one scenario, written under temporary names and renamed when complete."""
+    out, split, name, seed, cfg = Path(job["out"]), job["split"], job["name"], job["seed"], job["config"]
+    partial = f".{name}.partial"
+    for d in _partial_dirs(out, split, name):  # leftovers of an interrupted run
+        shutil.rmtree(d, ignore_errors=True)
+    (out / split / partial).mkdir(parents=True)
+    with open(out / split / partial / "data_protocol.yaml", "w") as f:
+        yaml.safe_dump(data_protocol(cfg, seed), f)
+    for frames in simulate(cfg, seed, name):
+        for frame in frames:
+            opv2v.write_frame(out, split, frame, scenario_dir=partial)
+            if job["pictures"]:
+                from PIL import Image
+
+                path = out / "pictures" / split / name / str(frame.cav_id) / f"{frame.timestamp:06d}.png"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                Image.fromarray(picture(frame, job["picture_range"])).save(path)
+        events.put(1)
+    # labels first, the scenario folder last: its presence marks the scenario complete
+    for folder in opv2v.LABEL_FOLDERS.values():
+        src, dst = out / folder / split / partial, out / folder / split / name
+        if src.exists():
+            shutil.rmtree(dst, ignore_errors=True)  # labels of an earlier, incomplete run
+            src.rename(dst)
+    (out / split / partial).rename(out / split / name)
+    if job["bags"]:
+        from ..bags import BagWriter
+
+        bag = Path(job["bags"]) / split / name
+        bag.parent.mkdir(parents=True, exist_ok=True)
+        with BagWriter(bag) as writer:
+            for _, frames in opv2v.read_scenario(out, split, name, cfg.ranges):
+                if isinstance(frames, DatasetError):
+                    raise frames
+                writer.write(frames)
+    return name
+
+
+def parse_splits(items: list[str]) -> dict[str, int]:
+    splits = {}
+    for item in items:
+        name, _, count = item.partition("=")
+        if name not in opv2v.SPLITS or not count.isdigit():
+            raise DatasetError(f"--splits: expected NAME=COUNT with NAME in {', '.join(opv2v.SPLITS)}, got {item!r}")
+        splits[name] = int(count)
+    return splits
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="generate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, required=True, help="dataset root (OPV2V layout)")
+    parser.add_argument("--splits", nargs="+", default=["train=4", "validate=1", "test=1"], help="NAME=COUNT scenarios per split")
+    parser.add_argument("--frames", type=int, default=20, help="10 Hz frames per scenario")
+    parser.add_argument("--seed", type=int, default=0, help="base seed: the same seed gives the same dataset")
+    parser.add_argument("--workers", type=int, default=2, help="scenarios simulated in parallel")
+    parser.add_argument("--cavs", default="2-4", help="CAVs per scenario: N or MIN-MAX (OPV2V: 2-7)")
+    parser.add_argument("--vehicles", type=int, default=30, help="other moving vehicles per town")
+    parser.add_argument("--image-size", default="400x300", help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it")
+    parser.add_argument("--lidar-steps", type=int, default=1024, help="LiDAR rays per channel per sweep")
+    parser.add_argument("--extras", action="store_true", help="also write depth and semantic camera images")
+    parser.add_argument("--bags", type=Path, help="also write one rosbag2 (MCAP) bag per scenario under this folder")
+    parser.add_argument("--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures")
+    parser.add_argument("--picture-range", default="51.2m", choices=list(opv2v.LABEL_FOLDERS))
+    opts = parser.parse_args(args)
+
+    splits = parse_splits(opts.splits)
+    lo, _, hi = opts.cavs.partition("-")
+    try:
+        cav_range = (int(lo), int(hi or lo))
+        width, height = (int(v) for v in opts.image_size.lower().split("x"))
+    except ValueError:
+        raise DatasetError(f"--cavs {opts.cavs!r} / --image-size {opts.image_size!r}: expected N or MIN-MAX / WIDTHxHEIGHT") from None
+    if not 1 <= cav_range[0] <= cav_range[1] <= 7:
+        raise DatasetError(f"--cavs {opts.cavs!r}: between 1 and 7 CAVs")
+    jobs, skipped = [], 0
+    for split, count in splits.items():
+        for index in range(count):
+            seed = scenario_seed(split, index, opts.seed)
+            name = scenario_name(split, index, opts.seed)
+            if (opts.out / split / name).is_dir() and (not opts.bags or (opts.bags / split / name / "metadata.yaml").exists()):
+                skipped += 1
+                continue
+            cavs = int(np.random.default_rng(seed).integers(cav_range[0], cav_range[1] + 1))
+            cfg = ScenarioConfig(
+                town=TownConfig(), traffic=TrafficConfig(cavs=cavs, vehicles=opts.vehicles), frames=opts.frames,
+                image_size=(width, height), lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
+                extra_images=opts.extras, workers=1,
+            )
+            if (opts.out / split / name).is_dir():  # folder complete, only the bag is missing: redo both
+                shutil.rmtree(opts.out / split / name)
+            jobs.append(dict(out=str(opts.out), split=split, name=name, seed=seed, config=cfg, bags=opts.bags and str(opts.bags),
+                             pictures=opts.pictures, picture_range=opts.picture_range))
+    print(f"generate: {len(jobs)} scenario(s) to simulate, {skipped} already complete", flush=True)
+    if not jobs:
+        return 0
+    opts.out.mkdir(parents=True, exist_ok=True)
+    ctx = mp.get_context("spawn")
+    with ctx.Manager() as manager, ctx.Pool(max(1, min(opts.workers, len(jobs)))) as pool:
+        events = manager.Queue()
+        pending = [pool.apply_async(generate_scenario, (job, events)) for job in jobs]
+        bar = progress(sum(j["config"].frames for j in jobs), "frames", "frame")
+        while pending:
+            try:
+                bar.update(events.get(timeout=0.5))
+            except queue.Empty:
+                pass
+            for result in [r for r in pending if r.ready()]:
+                pending.remove(result)
+                bar.write(f"generate: scenario {result.get()} complete")  # get() re-raises a worker's error
+        while not events.empty():
+            bar.update(events.get())
+        bar.close()
+    print(f"generate: {len(jobs)} scenario(s) written to {opts.out}" + (f", bags in {opts.bags}" if opts.bags else ""))
+    return 0
+
+
+entry = run(main)

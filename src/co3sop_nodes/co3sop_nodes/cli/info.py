@@ -1,0 +1,107 @@
+"""`info`: summarise a bag, a folder of bags, or an OPV2V/Co3SOP dataset folder.
+
+    ros2 run co3sop_nodes info PATH [--no-counts]
+
+Prints scenarios, CAVs, frames, topics (bags), and per-class voxel counts of
+the ground truth per benchmark range.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from .. import opv2v
+from ..bags import occupancy_labels, open_reader
+from ..classes import CLASS_NAMES, NUM_CLASSES
+from ..errors import DatasetError
+from .common import progress, run
+
+
+def class_table(counts: dict[str, np.ndarray]) -> str:
+    """Markdown table: one row per class present, one column per range (voxels and share)."""
+    ranges = sorted(counts)
+    lines = ["| class | " + " | ".join(ranges) + " |", "|---|" + "---:|" * len(ranges)]
+    for label in range(NUM_CLASSES + 1):
+        if not any(counts[r][label] for r in ranges):
+            continue
+        name = CLASS_NAMES[label] if label < NUM_CLASSES else "ignore (255)"
+        cells = [f"{int(counts[r][label])} ({counts[r][label] / max(counts[r].sum(), 1):.2%})" for r in ranges]
+        lines.append(f"| {label if label < NUM_CLASSES else 255} {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _count(labels: np.ndarray) -> np.ndarray:
+    """(NUM_CLASSES + 1,) voxel counts; the last entry counts ignored (255) voxels."""
+    c = np.bincount(labels.reshape(-1), minlength=256)
+    return np.append(c[:NUM_CLASSES], c[255])
+
+
+def bag_info(path: Path, counts: bool) -> str:
+    topics, cavs, stamps = [], set(), set()
+    class_counts: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(NUM_CLASSES + 1, np.int64))
+    with open_reader(path) as reader:
+        for conn in sorted(reader.connections, key=lambda c: c.topic):
+            topics.append(f"| {conn.topic} | {conn.msgtype} | {conn.msgcount} |")
+            if conn.topic.startswith("/cav_"):
+                cavs.add(int(conn.topic.split("/")[1][4:]))
+        messages = reader.message_count
+        duration = (reader.end_time - reader.start_time) / 1e9 if messages else 0.0
+        for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic.endswith("/lidar/pose")]):
+            stamps.add(stamp)
+        if counts:
+            gt = [c for c in reader.connections if "/ground_truth/" in c.topic]
+            for conn, _, raw in reader.messages(connections=gt):
+                labels, grid = occupancy_labels(reader.deserialize(raw, conn.msgtype))
+                class_counts[f"{grid.extent[0]:.1f}m"] += _count(labels)
+    out = [f"# {path}", f"bag: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}; {len(stamps)} frames", "",
+           "| topic | type | messages |", "|---|---|---:|", *topics]
+    if class_counts:
+        out += ["", "Ground-truth voxels per class:", "", class_table(class_counts)]
+    return "\n".join(out)
+
+
+def folder_info(root: Path, counts: bool) -> str:
+    scenarios = opv2v.find_scenarios(root)
+    out = [f"# {root}", f"{len(scenarios)} scenario(s): " + ", ".join(f"{s} {n}" for s, n in Counter(s for s, _ in scenarios).items()), "",
+           "| split | scenario | CAVs (ego first) | frames | label ranges |", "|---|---|---|---:|---|"]
+    class_counts: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(NUM_CLASSES + 1, np.int64))
+    files = []
+    for split, name in scenarios:
+        cavs, timestamps = opv2v.scenario_timestamps(root / split / name)
+        ranges = [r for r, folder in opv2v.LABEL_FOLDERS.items() if (root / folder / split / name).is_dir()]
+        out.append(f"| {split} | {name} | {' '.join(cavs)} | {len(timestamps)} | {' '.join(ranges) or '-'} |")
+        files += [(r, opv2v.label_path(root, r, split, name, int(c), t)) for r in ranges for c in cavs for t in timestamps]
+    if counts and files:
+        bar = progress(len(files), "label files", "file")
+        for range_name, path in files:
+            if path.exists():
+                class_counts[range_name] += _count(opv2v.read_labels(path, range_name))
+            bar.update(1)
+        bar.close()
+        out += ["", "Ground-truth voxels per class:", "", class_table(class_counts)]
+    return "\n".join(out)
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="info", description=__doc__.split("\n\n")[1])
+    parser.add_argument("path", type=Path, help="a bag folder, a folder of bags, or an OPV2V root")
+    parser.add_argument("--no-counts", action="store_true", help="skip the per-class voxel counts (faster)")
+    opts = parser.parse_args(args)
+    path: Path = opts.path
+    if not path.exists():
+        raise DatasetError(f"{path}: no such file or folder")
+    if (path / "metadata.yaml").is_file():
+        print(bag_info(path, not opts.no_counts))
+    elif bags := sorted(p.parent for p in path.glob("**/metadata.yaml")):
+        for bag in bags:
+            print(bag_info(bag, not opts.no_counts) + "\n")
+    else:
+        print(folder_info(path, not opts.no_counts))
+    return 0
+
+
+entry = run(main)

@@ -1,0 +1,167 @@
+"""The dataset tools as users run them: generate, convert, info, voxelize (installed executables, real bags)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
+
+from co3sop_nodes import bags, opv2v
+from conftest import executable
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
+SCENARIO = "2021_08_24_21_29_28"
+
+
+def tool(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([executable(args[0]), *args[1:]], capture_output=True, text=True, timeout=timeout)
+
+
+def assert_bag_matches_folder(bag: Path, root: Path, split: str, scenario: str, ranges) -> int:
+    """Every array in the bag equals the folder's (read through opv2v); returns the frames compared."""
+    folder = {ts: frames for ts, frames in opv2v.read_scenario(root, split, scenario, ranges)}
+    compared = 0
+    for (stamp, cavs), (ts, frames) in zip(bags.read_frames(bag), sorted(folder.items())):
+        assert stamp == frames[0].stamp_ns
+        for f in frames:
+            entry = cavs[f.cav_id]
+            np.testing.assert_allclose(entry["pose"], f.world_from_lidar, atol=1e-9)
+            np.testing.assert_array_equal(entry["points"], f.points)
+            np.testing.assert_array_equal(entry["intensity"], f.intensity)
+            assert set(entry["labels"]) == set(f.labels)
+            for r in f.labels:
+                np.testing.assert_array_equal(entry["labels"][r], f.labels[r])
+            for cam in f.cameras:
+                np.testing.assert_array_equal(entry["cameras"][cam.name], cam.rgb)
+            compared += 1
+    assert compared == sum(len(f) for f in folder.values())
+    return compared
+
+
+def test_convert_real_format_fixture_round_trip(tmp_path):
+    result = tool("convert", str(FIXTURE), "--out", str(tmp_path / "bags"))
+    assert result.returncode == 0, result.stderr
+    bag = tmp_path / "bags" / "test" / SCENARIO
+    assert assert_bag_matches_folder(bag, FIXTURE, "test", SCENARIO, ("51.2m",)) == 4
+    assert not list((tmp_path / "bags" / "test").glob(".*partial*"))
+
+
+def test_bag_opens_without_this_package(tmp_path):
+    """ros2 bag / Foxglove read the embedded schemas: no co3sop typestore is needed."""
+    assert tool("convert", str(FIXTURE), "--out", str(tmp_path)).returncode == 0
+    bag = tmp_path / "test" / SCENARIO
+    with AnyReader([bag]) as reader:  # no default typestore: types only from the bag
+        conns = {c.topic: c for c in reader.connections}
+        gt = conns["/cav_4805/ground_truth/occupancy_50m"]
+        assert gt.msgtype == "co3sop_msgs/msg/SemanticOccupancy"
+        _, _, raw = next(reader.messages(connections=[gt]))
+        msg = reader.deserialize(raw, gt.msgtype)
+        assert (msg.grid.nx, msg.grid.ny, msg.grid.nz) == (256, 256, 24) and msg.header.frame_id == "cav_4805/lidar"
+        assert conns["/cav_4805/camera0/image_raw"].msgtype == "sensor_msgs/msg/Image"
+        assert conns["/tf_static"].msgtype == "tf2_msgs/msg/TFMessage"
+    (mcap_file,) = bag.glob("*.mcap")
+    with open(mcap_file, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.message_count > 0
+    assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+    assert "metadata.yaml" in {p.name for p in bag.iterdir()}
+
+
+@pytest.fixture
+def damaged(tmp_path):
+    root = tmp_path / "opv2v"
+    shutil.copytree(FIXTURE, root)
+    png = root / "test" / SCENARIO / "4814" / "000071_camera2.png"
+    png.write_bytes(b"not a png")
+    return root, png
+
+
+def test_convert_stops_before_writing_on_bad_input(damaged, tmp_path):
+    root, png = damaged
+    result = tool("convert", str(root), "--out", str(tmp_path / "bags"))
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert str(png) in result.stderr and "unreadable PNG" in result.stderr
+    assert not (tmp_path / "bags" / "test" / SCENARIO).exists()
+    assert not list((tmp_path / "bags").glob("**/*.mcap"))
+
+
+def test_convert_can_skip_bad_frames_and_report_them(damaged, tmp_path):
+    root, png = damaged
+    result = tool("convert", str(root), "--out", str(tmp_path / "bags"), "--on-error", "skip")
+    assert result.returncode == 0, result.stderr
+    assert "timestamp 000071 skipped" in result.stdout and str(png) in result.stdout
+    stamps = [stamp for stamp, _ in bags.read_frames(tmp_path / "bags" / "test" / SCENARIO)]
+    assert len(stamps) == 1
+
+
+def test_tools_explain_bad_paths_without_traceback(tmp_path):
+    for args in (("info", str(tmp_path / "nothing")), ("convert", str(tmp_path), "--out", str(tmp_path / "o"))):
+        result = tool(*args)
+        assert result.returncode == 2 and "error:" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gen")
+    args = ("generate", "--out", str(out / "data"), "--splits", "train=1", "test=1", "--frames", "2", "--cavs", "2",
+            "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "10", "--bags", str(out / "bags"), "--pictures")
+    first = tool(*args)
+    assert first.returncode == 0, first.stderr
+    return out, args, first
+
+
+def test_generate_writes_folders_labels_bags_and_pictures(generated):
+    out, _, first = generated
+    scenarios = opv2v.find_scenarios(out / "data")
+    assert [s for s, _ in scenarios] == ["train", "test"]
+    assert "frames" in first.stderr  # the progress bar
+    for split, name in scenarios:
+        cavs, timestamps = opv2v.scenario_timestamps(out / "data" / split / name)
+        assert len(cavs) == 2 and timestamps == [70, 72]
+        assert (out / "data" / split / name / "data_protocol.yaml").is_file()
+        for folder in opv2v.LABEL_FOLDERS.values():
+            assert (out / "data" / folder / split / name / cavs[0] / "000070_voxels.npz").is_file()
+        assert len(list((out / "data" / "pictures" / split / name).glob("*/*.png"))) == 4
+        assert_bag_matches_folder(out / "bags" / split / name, out / "data", split, name, tuple(opv2v.LABEL_FOLDERS))
+    assert not list((out / "data").glob("**/.*partial*"))
+
+
+def test_generate_resumes_and_skips_complete_scenarios(generated):
+    out, args, _ = generated
+    split, name = opv2v.find_scenarios(out / "data")[0]
+    # an interrupted scenario leaves only a partial folder: it is redone, the complete one skipped
+    shutil.rmtree(out / "data" / split / name)
+    (out / "data" / split / f".{name}.partial").mkdir()
+    result = tool(*args)
+    assert result.returncode == 0, result.stderr
+    assert "1 scenario(s) to simulate, 1 already complete" in result.stdout
+    assert (out / "data" / split / name).is_dir() and not (out / "data" / split / f".{name}.partial").exists()
+
+
+def test_info_summarises_folders_and_bags(generated):
+    out, _, _ = generated
+    folder = tool("info", str(out / "data"))
+    assert folder.returncode == 0, folder.stderr
+    assert "2 scenario(s)" in folder.stdout and "| 7 road |" in folder.stdout and "25.6m" in folder.stdout
+    bag = tool("info", str(out / "bags"))
+    assert bag.returncode == 0, bag.stderr
+    assert "sensor_msgs/msg/PointCloud2" in bag.stdout and "2 frames" in bag.stdout and "| 10 vehicle |" in bag.stdout
+
+
+def test_voxelize_reproduces_the_benchmark_labels(generated):
+    """Re-annotating at the 51.2 m benchmark's settings re-creates exactly the labels generate wrote."""
+    out, _, _ = generated
+    result = tool("voxelize", str(out / "data"), "--name", "additional_check", "--extent", "51.2", "--voxel", "0.2")
+    assert result.returncode == 0, result.stderr
+    written = sorted((out / "data" / "additional_50m").glob("*/*/*/*.npz"))
+    assert written
+    for path in written:
+        again = out / "data" / "additional_check" / path.relative_to(out / "data" / "additional_50m")
+        np.testing.assert_array_equal(np.load(again)["voxels"], np.load(path)["voxels"])
