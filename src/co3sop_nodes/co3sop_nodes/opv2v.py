@@ -279,7 +279,8 @@ def scenario_timestamps(scenario_dir: Path) -> tuple[list[str], list[int]]:
     return cavs, reference
 
 
-def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=()) -> CavFrame:
+def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True) -> CavFrame:
+    """One CAV's files at one timestamp; `points=False` skips the (slow, ASCII) point cloud."""
     cav_dir = Path(root, split, scenario, cav)
     ts = f"{timestamp:06d}"
     path = cav_dir / f"{ts}.yaml"
@@ -293,7 +294,7 @@ def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: i
         world_from_camera = geo.carla_to_ros_matrix(lidar_carla @ np.linalg.inv(extrinsic))
         intrinsic = _numbers(path, data, (name, "intrinsic"), (3, 3))
         cameras.append(CameraFrame(name, world_from_camera, intrinsic, read_png(cav_dir / f"{ts}_{name}.png")))
-    points, intensity = read_pcd(cav_dir / f"{ts}.pcd")
+    xyz, intensity = read_pcd(cav_dir / f"{ts}.pcd") if points else (np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
     vehicles = []
     for vid, v in (data.get("vehicles") or {}).items():
         location = _numbers(path, data, ("vehicles", vid, "location"), (3,))
@@ -324,7 +325,7 @@ def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: i
         world_from_lidar=geo.carla_to_ros_matrix(lidar_carla),
         speed=float(_numbers(path, data, ("ego_speed",), ())) / KMH,
         cameras=cameras,
-        points=points,
+        points=xyz,
         intensity=intensity,
         labels=labels,
         vehicles=vehicles,
@@ -347,11 +348,13 @@ def find_scenarios(root: Path) -> list[tuple[str, str]]:
     return out
 
 
-def read_scenario(root: Path, split: str, scenario: str, ranges=tuple(BENCHMARK_RANGES)) -> Iterator[tuple[int, list[CavFrame] | DatasetError]]:
+def read_scenario(
+    root: Path, split: str, scenario: str, ranges=tuple(BENCHMARK_RANGES), points: bool = True
+) -> Iterator[tuple[int, list[CavFrame] | DatasetError]]:
     """Per timestamp: every CAV's frame, or the DatasetError that made that timestamp unreadable."""
     cavs, timestamps = scenario_timestamps(Path(root, split, scenario))
     for ts in timestamps:
         try:
-            yield ts, [read_cav_frame(root, split, scenario, cav, ts, ranges) for cav in cavs]
+            yield ts, [read_cav_frame(root, split, scenario, cav, ts, ranges, points) for cav in cavs]
         except DatasetError as exc:
             yield ts, exc
