@@ -27,6 +27,8 @@ setup(
             f"convert = {PACKAGE}.cli.convert:entry",
             f"info = {PACKAGE}.cli.info:entry",
             f"voxelize = {PACKAGE}.cli.voxelize:entry",
+            f"train = {PACKAGE}.learn.train:entry",
+            f"evaluate = {PACKAGE}.learn.evaluate:entry",
         ],
     },
 )

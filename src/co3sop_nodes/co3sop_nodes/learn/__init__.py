@@ -1,0 +1,1 @@
+"""Training, evaluation and ablations of the model on generated (or converted) data (ROS-free)."""

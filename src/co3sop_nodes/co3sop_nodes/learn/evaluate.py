@@ -1,0 +1,166 @@
+"""`evaluate`: per-class IoU and mIoU of a model on a split, and the paper's ablations.
+
+    ros2 run co3sop_nodes evaluate --model runs/tiny/model.pt --data data/ --splits validate --out results/
+    ros2 run co3sop_nodes evaluate ... --ablation collaborators   # 0..6 collaborators, nearest first
+    ros2 run co3sop_nodes evaluate ... --ablation pose-noise      # mu in 0, 0.1, ..., 0.5, sigma 0.02
+    ros2 run co3sop_nodes evaluate ... --ablation collaboration   # off vs on
+    ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
+
+Every CAV of every frame is the ego in turn. Results are printed as markdown
+(per-class IoU in %, mIoU in the three conventions of co3sop_nodes.metrics)
+and written as <out>/<name>.md and .json; ablations also write a PNG plot.
+Pose noise follows Co3SOP: neighbours only, dx, dy ~ N(mu, sigma) (a biased
+offset), dz ~ N(0, 0.01), applied to their world poses before alignment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..cli.common import progress, run
+from ..codec import FeatureCodecConfig, decode_features, encode_features
+from ..metrics import Confusion, markdown_table
+from ..model.checkpoint import load_model
+from ..model.inputs import to_batch
+from ..model.model import Co3SOP, VehicleOutput
+from .dataset import OccupancyDataset
+
+CODEC_SETTINGS = [
+    FeatureCodecConfig("float32", "dense"),
+    FeatureCodecConfig("float16", "dense"),
+    FeatureCodecConfig("int8", "dense"),
+    FeatureCodecConfig("int8", "topk", topk=8192),
+    FeatureCodecConfig("int8", "topk", topk=4096),
+    FeatureCodecConfig("int8", "topk", topk=1024),
+    FeatureCodecConfig("float16", "threshold", threshold=0.5),
+]
+
+
+def noisy_relative(world_from_ego: np.ndarray, world_from_other: np.ndarray, mu: float, sigma: float, rng) -> np.ndarray:
+    """neighbour_from_ego after Co3SOP's pose noise on the neighbour's world pose."""
+    noisy = world_from_other.copy()
+    noisy[:2, 3] += rng.normal(mu, sigma, 2) if sigma > 0 or mu > 0 else 0.0
+    noisy[2, 3] += rng.normal(0.0, 0.01) if sigma > 0 or mu > 0 else 0.0
+    return np.linalg.inv(noisy) @ world_from_ego
+
+
+def through_codec(out: VehicleOutput, cfg: FeatureCodecConfig, grid) -> tuple[VehicleOutput, int]:
+    """A vehicle output as the ego receives it over V2X through `cfg`, and the bytes it took."""
+    enc = encode_features(out.features[0].numpy(), out.confidence[0, 0].numpy(), grid, cfg)
+    dec = decode_features(enc)
+    return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(dec.confidence)[None, None]), enc.payload_bytes
+
+
+@torch.no_grad()
+def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
+             codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate") -> tuple[dict, float]:
+    """(metrics summary, mean bytes per collaborator frame sent) over every sample of the dataset."""
+    rng = np.random.default_rng(seed)
+    confusion, sent = Confusion(model.cfg.num_classes), []
+    cache: dict[tuple[int, int], VehicleOutput] = {}
+    bar = progress(len(dataset), desc, "sample")
+    for i in range(len(dataset)):
+        sample = dataset.sample(i, collaborators)
+        f, _ = dataset.index[i]
+
+        def vehicle(record) -> VehicleOutput:
+            key = (f, record.cav_id)
+            if key not in cache:
+                cache[key] = model.vehicle(**to_batch(record.inputs))
+            return cache[key]
+
+        ego = vehicle(sample.ego)
+        others = []
+        for record in sample.others:
+            out = vehicle(record)
+            if codec is not None:
+                out, size = through_codec(out, codec, model.cfg.feature_grid)
+                sent.append(size)
+            others.append(out)
+        rel = np.stack([noisy_relative(sample.ego.world_from_lidar, r.world_from_lidar, mu, sigma, rng) for r in sample.others]) if others else None
+        logits = model.ego(ego, others, None if rel is None else torch.from_numpy(rel).float()[None])
+        confusion.add(logits[-1][0].argmax(0).numpy().astype(np.uint8), sample.ego.labels)
+        bar.update(1)
+    bar.close()
+    return confusion.summary(), float(np.mean(sent)) if sent else 0.0
+
+
+def _plot(path: Path, x, series: dict[str, list[float]], xlabel: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, ys in series.items():
+        ax.plot(x, [100 * y for y in ys], marker="o", label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("mIoU (%)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _write(out: Path, name: str, text: str, data: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.md").write_text(text + "\n")
+    (out / f"{name}.json").write_text(json.dumps(data, indent=2) + "\n")
+    print(text)
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", type=Path, required=True, help="checkpoint (model.pt or state.pt)")
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--splits", nargs="+", default=["validate"])
+    parser.add_argument("--out", type=Path, default=Path("results"))
+    parser.add_argument("--ablation", choices=("collaboration", "collaborators", "pose-noise", "codec"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    opts = parser.parse_args(args)
+    torch.set_num_threads(opts.threads)
+    model, data = load_model(opts.model)
+    cfg = model.cfg
+    dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+    title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
+    stem = f"{cfg.name}_{cfg.range}"
+    if opts.ablation is None:
+        summary, _ = evaluate(model, dataset, seed=opts.seed)
+        _write(opts.out, stem, f"### {title}\n\n" + markdown_table({cfg.range: summary}), {"title": title, cfg.range: summary})
+    elif opts.ablation == "collaboration":
+        runs = {"off": evaluate(model, dataset, collaborators=0, desc="collaboration off")[0],
+                "on": evaluate(model, dataset, desc="collaboration on")[0]}
+        _write(opts.out, f"{stem}_collaboration", f"### Collaboration off / on: {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+    elif opts.ablation == "collaborators":
+        counts = list(range(cfg.max_collaborators + 1))
+        runs = {f"{n} collaborators": evaluate(model, dataset, collaborators=n, desc=f"{n} collaborators")[0] for n in counts}
+        _write(opts.out, f"{stem}_collaborators", f"### Number of collaborators (nearest first): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+        _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in runs.values()] for c in ("co3sop-readme", "co3sop-code", "surroundocc")},
+              "collaborators used", title)
+    elif opts.ablation == "pose-noise":
+        mus = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+        runs = {f"mu={m:.1f}": evaluate(model, dataset, mu=m, sigma=0.02 if m else 0.0, seed=opts.seed, desc=f"pose noise {m:.1f}")[0] for m in mus}
+        _write(opts.out, f"{stem}_pose_noise", f"### Pose noise (sigma 0.02 m, neighbours only): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+        _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in runs.values()] for c in ("co3sop-readme", "co3sop-code", "surroundocc")},
+              "pose noise mean mu (m)", title)
+    else:
+        rows = ["| feature codec | bytes per agent-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc |", "|---|---:|---:|---:|---:|"]
+        results = {}
+        for setting in CODEC_SETTINGS:
+            summary, size = evaluate(model, dataset, codec=setting, desc=setting.name)
+            results[setting.name] = {"bytes": size, **summary}
+            rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
+                        f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} |")
+        _write(opts.out, f"{stem}_codec", f"### Feature codecs over V2X: {title}\n\n" + "\n".join(rows), {"title": title, **results})
+    return 0
+
+
+entry = run(main)

@@ -1,0 +1,197 @@
+"""`train`: train Co3SOP-Base or a baseline on a generated (or converted) split.
+
+    ros2 run co3sop_nodes train --data data/ --preset tiny --stage ego --steps 1500 --out runs/tiny-ego
+    ros2 run co3sop_nodes train --data data/ --stage fusion --init runs/tiny-ego/model.pt --steps 800 --out runs/tiny
+
+Stages as in Co3SOP: `ego` trains the vehicle half and the head on single
+agents; `fusion` starts from an ego checkpoint, freezes the vehicle half and
+trains the fusion and the head with collaborators; `joint` trains everything
+at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
+(log.csv), loss plot (loss.png), resumable training state (state.pt, written
+atomically every --save-every steps; --resume continues it) and the exported
+model (model.pt, float16 weights + config + the command that made it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import random
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import Co3sopError
+from ..model.checkpoint import export_model, load_model, read_checkpoint, save_training_state
+from ..model.config import PRESETS, preset
+from ..model.inputs import to_batch
+from ..model.losses import confidence_loss, downsample_labels, occupancy_loss
+from ..model.model import VehicleOutput, build_model
+from ..cli.common import progress, run
+from .dataset import OccupancyDataset
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class Trainer:
+    """One optimisation step per sample; the frozen vehicle half's outputs are cached in the fusion stage."""
+
+    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float):
+        self.model, self.dataset, self.stage = model, dataset, stage
+        self.sample_fraction = sample_fraction
+        self.cache: dict[tuple[int, int], VehicleOutput] = {}
+        if stage == "fusion":
+            if model.ego.fusion is None:
+                raise Co3sopError("--stage fusion needs a model with fusion (e.g. preset tiny, not tiny-single)")
+            for p in model.vehicle.parameters():
+                p.requires_grad_(False)
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
+
+    def _vehicle(self, record_key, inputs) -> VehicleOutput:
+        if self.stage != "fusion":
+            return self.model.vehicle(**to_batch(inputs))
+        if record_key not in self.cache:  # frozen: computed once, in eval mode
+            with torch.no_grad():
+                out = self.model.vehicle.eval()(**to_batch(inputs))
+            self.cache[record_key] = VehicleOutput(out.features.half(), out.confidence.half())
+        out = self.cache[record_key]
+        return VehicleOutput(out.features.float(), out.confidence.float())
+
+    def step(self, i: int, rng: np.random.Generator) -> dict[str, float]:
+        self.model.train()
+        if self.stage == "fusion":
+            self.model.vehicle.eval()
+        sample = self.dataset.sample(i, 0 if self.stage == "ego" else None)
+        f, _ = self.dataset.index[i]
+        ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
+        others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
+        labels = torch.from_numpy(sample.ego.labels).long()[None]  # (1, X, Y, Z)
+        n = labels[0].numel()
+        index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None]
+        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None] if others else None
+        logits = self.model.ego(ego, others, rel, sample_index=index)
+        k = self.model.cfg.num_classes
+        targets = [downsample_labels(labels, 4, k), downsample_labels(labels, 2, k), torch.gather(labels.flatten(1), 1, index)]
+        parts = occupancy_loss(logits, targets)
+        if self.stage != "fusion":
+            parts["confidence"] = confidence_loss(ego.confidence, logits[0], targets[0])
+        loss = sum(parts.values())
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 5.0)
+        self.optimizer.step()
+        return {"loss": loss.item(), **{k: v.item() for k, v in parts.items()}}
+
+
+def plot_losses(csv_path: Path, png_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(csv_path) as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    steps = np.array([int(r["step"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, loss, lw=0.6, alpha=0.4, label="loss")
+    window = max(1, len(loss) // 30)
+    ax.plot(steps[window - 1 :], np.convolve(loss, np.ones(window) / window, mode="valid"), lw=2, label=f"mean of {window}")
+    for stage in sorted({r["stage"] for r in rows}):
+        first = next(int(r["step"]) for r in rows if r["stage"] == stage)
+        ax.axvline(first, color="grey", ls=":")
+        ax.text(first, ax.get_ylim()[1], f" {stage}", va="top", fontsize=8)
+    ax.set_xlabel("step")
+    ax.set_ylabel("total loss")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="train", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, help="dataset root written by `generate` (or an OPV2V root)")
+    parser.add_argument("--splits", nargs="+", default=["train"], help="splits to train on")
+    parser.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="model preset (ignored with --init or --resume)")
+    parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
+    parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
+    parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
+    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one sample each)")
+    parser.add_argument("--lr", type=float, default=2e-3)
+    parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2, help="CPU threads for torch")
+    parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")
+    parser.add_argument("--save-every", type=int, default=200)
+    opts = parser.parse_args(args)
+    torch.set_num_threads(opts.threads)
+    seed_everything(opts.seed)
+    if opts.stage == "fusion" and not (opts.init or opts.resume):
+        raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
+
+    start, state = 0, None
+    if opts.resume:
+        state = read_checkpoint(opts.out / "state.pt")
+        model, _ = load_model(opts.out / "state.pt")
+        start = state["step"]
+    elif opts.init:
+        model, _ = load_model(opts.init)
+    else:
+        overrides = {"range": opts.range} if opts.range else {}
+        model = build_model(preset(opts.preset, **overrides))
+    cfg = model.cfg
+    print(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters", flush=True)
+    dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+    print(f"train: {len(dataset)} samples from {len(dataset.frames)} frames", flush=True)
+    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr)
+    if state is not None:
+        trainer.optimizer.load_state_dict(state["optimizer"])
+    opts.out.mkdir(parents=True, exist_ok=True)
+    log_path = opts.out / "log.csv"
+    fields = None
+    rng = np.random.default_rng(opts.seed + start)
+    order = np.random.default_rng(opts.seed).permutation(np.resize(np.arange(len(dataset)), max(opts.steps, len(dataset))))
+    bar = progress(opts.steps, f"train {opts.stage}", "step")
+    bar.update(start)
+    t0 = time.time()
+    with open(log_path, "a", newline="") as log:
+        for step in range(start, opts.steps):
+            parts = trainer.step(int(order[step % len(order)]), rng)
+            row = {"step": step + 1, "stage": opts.stage, **parts, "lr": opts.lr, "seconds": round(time.time() - t0, 2)}
+            if fields is None:
+                fields = list(row)
+                writer = csv.DictWriter(log, fieldnames=fields, extrasaction="ignore")
+                if log.tell() == 0:
+                    writer.writeheader()
+            writer.writerow(row)
+            bar.set_postfix(loss=f"{parts['loss']:.3f}")
+            bar.update(1)
+            if (step + 1) % opts.save_every == 0 or step + 1 == opts.steps:
+                log.flush()
+                save_training_state(opts.out / "state.pt", model, trainer.optimizer, step + 1, opts.stage, {"seed": opts.seed})
+    bar.close()
+    command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
+    previous = read_checkpoint(opts.init).get("meta", {}).get("history", []) if opts.init else []
+    meta = {"history": previous + [{"command": command, "stage": opts.stage, "steps": opts.steps, "seed": opts.seed,
+                                    "data": str(opts.data), "splits": opts.splits}]}
+    export_model(opts.out / "model.pt", model, meta)
+    plot_losses(log_path, opts.out / "loss.png")
+    print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
+    return 0
+
+
+entry = run(main)

@@ -1,0 +1,54 @@
+"""Checkpoints: training state (resumable) and exported models (weights + config + provenance)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import torch
+
+from ..errors import Co3sopError
+from .config import ModelConfig, config_from_dict
+from .model import Co3SOP, build_model
+
+
+def _atomic_save(obj, path: Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)  # a crash never leaves a half-written checkpoint under the real name
+
+
+def save_training_state(path: Path, model: Co3SOP, optimizer, step: int, stage: str, extra: dict) -> None:
+    _atomic_save({"config": dataclasses.asdict(model.cfg), "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                  "step": step, "stage": stage, **extra}, path)
+
+
+def export_model(path: Path, model: Co3SOP, meta: dict, half: bool = True) -> None:
+    """Weights (float16 by default: half the size, cast back on load) + config + how they were made."""
+    state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in model.state_dict().items()}
+    _atomic_save({"config": dataclasses.asdict(model.cfg), "model": state, "meta": meta}, path)
+
+
+def read_checkpoint(path: Path) -> dict:
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=False)
+    except FileNotFoundError:
+        raise Co3sopError(f"{path}: no such checkpoint") from None
+    except Exception as exc:  # torch raises many types for a damaged file
+        raise Co3sopError(f"{path}: not a readable checkpoint ({exc})") from None
+    if not isinstance(data, dict) or "config" not in data or "model" not in data:
+        raise Co3sopError(f"{path}: not a Co3SOP checkpoint (no config/model)")
+    return data
+
+
+def load_model(path: Path) -> tuple[Co3SOP, dict]:
+    """A model in eval mode from a training state or an exported checkpoint, and the checkpoint's dict."""
+    data = read_checkpoint(path)
+    cfg: ModelConfig = config_from_dict(data["config"])
+    model = build_model(cfg)
+    state = {k: v.float() if v.is_floating_point() else v for k, v in data["model"].items()}
+    model.load_state_dict(state)
+    return model.eval(), data

@@ -1,0 +1,112 @@
+"""Model configurations: frozen dataclasses and named presets.
+
+Voxel axis order everywhere in the model: (B, C, X, Y, Z) in the agent's LiDAR
+frame, REP-103 axes (x forward, y left, z up), matching GridSpec arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+from ..errors import Co3sopError
+from ..grid import BENCHMARK_RANGES, GridSpec
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    depth: tuple[int, ...] = (1, 1, 1, 1)  # residual blocks per stage (ResNet-18: 2,2,2,2; ResNet-101: 3,4,23,3)
+    channels: tuple[int, ...] = (16, 32, 64, 128)  # output channels per stage (ResNet-101 bottleneck: 256..2048)
+    bottleneck: bool = False  # ResNet-50/101 style blocks
+    deform_stages: tuple[bool, ...] = (False, False, False, False)  # DCN in a stage's 3x3 convs (paper: last three)
+    stem: int = 16  # stem channels
+
+
+@dataclass(frozen=True)
+class AttentionConfig:
+    layers: int = 1
+    heads: int = 4
+    points: int = 4
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    kind: str = "lmscnet"  # "lmscnet" (2D UNet over height slices) | "sscnet" (3D dilated convs)
+    channels: int = 32
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    name: str
+    modality: str = "camera"  # vehicle half: "camera" (Co3SOP-Base, SurroundOcc-style) | "lidar" (LMSCNet / SSCNet)
+    range: str = "51.2m"  # benchmark grid the model predicts
+    num_classes: int = 24
+    image_size: tuple[int, int] = (160, 120)  # camera input (width, height) after resizing
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    fpn_channels: int = 32
+    fpn_levels: int = 4
+    embed_dims: int = 32  # C of the voxel features sent over V2X
+    downsample: int = 4  # the feature volume is 1/4 of the label grid per axis
+    image_attention: AttentionConfig = field(default_factory=AttentionConfig)
+    fusion: bool = True  # collaborate (Co3SOP-Base); False: single agent (SurroundOcc / LMSCNet / SSCNet)
+    fusion_attention: AttentionConfig = field(default_factory=AttentionConfig)
+    max_collaborators: int = 6
+    head_channels: tuple[int, int, int] = (32, 16, 8)  # per output scale: 1/4, 1/2, 1
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+
+    @property
+    def grid(self) -> GridSpec:
+        return BENCHMARK_RANGES[self.range]
+
+    @property
+    def feature_grid(self) -> GridSpec:
+        """The grid of the voxel features: same extent, `downsample` times coarser."""
+        g = self.grid
+        return GridSpec(g.origin, g.voxel_size * self.downsample, tuple(n // self.downsample for n in g.dims))
+
+
+def _tiny(**kw) -> ModelConfig:
+    return ModelConfig(name="tiny", **kw)
+
+
+PRESETS: dict[str, ModelConfig] = {
+    # CPU-sized Co3SOP-Base: trains on a small generated split in well under an hour on 2 cores.
+    "tiny": _tiny(),
+    # The paper's sizes (ResNet101-DCN, FPN 4 levels, 3 image / 3 fusion layers, 4 heads, 4 points), for a GPU.
+    "paper": ModelConfig(
+        name="paper",
+        image_size=(800, 600),
+        backbone=BackboneConfig(depth=(3, 4, 23, 3), channels=(256, 512, 1024, 2048), bottleneck=True,
+                                deform_stages=(False, True, True, True), stem=64),
+        fpn_channels=256,
+        embed_dims=128,
+        image_attention=AttentionConfig(layers=3, heads=8, points=4),
+        fusion_attention=AttentionConfig(layers=3, heads=4, points=4),
+        head_channels=(128, 64, 32),
+    ),
+}
+# Baselines of the paper's Table 2, as presets of the same structure.
+PRESETS["tiny-single"] = replace(PRESETS["tiny"], name="tiny-single", fusion=False)  # SurroundOcc-style
+PRESETS["surroundocc"] = replace(PRESETS["paper"], name="surroundocc", fusion=False)
+PRESETS["tiny-lmscnet"] = replace(PRESETS["tiny"], name="tiny-lmscnet", modality="lidar", fusion=False)
+PRESETS["tiny-sscnet"] = replace(PRESETS["tiny"], name="tiny-sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 32))
+PRESETS["lmscnet"] = replace(PRESETS["paper"], name="lmscnet", modality="lidar", fusion=False, lidar=LidarConfig("lmscnet", 128))
+PRESETS["sscnet"] = replace(PRESETS["paper"], name="sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 128))
+
+
+def config_from_dict(data: dict) -> ModelConfig:
+    """Inverse of dataclasses.asdict(ModelConfig) (as stored in checkpoints)."""
+    nested = {"backbone": BackboneConfig, "image_attention": AttentionConfig, "fusion_attention": AttentionConfig, "lidar": LidarConfig}
+    kwargs = {}
+    for key, value in data.items():
+        if key in nested:
+            value = nested[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[key] = value
+    return ModelConfig(**kwargs)
+
+
+def preset(name: str, **overrides) -> ModelConfig:
+    if name not in PRESETS:
+        raise Co3sopError(f"unknown model preset {name!r} (known: {', '.join(PRESETS)})")
+    return replace(PRESETS[name], **overrides)

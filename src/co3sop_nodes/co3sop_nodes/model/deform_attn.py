@@ -1,0 +1,88 @@
+"""Deformable attention in pure PyTorch: multi-scale 2D sampling (image -> voxel) and 3D sampling (agent -> agent).
+
+Sampling locations are normalised to [0, 1] per axis and mapped to
+`grid_sample` coordinates as 2 * loc - 1 (align_corners=False: a voxel or
+pixel centre i sits at (i + 0.5) / n); samples outside a map read zeros.
+Attention weights are a softmax over (levels x points) per head.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def sample_2d(values: list[torch.Tensor], locations: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Multi-scale deformable sampling.
+
+    values: L x (B*H, Ch, Hl, Wl); locations: (B, Q, H, L, P, 2) as (x, y) in [0, 1];
+    weights: (B, Q, H, L, P). Returns (B, Q, H*Ch).
+    """
+    b, q, h, levels, p, _ = locations.shape
+    grids = 2 * locations - 1
+    out = 0
+    for lvl, value in enumerate(values):
+        g = grids[:, :, :, lvl].permute(0, 2, 1, 3, 4).reshape(b * h, q, p, 2)  # (B*H, Q, P, 2)
+        s = F.grid_sample(value, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B*H, Ch, Q, P)
+        w = weights[:, :, :, lvl].permute(0, 2, 1, 3).reshape(b * h, 1, q, p)
+        out = out + (s * w).sum(-1)  # (B*H, Ch, Q)
+    ch = out.shape[1]
+    return out.view(b, h, ch, q).permute(0, 3, 1, 2).reshape(b, q, h * ch)
+
+
+def sample_3d(values: torch.Tensor, locations: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Deformable sampling over agents' voxel volumes.
+
+    values: (B*H, A, Ch, X, Y, Z); locations: (B, Q, H, A, P, 3) as (x, y, z) in [0, 1];
+    weights: (B, Q, H, A, P). Returns (B, Q, H*Ch).
+    """
+    bh, agents, ch = values.shape[:3]
+    b, q, h, _, p, _ = locations.shape
+    # grid_sample reads a 5D input (N, C, D, H, W) = (.., X, Y, Z) with grid coordinates ordered (W, H, D) = (z, y, x)
+    grids = (2 * locations - 1).flip(-1)
+    out = 0
+    for a in range(agents):
+        g = grids[:, :, :, a].permute(0, 2, 1, 3, 4).reshape(bh, q, p, 1, 3)  # (B*H, Q, P, 1, 3)
+        s = F.grid_sample(values[:, a], g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B*H, Ch, Q, P, 1)
+        w = weights[:, :, :, a].permute(0, 2, 1, 3).reshape(bh, 1, q, p)
+        out = out + (s[..., 0] * w).sum(-1)  # (B*H, Ch, Q)
+    return out.view(b, h, ch, q).permute(0, 3, 1, 2).reshape(b, q, h * ch)
+
+
+class DeformableAttention3d(nn.Module):
+    """Queries attend to `slots` voxel volumes (the collaborators, nearest first) around their reference points.
+
+    The agents play the role of MSDeformAttn's levels: every (head, agent, point)
+    has its own offset and weight; a per-query, per-agent mask removes agents a
+    query may not attend to (softmax over the remaining agents x points).
+    """
+
+    def __init__(self, dims: int, heads: int, points: int, slots: int, extent_voxels: tuple[int, int, int]):
+        super().__init__()
+        self.heads, self.points, self.slots = heads, points, slots
+        self.offsets = nn.Linear(dims, heads * slots * points * 3)
+        self.weights = nn.Linear(dims, heads * slots * points)
+        self.value = nn.Linear(dims, dims)
+        self.output = nn.Linear(dims, dims)
+        self.register_buffer("scale", 1.0 / torch.tensor(extent_voxels, dtype=torch.float32), persistent=False)
+        nn.init.zeros_(self.offsets.weight)
+        with torch.no_grad():  # initial offsets: points spread along the axes, 1..P voxels away
+            direction = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32)
+            init = torch.stack([direction[(i + j) % 6] * (j // 2 + 1) for i in range(heads) for j in range(points)])
+            self.offsets.bias.copy_(init.view(heads, 1, points, 3).expand(heads, slots, points, 3).reshape(-1))
+
+    def forward(self, query, reference, values, mask):
+        """query: (B, Q, C); reference: (B, Q, 3) in [0, 1]; values: (B, A, C, X, Y, Z); mask: (B, Q, A) bool."""
+        b, q, c = query.shape
+        a = values.shape[1]
+        h, p = self.heads, self.points
+        v = self.value(values.permute(0, 1, 3, 4, 5, 2)).permute(0, 1, 5, 2, 3, 4)  # (B, A, C, X, Y, Z)
+        v = v.reshape(b, a, h, c // h, *v.shape[-3:]).transpose(1, 2).reshape(b * h, a, c // h, *v.shape[-3:])
+        off = self.offsets(query).view(b, q, h, self.slots, p, 3)[:, :, :, :a] * self.scale  # voxels -> [0, 1] units
+        loc = reference[:, :, None, None, None, :] + off  # (B, Q, H, A, P, 3)
+        logits = self.weights(query).view(b, q, h, self.slots, p)[:, :, :, :a]
+        logits = logits.masked_fill(~mask[:, :, None, :, None], float("-inf"))
+        w = torch.softmax(logits.reshape(b, q, h, a * p), -1).view(b, q, h, a, p)
+        w = torch.nan_to_num(w)  # a query with no agent allowed attends to nothing
+        return self.output(sample_3d(v, loc, w))  # (B, Q, C)

@@ -1,0 +1,64 @@
+"""Confidence-masked voxel fusion: the ego's voxels attend to the warped collaborators' voxels.
+
+Hybrid mask (Co3SOP-Base): a collaborator's voxel counts where the warp filled
+it (warp mask) and its confidence beats the ego's (confidence mask). Only ego
+voxels that at least one collaborator may inform are queried, so the
+attention is computed only where the mask selects; every other voxel keeps the
+ego's own feature. `dense=True` computes every voxel and keeps the same ones:
+the reference the masked path is tested against.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .config import AttentionConfig
+from .deform_attn import DeformableAttention3d
+from .positional import sine_encoding_3d
+
+
+def hybrid_mask(ego_conf, warped_conf, warp_mask, valid):
+    """(B, 1, X, Y, Z), (B, A, X, Y, Z), (B, A, X, Y, Z) bool, (B, A) bool -> (B, A, X, Y, Z) bool."""
+    return warp_mask & (warped_conf > ego_conf) & valid[:, :, None, None, None]
+
+
+class FusionLayer(nn.Module):
+    def __init__(self, dims: int, att: AttentionConfig, slots: int, extent_voxels):
+        super().__init__()
+        self.attention = DeformableAttention3d(dims, att.heads, att.points, slots, extent_voxels)
+        self.norm1, self.norm2 = nn.LayerNorm(dims), nn.LayerNorm(dims)
+        self.ffn = nn.Sequential(nn.Linear(dims, 2 * dims), nn.ReLU(inplace=True), nn.Linear(2 * dims, dims))
+
+    def forward(self, query, pos, reference, values, mask):
+        x = self.norm1(query + self.attention(query + pos, reference, values, mask))
+        return self.norm2(x + self.ffn(x))
+
+
+class VoxelFusion(nn.Module):
+    def __init__(self, dims: int, att: AttentionConfig, slots: int, dims_xyz: tuple[int, int, int]):
+        super().__init__()
+        self.layers = nn.ModuleList(FusionLayer(dims, att, slots, dims_xyz) for _ in range(att.layers))
+        x, y, z = dims_xyz
+        axes = [(torch.arange(n, dtype=torch.float32) + 0.5) / n for n in (x, y, z)]
+        centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (V, 3) in [0, 1]
+        self.register_buffer("reference", centres, persistent=False)
+        self.register_buffer("pos", sine_encoding_3d(centres, dims), persistent=False)
+
+    def forward(self, ego, values, mask, dense: bool = False):
+        """ego: (B, C, X, Y, Z); values: (B, A, C, X, Y, Z) warped; mask: (B, A, X, Y, Z) -> fused (B, C, X, Y, Z)."""
+        b, c = ego.shape[:2]
+        flat = ego.flatten(2).transpose(1, 2)  # (B, V, C)
+        per_voxel = mask.flatten(2).transpose(1, 2)  # (B, V, A)
+        selected = per_voxel.any(-1)  # (B, V)
+        out = flat.clone()
+        for i in range(b):
+            idx = torch.arange(flat.shape[1], device=ego.device) if dense else selected[i].nonzero()[:, 0]
+            if not len(idx):
+                continue
+            q, m = flat[i, idx][None], per_voxel[i, idx][None]  # (1, Q, C), (1, Q, A)
+            for layer in self.layers:
+                q = layer(q, self.pos[idx][None], self.reference[idx][None], values[i : i + 1], m)
+            keep = selected[i, idx]
+            out[i, idx[keep]] = q[0, keep]
+        return out.transpose(1, 2).reshape(ego.shape)

@@ -1,0 +1,47 @@
+"""Model inputs from sensor data, shared by training, offline evaluation and the vehicle node (ROS-free).
+
+One function builds a vehicle half's camera inputs and one its LiDAR input, so
+the graph and the offline path feed the model identical tensors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ..frames import CameraFrame
+from ..grid import GridSpec
+
+# rows: the optical frame's x (right), y (down), z (forward) in camera body axes (x forward, y left, z up)
+OPTICAL_FROM_BODY = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])
+
+
+def camera_inputs(cameras: list[CameraFrame], world_from_lidar: np.ndarray, image_size: tuple[int, int]):
+    """(images (N, 3, H, W) uint8, lidar2img (N, 4, 4) float32) at `image_size` = (W, H)."""
+    width, height = image_size
+    images, projections = [], []
+    lidar_to_world = world_from_lidar
+    for cam in cameras:
+        h0, w0 = cam.rgb.shape[:2]
+        rgb = cam.rgb if (w0, h0) == (width, height) else np.asarray(Image.fromarray(cam.rgb).resize((width, height), Image.BILINEAR))
+        images.append(rgb.transpose(2, 0, 1))
+        k = np.eye(4)
+        k[:3, :3] = np.diag([width / w0, height / h0, 1.0]) @ cam.intrinsics
+        camera_from_lidar = np.linalg.inv(cam.world_from_camera) @ lidar_to_world
+        projections.append(k @ OPTICAL_FROM_BODY @ camera_from_lidar)
+    return np.stack(images), np.stack(projections).astype(np.float32)
+
+
+def lidar_occupancy(points: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """(1, X, Y, Z) float32: 1 where a LiDAR point (LiDAR frame, REP-103) falls in a voxel of `grid`."""
+    idx = np.floor((points[:, :3] - np.asarray(grid.origin)) / grid.voxel_size).astype(np.int64)
+    inside = ((idx >= 0) & (idx < np.asarray(grid.dims))).all(axis=1)
+    occ = np.zeros(grid.dims, np.float32)
+    occ[tuple(idx[inside].T)] = 1.0
+    return occ[None]
+
+
+def to_batch(inputs: dict) -> dict:
+    """One agent's numpy inputs -> VehicleHalf keyword tensors with a batch dimension of 1."""
+    return {k: torch.from_numpy(v)[None] for k, v in inputs.items()}

@@ -1,0 +1,84 @@
+"""Image-to-voxel lifting: SurroundOcc-style deformable cross-attention from learnable voxel queries.
+
+Each voxel query's 3D reference point (its centre in the LiDAR frame) is
+projected into every camera with lidar2img; only cameras that see it (in front
+of the camera, inside the image) attend, sampling every FPN level around the
+projected point with learned offsets; the result is averaged over those cameras.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..grid import GridSpec
+from .deform_attn import sample_2d
+
+
+def voxel_centres(grid: GridSpec) -> torch.Tensor:
+    """(X*Y*Z, 3) voxel centres in metres, flat order x-major (as GridSpec)."""
+    axes = [grid.origin[a] + (torch.arange(n, dtype=torch.float32) + 0.5) * grid.voxel_size for a, n in enumerate(grid.dims)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+
+
+def project(points: torch.Tensor, lidar2img: torch.Tensor, image_size: tuple[int, int]):
+    """points (Q, 3) LiDAR frame; lidar2img (B, N, 4, 4) -> uv in [0, 1] (B, N, Q, 2), visible (B, N, Q)."""
+    homo = torch.cat([points, torch.ones_like(points[:, :1])], dim=-1)  # (Q, 4)
+    cam = torch.einsum("bnij,qj->bnqi", lidar2img, homo)  # (B, N, Q, 4): (u*d, v*d, d, 1)
+    depth = cam[..., 2]
+    uv = cam[..., :2] / depth.clamp(min=1e-5)[..., None]
+    uv = uv / torch.tensor(image_size, dtype=uv.dtype, device=uv.device)
+    visible = (depth > 1e-5) & (uv >= 0).all(-1) & (uv <= 1).all(-1)
+    return uv, visible
+
+
+class ImageCrossAttention(nn.Module):
+    def __init__(self, dims: int, heads: int, levels: int, points: int):
+        super().__init__()
+        self.heads, self.levels, self.points = heads, levels, points
+        self.offsets = nn.Linear(dims, heads * levels * points * 2)
+        self.weights = nn.Linear(dims, heads * levels * points)
+        self.value = nn.Linear(dims, dims)
+        self.output = nn.Linear(dims, dims)
+        nn.init.zeros_(self.offsets.weight)
+        with torch.no_grad():  # initial offsets on a small ring around the reference point
+            angle = torch.arange(heads * points, dtype=torch.float32) * (2 * torch.pi / (heads * points))
+            ring = torch.stack([angle.cos(), angle.sin()], -1).view(heads, 1, points, 2) * 2.0
+            self.offsets.bias.copy_(ring.expand(heads, levels, points, 2).reshape(-1))
+
+    def forward(self, query, uv, visible, feats):
+        """query: (B, Q, C); uv: (B, N, Q, 2); visible: (B, N, Q); feats: L x (B*N, C, Hl, Wl). -> (B, Q, C)."""
+        b, q, c = query.shape
+        n = uv.shape[1]
+        h, lv, p = self.heads, self.levels, self.points
+        shapes = torch.tensor([[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device)  # (L, 2) W, H
+        off = self.offsets(query).view(b, q, h, lv, p, 2) / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
+        w = torch.softmax(self.weights(query).view(b, q, h, lv * p), -1).view(b, q, h, lv, p)
+        values = [self.value(f.permute(0, 2, 3, 1)).permute(0, 3, 1, 2) for f in feats]  # L x (B*N, C, Hl, Wl)
+        pooled = []
+        for i in range(b):
+            total, count = query.new_zeros(q, c), query.new_zeros(q, 1)
+            for cam in range(n):  # only the (query, camera) pairs where the camera sees the query
+                idx = visible[i, cam].nonzero()[:, 0]
+                if not len(idx):
+                    continue
+                per_head = [v[i * n + cam].reshape(h, c // h, *v.shape[-2:]) for v in values]  # L x (H, C/H, Hl, Wl)
+                loc = uv[i, cam, idx][:, None, None, None, :] + off[i, idx]  # (Qv, H, L, P, 2)
+                total = total.index_add(0, idx, sample_2d(per_head, loc[None], w[i, idx][None])[0])
+                count[idx] += 1
+            pooled.append(total / count.clamp(min=1))  # mean over the cameras that see each query
+        return self.output(torch.stack(pooled))
+
+
+class LiftingLayer(nn.Module):
+    """Cross-attention + FFN with residuals and layer norms (post-norm, as BEVFormer/SurroundOcc)."""
+
+    def __init__(self, dims: int, heads: int, levels: int, points: int):
+        super().__init__()
+        self.attention = ImageCrossAttention(dims, heads, levels, points)
+        self.norm1, self.norm2 = nn.LayerNorm(dims), nn.LayerNorm(dims)
+        self.ffn = nn.Sequential(nn.Linear(dims, 2 * dims), nn.ReLU(inplace=True), nn.Linear(2 * dims, dims))
+
+    def forward(self, query, uv, visible, feats):
+        query = self.norm1(query + self.attention(query, uv, visible, feats))
+        return self.norm2(query + self.ffn(query))
