@@ -167,7 +167,8 @@ def _road(town: Town, rng, axis, offset, lanes, crossing, widths, half, canal_y,
         _markings(town, rng, axis, offset, a_in, b_in, lanes, tram)
         _sidewalks(town, rng, axis, offset, a_in, b_in, hw, over_canal and canal_y)
         # lanes: right-hand traffic; direction +axis on the right (negative across side for +x, ...)
-        for k in range(lanes):
+        # on two-lane roads the outer lanes are parking lanes: parked rows stand there, traffic keeps inside
+        for k in range(lanes - (1 if lanes > 1 else 0)):
             across = (k + 0.5) * LANE_WIDTH
             p, q = _point(axis, offset, a_in, -across if axis == 0 else across), _point(axis, offset, b_in, -across if axis == 0 else across)
             town.lanes.append(Lane(p, q, len(town.roads) - 1))
@@ -236,13 +237,13 @@ def _street_furniture(town: Town, rng, axis, offset, a, b, side, hw) -> None:
         elif kind == "prop":
             _prop(town, rng, axis, offset, s, side * (hw + SIDEWALK_WIDTH - 0.8))
         s += rng.uniform(6, 14)
-    # a parked row on part of this side of the road (vehicles are placed by traffic.py)
-    if rng.random() < 0.5 and b - a > 20:
+    # a parked row in the parking lane of a two-lane road (vehicles are placed by traffic.py)
+    if hw > LANE_WIDTH and rng.random() < 0.6 and b - a > 20:
         start = rng.uniform(a + 3, (a + b) / 2)
         stop = min(b - 3, start + rng.uniform(15, 40))
         yaw = 0.0 if axis == 0 else np.pi / 2
         for s in np.arange(start, stop, 6.5):
-            px, py = _point(axis, offset, s, side * (hw - 1.2))
+            px, py = _point(axis, offset, s, side * (hw - LANE_WIDTH / 2))
             town.parking.append((px, py, yaw))
 
 

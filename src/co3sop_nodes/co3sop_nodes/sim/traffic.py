@@ -35,7 +35,8 @@ def vehicle_primitives(kind: str, size: tuple[float, float, float]) -> tuple[Box
     if kind == "car":
         return (Box.make([0, 0, 0.2 + 0.35], [length, width, 0.7]), Box.make([-0.2, 0, 0.9 + (height - 0.9) / 2], [length * 0.55, width * 0.9, height - 0.9]))
     if kind == "truck":
-        return (Box.make([length / 2 - 1.1, 0, 0.3 + (height - 0.6) / 2], [2.2, width, height - 0.6]), Box.make([-1.2, 0, 0.3 + height / 2], [length - 2.4, width, height]))
+        return (Box.make([length / 2 - 1.1, 0, 0.3 + (height - 0.6) / 2], [2.2, width, height - 0.6]),
+                Box.make([-1.2, 0, 0.3 + (height - 0.3) / 2], [length - 2.4, width, height - 0.3]))
     return (Box.make([0, 0, 0.25 + (height - 0.25) / 2], [length, width, height - 0.25]),)
 
 
@@ -179,9 +180,8 @@ class Traffic:
     def _extend_path(self, v: Vehicle) -> None:
         """Appends the turn through the next intersection and the next lane."""
         nxt = self._next_lane(v.lane)
-        if nxt < 0:  # dead end: turn around on the spot (rare: only at the network's rim)
-            lane = self.town.lanes[v.lane]
-            v.path.append(np.array(lane.start))
+        if nxt < 0:  # a dead end (only at the rim of small towns): the vehicle parks where it is
+            v.parked, v.speed, v.path = True, 0.0, []
             return
         a, b = self.town.lanes[v.lane], self.town.lanes[nxt]
         p0, p2 = np.array(a.end), np.array(b.start)
