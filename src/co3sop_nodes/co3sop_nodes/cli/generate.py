@@ -90,13 +90,17 @@ def generate_scenario(job: dict, events) -> str:
                 path = out / "pictures" / split / name / str(frame.cav_id) / f"{frame.timestamp:06d}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 Image.fromarray(picture(frame, job["picture_range"])).save(path)
-        events.put(1)
+        try:
+            events.put(1)
+        except (BrokenPipeError, EOFError):  # the main process is gone (interrupted): stop quietly
+            return name
     # labels first, the scenario folder last: its presence marks the scenario complete
     for folder in opv2v.LABEL_FOLDERS.values():
         src, dst = out / folder / split / partial, out / folder / split / name
         if src.exists():
             shutil.rmtree(dst, ignore_errors=True)  # labels of an earlier, incomplete run
             src.rename(dst)
+    shutil.rmtree(out / split / name, ignore_errors=True)  # an earlier, incomplete run of this scenario
     (out / split / partial).rename(out / split / name)
     if job["bags"]:
         from ..bags import BagWriter

@@ -52,10 +52,12 @@ class ModelConfig:
     max_collaborators: int = 6
     head_channels: tuple[int, int, int] = (32, 16, 8)  # per output scale: 1/4, 1/2, 1
     lidar: LidarConfig = field(default_factory=LidarConfig)
+    # (origin, voxel size, dims) of a grid other than the benchmark range's (custom extents, small tests)
+    custom_grid: tuple | None = None
 
     @property
     def grid(self) -> GridSpec:
-        return BENCHMARK_RANGES[self.range]
+        return GridSpec(*self.custom_grid) if self.custom_grid else BENCHMARK_RANGES[self.range]
 
     @property
     def feature_grid(self) -> GridSpec:
@@ -100,6 +102,9 @@ def config_from_dict(data: dict) -> ModelConfig:
     for key, value in data.items():
         if key in nested:
             value = nested[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+        elif key == "custom_grid" and value is not None:
+            origin, voxel, dims = value
+            value = (tuple(origin), voxel, tuple(dims))
         elif isinstance(value, list):
             value = tuple(value)
         kwargs[key] = value

@@ -75,6 +75,9 @@ def occupancy_loss(logits: list[torch.Tensor], targets: list[torch.Tensor]) -> d
     """Per scale: CE + sem_scal + geo_scal, weighted 0.25 / 0.5 / 1."""
     parts = {}
     for w, name, lg, tg in zip(SCALE_WEIGHTS, SCALE_NAMES, logits, targets):
+        if not (tg != IGNORE).any():  # nothing to learn from at this scale
+            parts[f"ce@{name}"] = parts[f"sem@{name}"] = parts[f"geo@{name}"] = lg.sum() * 0
+            continue
         parts[f"ce@{name}"] = w * F.cross_entropy(lg, tg, ignore_index=IGNORE)
         parts[f"sem@{name}"] = w * sem_scal(lg, tg)
         parts[f"geo@{name}"] = w * geo_scal(lg, tg)
