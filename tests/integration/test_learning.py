@@ -1,0 +1,94 @@
+"""Training and evaluation as users run them, plus the overfit check that the model can learn at all."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from co3sop_nodes import synthetic
+from co3sop_nodes.metrics import Confusion
+from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
+from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
+from co3sop_nodes.model.model import build_model
+from conftest import executable
+
+MICRO = dict(custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)), image_size=(64, 48), backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=16,
+             embed_dims=16, image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(16, 8, 8))
+
+
+def test_overfits_one_sample():
+    """Co3SOP-Base (camera half + head) memorises one street sample: a high mIoU where chance is near 0."""
+    torch.manual_seed(0)
+    torch.set_num_threads(1)  # tiny tensors: more threads only contend
+    cfg = preset("tiny", **MICRO)
+    model = build_model(cfg)
+    labels = torch.from_numpy(synthetic.street_labels(cfg.grid, seed=1)).long()[None]
+    coarse = [downsample_labels(labels, 4, 24), downsample_labels(labels, 2, 24)]
+    w, h = cfg.image_size
+    inputs = {"images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8), "lidar2img": torch.eye(4).repeat(1, 4, 1, 1)}
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(200):  # full resolution supervised on a fresh fifth of the voxels each step, as `train` does
+        index = torch.randperm(labels.numel(), generator=gen)[: labels.numel() // 5].sort().values[None]
+        logits = model([inputs], sample_index=index)
+        loss = sum(occupancy_loss(logits, [*coarse, labels.flatten(1)[:, index[0]]]).values())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        prediction = model([inputs])[-1][0].argmax(0).numpy().astype(np.uint8)
+    confusion = Confusion()
+    confusion.add(prediction, labels[0].numpy().astype(np.uint8))
+    summary = confusion.summary()
+    assert len([v for v in summary["per_class_iou"].values() if v is not None]) >= 5  # a multi-class street
+    assert summary["surroundocc"]["iou"] > 0.85, summary
+    assert summary["surroundocc"]["miou"] > 0.5, summary
+
+
+def tool(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([executable(args[0]), *args[1:]], capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def small_split(tmp_path_factory):
+    out = tmp_path_factory.mktemp("learn")
+    result = tool("generate", "--out", str(out / "data"), "--splits", "train=1", "validate=1", "--frames", "2", "--cavs", "2",
+                  "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "8")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def test_train_stages_resume_and_evaluate(small_split):
+    out, data = small_split, str(small_split / "data")
+    common = ("--data", data, "--threads", "2", "--sample-fraction", "0.05")
+    ego = tool("train", *common, "--preset", "tiny", "--stage", "ego", "--steps", "3", "--save-every", "2", "--out", str(out / "ego"))
+    assert ego.returncode == 0, ego.stderr
+    for name in ("state.pt", "model.pt", "log.csv", "loss.png"):
+        assert (out / "ego" / name).is_file()
+    assert len((out / "ego" / "log.csv").read_text().splitlines()) == 4  # header + 3 steps
+    more = tool("train", *common, "--stage", "ego", "--steps", "4", "--resume", "--out", str(out / "ego"))
+    assert more.returncode == 0, more.stderr
+    assert len((out / "ego" / "log.csv").read_text().splitlines()) == 5  # resumed at step 3
+    fusion = tool("train", *common, "--stage", "fusion", "--init", str(out / "ego" / "model.pt"), "--steps", "2", "--out", str(out / "fusion"))
+    assert fusion.returncode == 0, fusion.stderr
+    assert (out / "fusion" / "model.pt").stat().st_size < 5 * 2**20
+    result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "validate", "--out", str(out / "results"))
+    assert result.returncode == 0, result.stderr
+    assert "mIoU co3sop-readme" in result.stdout and "mIoU surroundocc" in result.stdout
+    data_json = json.loads((out / "results" / "tiny_51.2m.json").read_text())
+    assert data_json["51.2m"]["frames"] == 4  # 2 frames x 2 CAVs, each the ego in turn
+    history = torch.load(out / "fusion" / "model.pt", weights_only=False)["meta"]["history"]
+    assert [h["stage"] for h in history] == ["ego", "fusion"]
+
+
+def test_train_explains_bad_input(tmp_path):
+    result = tool("train", "--data", str(tmp_path), "--stage", "fusion", "--out", str(tmp_path / "run"))
+    assert result.returncode == 2 and "--init" in result.stderr and "Traceback" not in result.stderr
+    result = tool("evaluate", "--model", str(tmp_path / "missing.pt"), "--data", str(tmp_path))
+    assert result.returncode == 2 and "no such checkpoint" in result.stderr
