@@ -30,23 +30,12 @@ import numpy as np
 
 from co3sop_nodes import synthetic
 from co3sop_nodes.classes import NUM_CLASSES
-from co3sop_nodes.codec import FeatureCodecConfig, decode_features, decode_labels, encode_features, encode_labels
+from co3sop_nodes.codec import STANDARD_FEATURE_SETTINGS, decode_features, decode_labels, encode_features, encode_labels
 from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
 
 HERE = Path(__file__).resolve().parent
 FEATURE_GRID = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))
 CHANNELS = 64
-FEATURE_SETTINGS = [
-    FeatureCodecConfig("float32", "dense", codec="none"),
-    FeatureCodecConfig("float32", "dense"),
-    FeatureCodecConfig("float16", "dense"),
-    FeatureCodecConfig("int8", "dense"),
-    FeatureCodecConfig("float16", "threshold", threshold=0.5),
-    FeatureCodecConfig("int8", "threshold", threshold=0.5),
-    FeatureCodecConfig("float16", "topk", topk=4096),
-    FeatureCodecConfig("int8", "topk", topk=4096),
-    FeatureCodecConfig("int8", "topk", topk=1024),
-]
 LABEL_SETTINGS = [("none", 0), ("zstd", 1), ("zstd", 3), ("zstd", 9)]
 DDS_SIZES = [("64 KB", 64 * 1024), ("1 MB", 1024 * 1024), ("4 MB", 4 * 1024 * 1024)]
 
@@ -71,7 +60,7 @@ def codec_tables(repeats: int) -> str:
         "| setting | payload KB | vs fp32 | codec ratio | encode MB/s | decode MB/s | max abs error (carried) |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for cfg in FEATURE_SETTINGS:
+    for cfg in STANDARD_FEATURE_SETTINGS:
         t_enc, enc = timed(lambda: encode_features(features, confidence, FEATURE_GRID, cfg), repeats)
         t_dec, dec = timed(lambda: decode_features(enc), repeats)
         err = float(np.abs(dec.features - features)[:, dec.mask].max())

@@ -28,15 +28,6 @@ from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupa
 from co3sop_nodes.model.model import Co3SOP, EgoHalf, VehicleHalf, VehicleOutput, build_model
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread is faster, and immune to OpenMP spin-waits on a busy 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 W, H = 32, 24
 BIG = ModelConfig(
     name="test", range="76.8m", image_size=(W, H),

@@ -24,15 +24,6 @@ from co3sop_nodes.model.losses import (
 )
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread is faster, and immune to OpenMP spin-waits on a busy 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 # 4 voxels, 3 classes (0 = empty); the last voxel is ignored
 PROBS = [
     [0.7, 0.2, 0.1],  # y = 0 (empty)

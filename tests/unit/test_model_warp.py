@@ -20,15 +20,6 @@ from co3sop_nodes.grid import GridSpec
 from co3sop_nodes.model.warp import warp, warp_with_mask
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread is faster, and immune to OpenMP spin-waits on a busy 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 # square in x/y and centred on the sensor: a 90-degree yaw maps the grid onto itself
 SQUARE = GridSpec((-2.0, -2.0, -1.0), 0.5, (8, 8, 4))
 # deliberately anisotropic and off-centre, so a swapped axis or centre cannot cancel out

@@ -202,6 +202,20 @@ def _confidence_dtype(dtype: str) -> np.dtype:
     return np.dtype("u1") if dtype == "int8" else FEATURE_DTYPES[dtype]
 
 
+# The settings the benchmarks and the codec ablation compare, lossless reference first.
+STANDARD_FEATURE_SETTINGS = (
+    FeatureCodecConfig("float32", "dense", codec="none"),
+    FeatureCodecConfig("float32", "dense"),
+    FeatureCodecConfig("float16", "dense"),
+    FeatureCodecConfig("int8", "dense"),
+    FeatureCodecConfig("float16", "threshold", threshold=0.5),
+    FeatureCodecConfig("int8", "threshold", threshold=0.5),
+    FeatureCodecConfig("float16", "topk", topk=4096),
+    FeatureCodecConfig("int8", "topk", topk=4096),
+    FeatureCodecConfig("int8", "topk", topk=1024),
+)
+
+
 def encode_features(
     features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec, cfg: FeatureCodecConfig
 ) -> EncodedFeatures:

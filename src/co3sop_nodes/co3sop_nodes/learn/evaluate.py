@@ -23,22 +23,13 @@ import numpy as np
 import torch
 
 from ..cli.common import progress, run
-from ..codec import FeatureCodecConfig, decode_features, encode_features
-from ..metrics import Confusion, markdown_table
+from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig, decode_features, encode_features
+from ..metrics import CONVENTIONS, Confusion, markdown_table
 from ..model.checkpoint import load_model
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
 from .dataset import OccupancyDataset
 
-CODEC_SETTINGS = [
-    FeatureCodecConfig("float32", "dense"),
-    FeatureCodecConfig("float16", "dense"),
-    FeatureCodecConfig("int8", "dense"),
-    FeatureCodecConfig("int8", "topk", topk=8192),
-    FeatureCodecConfig("int8", "topk", topk=4096),
-    FeatureCodecConfig("int8", "topk", topk=1024),
-    FeatureCodecConfig("float16", "threshold", threshold=0.5),
-]
 
 
 def noisy_relative(world_from_ego: np.ndarray, world_from_other: np.ndarray, mu: float, sigma: float, rng) -> np.ndarray:
@@ -58,11 +49,15 @@ def through_codec(out: VehicleOutput, cfg: FeatureCodecConfig, grid) -> tuple[Ve
 
 @torch.no_grad()
 def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
-             codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate") -> tuple[dict, float]:
-    """(metrics summary, mean bytes per collaborator frame sent) over every sample of the dataset."""
+             codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
+             cache: dict | None = None) -> tuple[dict, float]:
+    """(metrics summary, mean bytes per collaborator frame sent) over every sample of the dataset.
+
+    `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings).
+    """
     rng = np.random.default_rng(seed)
     confusion, sent = Confusion(model.cfg.num_classes), []
-    cache: dict[tuple[int, int], VehicleOutput] = {}
+    cache = {} if cache is None else cache
     bar = progress(len(dataset), desc, "sample")
     for i in range(len(dataset)):
         sample = dataset.sample(i, collaborators)
@@ -116,13 +111,47 @@ def _write(out: Path, name: str, text: str, data: dict) -> None:
     print(text)
 
 
+def _collaboration(opts, cfg, stem, title, measure) -> None:
+    runs = {"off": measure(collaborators=0, desc="collaboration off")[0], "on": measure(desc="collaboration on")[0]}
+    _write(opts.out, f"{stem}_collaboration", f"### Collaboration off / on: {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+
+
+def _collaborators(opts, cfg, stem, title, measure) -> None:
+    counts = list(range(cfg.max_collaborators + 1))
+    runs = {f"{n} collaborators": measure(collaborators=n, desc=f"{n} collaborators")[0] for n in counts}
+    _write(opts.out, f"{stem}_collaborators", f"### Number of collaborators (nearest first): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+    _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in runs.values()] for c in CONVENTIONS}, "collaborators used", title)
+
+
+def _pose_noise(opts, cfg, stem, title, measure) -> None:
+    mus = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    runs = {f"mu={m:.1f}": measure(mu=m, sigma=0.02 if m else 0.0, desc=f"pose noise {m:.1f}")[0] for m in mus}
+    _write(opts.out, f"{stem}_pose_noise", f"### Pose noise (sigma 0.02 m, neighbours only): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+    _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in runs.values()] for c in CONVENTIONS}, "pose noise mean mu (m)", title)
+
+
+def _codec(opts, cfg, stem, title, measure) -> None:
+    rows = ["| feature codec | bytes per agent-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc |", "|---|---:|---:|---:|---:|"]
+    results = {}
+    for setting in STANDARD_FEATURE_SETTINGS:
+        summary, size = measure(codec=setting, desc=setting.name)
+        results[setting.name] = {"bytes": size, **summary}
+        rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
+                    f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} |")
+    _write(opts.out, f"{stem}_codec", f"### Feature codecs over V2X: {title}\n\n" + "\n".join(rows), {"title": title, **results})
+
+
+ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec}
+
+
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, required=True, help="checkpoint (model.pt or state.pt)")
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--out", type=Path, default=Path("results"))
-    parser.add_argument("--ablation", choices=("collaboration", "collaborators", "pose-noise", "codec"))
+    parser.add_argument("--ablation", nargs="*", default=[], choices=("collaboration", "collaborators", "pose-noise", "codec"),
+                        help="ablations to run (several share the vehicle halves' outputs)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     opts = parser.parse_args(args)
@@ -132,34 +161,16 @@ def main(args: list[str] | None = None) -> int:
     dataset = OccupancyDataset(opts.data, opts.splits, cfg)
     title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
     stem = f"{cfg.name}_{cfg.range}"
-    if opts.ablation is None:
-        summary, _ = evaluate(model, dataset, seed=opts.seed)
+    shared: dict = {}
+
+    def measure(**kw) -> tuple[dict, float]:  # every run of one invocation shares the vehicle halves' outputs
+        return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)
+
+    if not opts.ablation:
+        summary, _ = measure()
         _write(opts.out, stem, f"### {title}\n\n" + markdown_table({cfg.range: summary}), {"title": title, cfg.range: summary})
-    elif opts.ablation == "collaboration":
-        runs = {"off": evaluate(model, dataset, collaborators=0, desc="collaboration off")[0],
-                "on": evaluate(model, dataset, desc="collaboration on")[0]}
-        _write(opts.out, f"{stem}_collaboration", f"### Collaboration off / on: {title}\n\n" + markdown_table(runs), {"title": title, **runs})
-    elif opts.ablation == "collaborators":
-        counts = list(range(cfg.max_collaborators + 1))
-        runs = {f"{n} collaborators": evaluate(model, dataset, collaborators=n, desc=f"{n} collaborators")[0] for n in counts}
-        _write(opts.out, f"{stem}_collaborators", f"### Number of collaborators (nearest first): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
-        _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in runs.values()] for c in ("co3sop-readme", "co3sop-code", "surroundocc")},
-              "collaborators used", title)
-    elif opts.ablation == "pose-noise":
-        mus = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
-        runs = {f"mu={m:.1f}": evaluate(model, dataset, mu=m, sigma=0.02 if m else 0.0, seed=opts.seed, desc=f"pose noise {m:.1f}")[0] for m in mus}
-        _write(opts.out, f"{stem}_pose_noise", f"### Pose noise (sigma 0.02 m, neighbours only): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
-        _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in runs.values()] for c in ("co3sop-readme", "co3sop-code", "surroundocc")},
-              "pose noise mean mu (m)", title)
-    else:
-        rows = ["| feature codec | bytes per agent-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc |", "|---|---:|---:|---:|---:|"]
-        results = {}
-        for setting in CODEC_SETTINGS:
-            summary, size = evaluate(model, dataset, codec=setting, desc=setting.name)
-            results[setting.name] = {"bytes": size, **summary}
-            rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
-                        f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} |")
-        _write(opts.out, f"{stem}_codec", f"### Feature codecs over V2X: {title}\n\n" + "\n".join(rows), {"title": title, **results})
+    for ablation in opts.ablation:
+        ABLATIONS[ablation](opts, cfg, stem, title, measure)
     return 0
 
 
