@@ -24,7 +24,6 @@ import numpy as np
 import torch
 
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.fusion import hybrid_mask
 from co3sop_nodes.model.inputs import OPTICAL_FROM_BODY
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.warp import warp_with_mask

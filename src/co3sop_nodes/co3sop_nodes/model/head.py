@@ -42,7 +42,7 @@ class OccupancyHead(nn.Module):
         """Logits at 1/4 and 1/2 (dense) and at full resolution for flat voxel indices (B, N) -> (B, K, N)."""
         f0, f1 = self.coarse(x)
         b, c1, x1, y1, z1 = f1.shape
-        fx, fy, fz = 2 * x1, 2 * y1, 2 * z1
+        fy, fz = 2 * y1, 2 * z1
         i, j, k = index // (fy * fz), (index // fz) % fy, index % fz
         parent = ((i // 2) * y1 + j // 2) * z1 + k // 2  # (B, N) flat index at 1/2
         feat = torch.gather(f1.flatten(2), 2, parent[:, None].expand(b, c1, -1))  # (B, C1, N)
