@@ -12,6 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*")),
+        (f"share/{PACKAGE}/checkpoints", glob("checkpoints/*")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -23,6 +24,7 @@ setup(
         "console_scripts": [
             f"monitor = {PACKAGE}.ros.monitor:main",
             f"sample_stream = {PACKAGE}.ros.sample_stream:main",
+            f"player = {PACKAGE}.ros.player:main",
             f"generate = {PACKAGE}.cli.generate:entry",
             f"convert = {PACKAGE}.cli.convert:entry",
             f"info = {PACKAGE}.cli.info:entry",

@@ -13,6 +13,18 @@ from .config import ModelConfig, config_from_dict
 from .model import Co3SOP, build_model
 
 
+SHIPPED = "tiny.pt"  # trained by `train`; how is recorded beside it in checkpoints/tiny.md
+
+
+def shipped_checkpoint(name: str = SHIPPED) -> Path:
+    """The checkpoint installed with co3sop_nodes (found on AMENT_PREFIX_PATH, as ROS tools find packages)."""
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        candidate = Path(prefix, "share", "co3sop_nodes", "checkpoints", name)
+        if candidate.is_file():
+            return candidate
+    raise Co3sopError(f"no installed checkpoint {name!r}: build the workspace (ros2_ws/bootstrap.sh) and source ros2_ws/env.sh")
+
+
 def _atomic_save(obj, path: Path) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

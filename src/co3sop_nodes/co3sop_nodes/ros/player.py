@@ -1,0 +1,141 @@
+"""`player`: replay a rosbag2 bag (ours, or converted from OPV2V) onto its topics, with /clock.
+
+    ros2 run co3sop_nodes player BAG [--rate 1.0] [--start 0.0] [--loop] [--topics T ...]
+
+Messages go out raw (the bag's CDR bytes, never deserialised) at their
+recorded times scaled by --rate, after skipping the first --start seconds;
+/clock carries the bag time of each message, so nodes with use_sim_time
+follow the bag. Each topic keeps the QoS it was recorded with (latched
+/tf_static stays latched). At the end of the bag the player exits, or starts
+over with --loop (the clock then continues past the bag's end, so time never
+runs backwards).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from rosgraph_msgs.msg import Clock
+
+from ..bags import open_reader
+from ..errors import DatasetError
+from .convert import ns_to_stamp
+from .dds import spin_node
+
+
+def message_class(msgtype: str):
+    """'pkg/msg/Type' -> the generated Python class (as ros2 bag play finds it)."""
+    package, _, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        raise DatasetError(f"message type {msgtype} is not installed: source the workspace that defines it") from None
+
+
+def recorded_qos(connection) -> QoSProfile:
+    """The first QoS the topic was recorded with (reliable keep-last 10 if none)."""
+    profiles = getattr(connection.ext, "offered_qos_profiles", None) or []
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    if profiles:
+        p = profiles[0]
+        if int(p.durability) == int(DurabilityPolicy.TRANSIENT_LOCAL):
+            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
+            qos.depth = max(1, p.depth)
+        if int(p.reliability) == int(ReliabilityPolicy.BEST_EFFORT):
+            qos.reliability = ReliabilityPolicy.BEST_EFFORT
+    return qos
+
+
+class Player(Node):
+    def __init__(self, opts: argparse.Namespace):
+        super().__init__("player")
+        self._opts = opts
+        self._reader = open_reader(opts.bag)
+        self._reader.open()
+        conns, self._pubs = [], {}
+        for c in self._reader.connections:
+            if opts.topics and c.topic not in opts.topics:
+                continue
+            try:
+                self._pubs[c.id] = self.create_publisher(message_class(c.msgtype), c.topic, recorded_qos(c))
+                conns.append(c)
+            except DatasetError as exc:  # e.g. tf2_msgs, which no PyPI wheel provides
+                self.get_logger().warning(f"{c.topic} not played: {exc}")
+        if not conns:
+            raise DatasetError(f"{opts.bag}: no topic to play (asked for: {opts.topics or 'all'})")
+        self._conns = conns
+        self._clock = self.create_publisher(Clock, "/clock", 10)
+        self._start_ns = self._reader.start_time + int(opts.start * 1e9)
+        self._duration_ns = self._reader.end_time - self._reader.start_time
+        self._loops = 0
+        self.published = 0
+        self.get_logger().info(
+            f"playing {opts.bag}: {len(conns)} topics, {self._duration_ns / 1e9:.1f} s at rate {opts.rate}"
+            + (" (looping)" if opts.loop else "")
+        )
+
+    def close(self) -> None:
+        self._reader.close()
+
+    def wait_for_subscribers(self, timeout: float) -> None:
+        """Waits (at most `timeout` s) until every topic has a subscriber, so nothing is played to nobody."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in self._pubs.values()):
+            time.sleep(0.05)
+
+    def play(self) -> None:
+        """Publishes the bag (once, or forever with --loop) in real time scaled by --rate."""
+        while True:
+            wall0 = time.monotonic()
+            for conn, stamp, raw in self._reader.messages(connections=self._conns, start=self._start_ns):
+                delay = (stamp - self._start_ns) / 1e9 / self._opts.rate - (time.monotonic() - wall0)
+                if delay > 0:
+                    time.sleep(delay)
+                offset = self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
+                self._clock.publish(Clock(clock=ns_to_stamp(stamp + offset)))
+                self._pubs[conn.id].publish(bytes(raw))
+                self.published += 1
+            if not self._opts.loop:
+                break
+            self._loops += 1
+        self.get_logger().info(f"end of bag: {self.published} messages published")
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="player", description=__doc__.split("\n\n")[1])
+    parser.add_argument("bag", help="a rosbag2 bag folder (metadata.yaml + MCAP)")
+    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor")
+    parser.add_argument("--start", type=float, default=0.0, help="seconds of the bag to skip")
+    parser.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
+    parser.add_argument("--topics", nargs="*", default=[], help="only these topics (default: all)")
+    parser.add_argument("--wait-subscribers", type=float, default=0.0,
+                        help="wait up to this many seconds for every topic to have a subscriber before playing")
+    argv = sys.argv if args is None else args
+    opts = parser.parse_args(remove_ros_args(argv)[1:])
+    if opts.rate <= 0:
+        parser.error("--rate must be positive")
+
+    def make() -> Node:
+        player = Player(opts)
+        try:
+            player.wait_for_subscribers(opts.wait_subscribers)
+            player.play()
+        finally:
+            player.close()
+        raise SystemExit(0)  # done: spin_node cleans up
+
+    try:
+        return spin_node(make, argv)
+    except DatasetError as exc:
+        print(f"player: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
