@@ -80,8 +80,8 @@ def test_train_stages_resume_and_evaluate(small_split):
     result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "validate", "--out", str(out / "results"))
     assert result.returncode == 0, result.stderr
     assert "mIoU co3sop-readme" in result.stdout and "mIoU surroundocc" in result.stdout
-    data_json = json.loads((out / "results" / "tiny_51.2m.json").read_text())
-    assert data_json["51.2m"]["frames"] == 4  # 2 frames x 2 CAVs, each the ego in turn
+    data_json = json.loads((out / "results" / "evaluation.json").read_text())
+    assert data_json["tiny 51.2m"]["frames"] == 4  # 2 frames x 2 CAVs, each the ego in turn
     history = torch.load(out / "fusion" / "model.pt", weights_only=False)["meta"]["history"]
     assert [h["stage"] for h in history] == ["ego", "fusion"]
 

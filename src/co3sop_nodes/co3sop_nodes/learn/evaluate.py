@@ -146,31 +146,34 @@ ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", type=Path, required=True, help="checkpoint (model.pt or state.pt)")
+    parser.add_argument("--model", type=Path, nargs="+", required=True, help="checkpoints (model.pt or state.pt); one column each")
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--out", type=Path, default=Path("results"))
-    parser.add_argument("--ablation", nargs="*", default=[], choices=("collaboration", "collaborators", "pose-noise", "codec"),
-                        help="ablations to run (several share the vehicle halves' outputs)")
+    parser.add_argument("--ablation", nargs="*", default=[], choices=sorted(ABLATIONS),
+                        help="ablations to run for each model (they share the vehicle halves' outputs)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     opts = parser.parse_args(args)
     torch.set_num_threads(opts.threads)
-    model, data = load_model(opts.model)
-    cfg = model.cfg
-    dataset = OccupancyDataset(opts.data, opts.splits, cfg)
-    title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
-    stem = f"{cfg.name}_{cfg.range}"
-    shared: dict = {}
+    table: dict[str, dict] = {}
+    for path in opts.model:
+        model, _ = load_model(path)
+        cfg = model.cfg
+        dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+        title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
+        shared: dict = {}
 
-    def measure(**kw) -> tuple[dict, float]:  # every run of one invocation shares the vehicle halves' outputs
-        return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)
+        def measure(model=model, dataset=dataset, shared=shared, **kw) -> tuple[dict, float]:
+            return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)  # runs of one model share vehicle outputs
 
-    if not opts.ablation:
-        summary, _ = measure()
-        _write(opts.out, stem, f"### {title}\n\n" + markdown_table({cfg.range: summary}), {"title": title, cfg.range: summary})
-    for ablation in opts.ablation:
-        ABLATIONS[ablation](opts, cfg, stem, title, measure)
+        if not opts.ablation:
+            table[f"{cfg.name} {cfg.range}"] = measure(desc=f"{cfg.name} {cfg.range}")[0]
+        for ablation in opts.ablation:
+            ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure)
+    if table:
+        splits = "+".join(opts.splits)
+        _write(opts.out, "evaluation", f"### Per-class IoU (%) and mIoU on {splits}\n\n" + markdown_table(table), {"splits": opts.splits, **table})
     return 0
 
 
