@@ -1,0 +1,57 @@
+"""Checkpoints round-trip: the loaded model computes what the saved one did."""
+
+import pytest
+import torch
+
+from co3sop_nodes.errors import Co3sopError
+from co3sop_nodes.model.checkpoint import export_model, load_model, save_training_state
+from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
+from co3sop_nodes.model.model import build_model
+
+SMALL = dict(custom_grid=((-6.4, -6.4, -2.0), 0.4, (32, 32, 8)), image_size=(32, 24),
+             backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=8, embed_dims=8,
+             image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(8, 8, 4))
+
+
+def _inputs(cfg):
+    w, h = cfg.image_size
+    gen = torch.Generator().manual_seed(1)
+    return [{"images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8, generator=gen), "lidar2img": torch.eye(4).repeat(1, 4, 1, 1)}]
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_export_and_load(tmp_path, half):
+    torch.manual_seed(0)
+    model = build_model(preset("tiny", **SMALL)).eval()
+    export_model(tmp_path / "m.pt", model, {"history": [{"command": "train ..."}]}, half=half)
+    loaded, data = load_model(tmp_path / "m.pt")
+    assert loaded.cfg == model.cfg and data["meta"]["history"][0]["command"] == "train ..."
+    with torch.no_grad():
+        a, b = model(_inputs(model.cfg)), loaded(_inputs(model.cfg))
+    for x, y in zip(a, b):
+        if half:  # float16 weights: close, not equal
+            torch.testing.assert_close(x, y, atol=5e-2, rtol=5e-2)
+        else:
+            torch.testing.assert_close(x, y, atol=0, rtol=0)
+
+
+def test_training_state_round_trip(tmp_path):
+    model = build_model(preset("tiny", **SMALL))
+    opt = torch.optim.AdamW(model.parameters())
+    save_training_state(tmp_path / "state.pt", model, opt, 7, "ego", {"seed": 3})
+    loaded, data = load_model(tmp_path / "state.pt")
+    assert data["step"] == 7 and data["stage"] == "ego" and data["seed"] == 3
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[k], v, atol=0, rtol=0)
+    assert not list(tmp_path.glob(".*tmp"))  # written atomically
+
+
+def test_bad_checkpoints_are_explained(tmp_path):
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(Co3sopError, match="not a readable checkpoint"):
+        load_model(tmp_path / "junk.pt")
+    with pytest.raises(Co3sopError, match="no such checkpoint"):
+        load_model(tmp_path / "missing.pt")
+    torch.save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(Co3sopError, match="not a Co3SOP checkpoint"):
+        load_model(tmp_path / "other.pt")
