@@ -55,3 +55,13 @@ def test_bad_checkpoints_are_explained(tmp_path):
     torch.save({"weights": 1}, tmp_path / "other.pt")
     with pytest.raises(Co3sopError, match="not a Co3SOP checkpoint"):
         load_model(tmp_path / "other.pt")
+
+
+def test_the_shipped_checkpoint_is_installed_small_and_loads():
+    from co3sop_nodes.model.checkpoint import shipped_checkpoint
+
+    path = shipped_checkpoint()
+    assert path.stat().st_size <= 5 * 2**20
+    model, data = load_model(path)
+    assert model.cfg.name == "tiny" and [h["stage"] for h in data["meta"]["history"]] == ["ego", "fusion"]
+    assert all("--seed" in h["command"] for h in data["meta"]["history"])

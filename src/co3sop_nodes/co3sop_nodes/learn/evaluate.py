@@ -25,7 +25,7 @@ import torch
 from ..cli.common import progress, run
 from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig, decode_features, encode_features
 from ..metrics import CONVENTIONS, Confusion, markdown_table
-from ..model.checkpoint import load_model
+from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
 from .dataset import OccupancyDataset
@@ -146,7 +146,7 @@ ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", type=Path, nargs="+", required=True, help="checkpoints (model.pt or state.pt); one column each")
+    parser.add_argument("--model", type=Path, nargs="+", help="checkpoints (model.pt or state.pt); one column each (default: the shipped tiny one)")
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--out", type=Path, default=Path("results"))
@@ -157,7 +157,7 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(args)
     torch.set_num_threads(opts.threads)
     table: dict[str, dict] = {}
-    for path in opts.model:
+    for path in opts.model or [shipped_checkpoint()]:
         model, _ = load_model(path)
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg)
