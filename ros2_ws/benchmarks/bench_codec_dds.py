@@ -19,11 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -32,22 +30,13 @@ from co3sop_nodes import synthetic
 from co3sop_nodes.classes import NUM_CLASSES
 from co3sop_nodes.codec import STANDARD_FEATURE_SETTINGS, decode_features, decode_labels, encode_features, encode_labels
 from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
+from timing import timed
 
 HERE = Path(__file__).resolve().parent
 FEATURE_GRID = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))
 CHANNELS = 64
 LABEL_SETTINGS = [("none", 0), ("zstd", 1), ("zstd", 3), ("zstd", 9)]
 DDS_SIZES = [("64 KB", 64 * 1024), ("1 MB", 1024 * 1024), ("4 MB", 4 * 1024 * 1024)]
-
-
-def timed(fn, repeats: int) -> tuple[float, object]:
-    """Median seconds of `repeats` calls, and the last result."""
-    times, result = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), result
 
 
 def codec_tables(repeats: int) -> str:

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import resource
-import statistics
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +26,7 @@ from co3sop_nodes.model.inputs import OPTICAL_FROM_BODY
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.warp import warp_with_mask
 from co3sop_nodes.sim import rig
+from timing import timed
 
 
 def camera_inputs(cfg) -> dict:
@@ -39,15 +38,6 @@ def camera_inputs(cfg) -> dict:
     proj = [k @ OPTICAL_FROM_BODY @ np.linalg.inv(cam) @ lidar for cam in rig.vehicle_from_cameras()]
     return {"images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8),
             "lidar2img": torch.from_numpy(np.stack(proj)).float()[None]}
-
-
-def timed(fn, repeats: int):
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
 
 
 @torch.no_grad()
