@@ -15,7 +15,7 @@ LIB="$(python -c 'from ament_index_python.packages import get_package_prefix as 
 "$LIB/monitor" --count $((FRAMES * 3)) --duration 120 --period 2 &
 monitor=$!
 trap 'kill -INT $monitor 2>/dev/null || true' EXIT
-"$LIB/sample_stream" --agents 1 2 --frames "$FRAMES" --rate 10 --dtype int8 --selection topk
+"$LIB/sample_stream" --agents 1 2 --frames "$FRAMES" --rate 10 --dtype int8 --selection topk --wait-subscribers 20
 wait "$monitor"
 trap - EXIT
 echo "[demo] done: ${FRAMES} frames from 2 vehicles crossed DDS and decoded."

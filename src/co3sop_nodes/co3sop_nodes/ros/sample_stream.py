@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
@@ -44,6 +45,7 @@ class SampleStream(Node):
             for seed in range(min(opts.frames, 4))
         ]
         self._sent = 0
+        self._wait_until = time.monotonic() + opts.wait_subscribers
         self.create_timer(1.0 / opts.rate, self._tick)
         print(
             f"[sample_stream] agents {opts.agents}: {opts.frames} frames at {opts.rate} Hz, features "
@@ -55,6 +57,9 @@ class SampleStream(Node):
     def _tick(self) -> None:
         if self._sent >= self._opts.frames:
             raise SystemExit(0)
+        pubs = [*self._features.values(), self._occupancy]
+        if time.monotonic() < self._wait_until and any(p.get_subscription_count() == 0 for p in pubs):
+            return  # nobody listens yet: frames sent now would be lost
         (features, confidence), labels = self._frames[self._sent % len(self._frames)]
         stamp_ns = self.get_clock().now().nanoseconds
         for agent in self._opts.agents:
@@ -80,6 +85,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--selection", choices=SELECTIONS, default="dense")
     parser.add_argument("--topk", type=int, default=4096)
     parser.add_argument("--codec", choices=CODECS, default="zstd")
+    parser.add_argument("--wait-subscribers", type=float, default=0.0,
+                        help="hold the first frame up to this many seconds until every topic has a subscriber")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     return spin_node(lambda: SampleStream(opts), argv)
