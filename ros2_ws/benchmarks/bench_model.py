@@ -22,22 +22,22 @@ import numpy as np
 import torch
 
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.inputs import OPTICAL_FROM_BODY
+from co3sop_nodes.frames import CameraFrame
+from co3sop_nodes.model.inputs import camera_inputs, to_batch
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.warp import warp_with_mask
 from co3sop_nodes.sim import rig
 from timing import timed
 
 
-def camera_inputs(cfg) -> dict:
-    """Random images and the OPV2V rig's projections at the config's image size."""
+def random_camera_inputs(cfg) -> dict:
+    """Random images seen through the OPV2V rig, at the config's image size."""
     w, h = cfg.image_size
-    k = np.eye(4)
-    k[:3, :3] = rig.intrinsics(w, h)
-    lidar = rig.vehicle_from_lidar()
-    proj = [k @ OPTICAL_FROM_BODY @ np.linalg.inv(cam) @ lidar for cam in rig.vehicle_from_cameras()]
-    return {"images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8),
-            "lidar2img": torch.from_numpy(np.stack(proj)).float()[None]}
+    rng = np.random.default_rng(0)
+    cams = [CameraFrame(name, mount, rig.intrinsics(w, h), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
+            for name, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras())]
+    images, lidar2img = camera_inputs(cams, rig.vehicle_from_lidar(), cfg.image_size)
+    return to_batch({"images": images, "lidar2img": lidar2img})
 
 
 @torch.no_grad()
@@ -47,7 +47,7 @@ def stage_table(name: str, repeats: int) -> str:
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
         model = build_model(cfg).eval()
-        inputs = camera_inputs(cfg)
+        inputs = random_camera_inputs(cfg)
         t_vehicle, ego = timed(lambda: model.vehicle(**inputs), repeats)
         others = [VehicleOutput(ego.features.roll(3, 2), torch.rand_like(ego.confidence)) for _ in range(2)]
         rel = torch.eye(4)[None].repeat(1, 2, 1, 1)

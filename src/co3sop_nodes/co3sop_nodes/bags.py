@@ -27,11 +27,10 @@ from .classes import NUM_CLASSES
 from .codec import decode_labels, encode_labels, EncodedLabels
 from .errors import DatasetError
 from .frames import CameraFrame, CavFrame
-from .geometry import Pose
+from .geometry import OPTICAL_FROM_BODY, Pose
 from .grid import BENCHMARK_RANGES, GridSpec
 
 CO3SOP_MSGS = ("GridSpec", "VoxelFeatures", "SemanticOccupancy")
-_OPTICAL_FROM_BODY = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])  # rows: optical x, y, z in body axes
 _RANGE_OF_SUFFIX = {suffix: name for name, suffix in topics.RANGE_SUFFIX.items()}
 _NEVER = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)
 _LATCHED = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _NEVER, _NEVER,
@@ -199,7 +198,7 @@ class BagWriter:
         out = [self._transform(stamp, topics.base_frame(cav), topics.lidar_frame(cav), np.linalg.inv(frame.world_from_vehicle) @ frame.world_from_lidar)]
         for cam in frame.cameras:
             out.append(self._transform(stamp, topics.lidar_frame(cav), topics.camera_frame(cav, cam.name), lidar_from_world @ cam.world_from_camera))
-            out.append(self._transform(stamp, topics.camera_frame(cav, cam.name), topics.camera_optical_frame(cav, cam.name), np.linalg.inv(_OPTICAL_FROM_BODY)))
+            out.append(self._transform(stamp, topics.camera_frame(cav, cam.name), topics.camera_optical_frame(cav, cam.name), np.linalg.inv(OPTICAL_FROM_BODY)))
         return out
 
 

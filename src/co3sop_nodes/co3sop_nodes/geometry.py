@@ -14,6 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 _FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
+# A camera's optical frame (x right, y down, z along the view) from its body frame (x along the view, y left,
+# z up): the rows are the optical axes in body coordinates.
+OPTICAL_FROM_BODY = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])
 
 
 @dataclass(frozen=True)

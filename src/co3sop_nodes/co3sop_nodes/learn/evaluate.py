@@ -35,8 +35,9 @@ from .dataset import OccupancyDataset
 def noisy_relative(world_from_ego: np.ndarray, world_from_other: np.ndarray, mu: float, sigma: float, rng) -> np.ndarray:
     """neighbour_from_ego after Co3SOP's pose noise on the neighbour's world pose."""
     noisy = world_from_other.copy()
-    noisy[:2, 3] += rng.normal(mu, sigma, 2) if sigma > 0 or mu > 0 else 0.0
-    noisy[2, 3] += rng.normal(0.0, 0.01) if sigma > 0 or mu > 0 else 0.0
+    if mu or sigma:
+        noisy[:2, 3] += rng.normal(mu, sigma, 2)
+        noisy[2, 3] += rng.normal(0.0, 0.01)
     return np.linalg.inv(noisy) @ world_from_ego
 
 

@@ -18,9 +18,9 @@ from .deform_attn import DeformableAttention3d
 from .positional import sine_encoding_3d
 
 
-def hybrid_mask(ego_conf, warped_conf, warp_mask, valid):
-    """(B, 1, X, Y, Z), (B, A, X, Y, Z), (B, A, X, Y, Z) bool, (B, A) bool -> (B, A, X, Y, Z) bool."""
-    return warp_mask & (warped_conf > ego_conf) & valid[:, :, None, None, None]
+def hybrid_mask(ego_conf, warped_conf, warp_mask):
+    """(B, 1, X, Y, Z), (B, A, X, Y, Z), (B, A, X, Y, Z) bool -> (B, A, X, Y, Z) bool."""
+    return warp_mask & (warped_conf > ego_conf)
 
 
 class FusionLayer(nn.Module):

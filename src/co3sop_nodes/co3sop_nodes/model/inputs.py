@@ -11,10 +11,9 @@ import torch
 from PIL import Image
 
 from ..frames import CameraFrame
+from ..geometry import OPTICAL_FROM_BODY
 from ..grid import GridSpec
 
-# rows: the optical frame's x (right), y (down), z (forward) in camera body axes (x forward, y left, z up)
-OPTICAL_FROM_BODY = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])
 
 
 def camera_inputs(cameras: list[CameraFrame], world_from_lidar: np.ndarray, image_size: tuple[int, int]):

@@ -93,8 +93,7 @@ class EgoHalf(nn.Module):
             confs.append(warped[:, -1])
             masks.append(filled[:, 0])
         feats, confs, filled = torch.stack(feats, 1), torch.stack(confs, 1), torch.stack(masks, 1)
-        valid = torch.ones(filled.shape[:2], dtype=torch.bool, device=filled.device)
-        return feats, confs, hybrid_mask(ego.confidence, confs, filled, valid)
+        return feats, confs, hybrid_mask(ego.confidence, confs, filled)
 
     def fuse(self, ego: VehicleOutput, others=(), neighbour_from_ego: torch.Tensor | None = None, dense: bool = False):
         """The ego's features after fusion (B, C, X, Y, Z); `others` nearest first, neighbour_from_ego (B, A, 4, 4)."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -18,7 +18,6 @@ class SceneObject:
     primitives: tuple[Primitive, ...]
     colour: tuple[int, int, int] = (128, 128, 128)  # base albedo for the cameras, RGB
     texture: str = "plain"  # "plain" | "bricks" | "stripes" | "noise": procedural pattern for the cameras
-    meta: dict = field(default_factory=dict)  # e.g. vehicle id / extent for the OPV2V yaml
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
         boxes = [p.aabb() for p in self.primitives]
@@ -35,7 +34,7 @@ class SceneObject:
         """The object moved by a 4x4 rigid transform whose rotation is about z only."""
         return SceneObject(
             self.id, self.label, tuple(transform_primitive(p, transform) for p in self.primitives),
-            self.colour, self.texture, self.meta,
+            self.colour, self.texture,
         )
 
 

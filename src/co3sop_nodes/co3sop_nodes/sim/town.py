@@ -69,8 +69,8 @@ class Town:
     sidewalk_paths: list[tuple[tuple[float, float], tuple[float, float]]] = field(default_factory=list)
     parking: list[tuple[float, float, float]] = field(default_factory=list)  # (x, y, yaw) of parking spots
 
-    def add(self, label: str, primitives, colour, texture: str = "plain", **meta) -> SceneObject:
-        obj = SceneObject(len(self.objects) + 1, L[label], tuple(primitives), tuple(int(c) for c in colour), texture, meta)
+    def add(self, label: str, primitives, colour, texture: str = "plain") -> SceneObject:
+        obj = SceneObject(len(self.objects) + 1, L[label], tuple(primitives), tuple(int(c) for c in colour), texture)
         self.objects.append(obj)
         return obj
 

@@ -276,8 +276,7 @@ class Traffic:
         """The dynamic scene objects (vehicles, pedestrians) at the current time, world frame."""
         out = []
         for v in self.vehicles:
-            local = SceneObject(v.id, L["vehicle"], vehicle_primitives(v.kind, v.size), v.colour, "plain",
-                                {"vehicle": v})
+            local = SceneObject(v.id, L["vehicle"], vehicle_primitives(v.kind, v.size), v.colour)
             out.append(local.transformed(v.pose()))
         for p in self.pedestrians:
             x, y = p.position()
