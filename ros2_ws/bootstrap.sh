@@ -32,6 +32,16 @@ fi
 
 # shellcheck disable=SC1091
 . "$WS/env.sh"
+# tf2_msgs (for /tf and /tf_static) has no PyPI wheel: build our copy of its
+# TFMessage unless an underlay (e.g. /opt/ros/jazzy) already provides it.
+paths=(../src)
+have_tf2_msgs=0
+IFS=: read -ra prefixes <<< "${AMENT_PREFIX_PATH:-}"
+for prefix in "${prefixes[@]}"; do
+  case "$prefix" in "$WS"/install*) continue ;; esac
+  [ -f "$prefix/share/tf2_msgs/package.xml" ] && have_tf2_msgs=1
+done
+[ "$have_tf2_msgs" = 1 ] || paths+=(vendor)
 step "colcon build"
-colcon build >"$WS/.colcon-build.out" 2>&1 || { cat "$WS/.colcon-build.out" >&2; exit 1; }
+colcon build --base-paths "${paths[@]}" >"$WS/.colcon-build.out" 2>&1 || { cat "$WS/.colcon-build.out" >&2; exit 1; }
 tail -n 1 "$WS/.colcon-build.out"

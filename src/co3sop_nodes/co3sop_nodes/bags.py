@@ -29,6 +29,7 @@ from .errors import DatasetError
 from .frames import CameraFrame, CavFrame
 from .geometry import OPTICAL_FROM_BODY, Pose
 from .grid import BENCHMARK_RANGES, GridSpec
+from .transforms import StaticTransforms
 
 CO3SOP_MSGS = ("GridSpec", "VoxelFeatures", "SemanticOccupancy")
 _RANGE_OF_SUFFIX = {suffix: name for name, suffix in topics.RANGE_SUFFIX.items()}
@@ -237,8 +238,19 @@ def _stamp(header) -> int:
     return header.stamp.sec * 10**9 + header.stamp.nanosec
 
 
+def read_static_transforms(path: Path) -> StaticTransforms:
+    """Every /tf_static transform of a bag (the sensor mounts)."""
+    tree = StaticTransforms()
+    with open_reader(path) as reader:
+        for conn, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topics.TF_STATIC]):
+            for t in reader.deserialize(raw, conn.msgtype).transforms:
+                tr, q = t.transform.translation, t.transform.rotation
+                tree.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
+    return tree
+
+
 def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
-    """Per sensor stamp: {cav_id: {"pose", "points", "intensity", "labels", "cameras"}} decoded from a bag.
+    """Per sensor stamp: {cav_id: {"pose", "points", "intensity", "labels", "cameras", "intrinsics", "optical_frames"}} from a bag.
 
     Meant for checks and offline evaluation; the player replays raw messages.
     """
@@ -262,5 +274,8 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
                 entry["labels"][_RANGE_OF_SUFFIX[parts[2].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
             elif parts[-1] == "image_raw":
                 entry["cameras"][parts[1]] = msg.data.reshape(msg.height, msg.width, 3)
+                entry.setdefault("optical_frames", {})[parts[1]] = msg.header.frame_id
+            elif parts[-1] == "camera_info":
+                entry.setdefault("intrinsics", {})[parts[1]] = msg.k.reshape(3, 3)
     for stamp in sorted(by_stamp):
         yield stamp, {cav: dict(v) for cav, v in by_stamp[stamp].items()}

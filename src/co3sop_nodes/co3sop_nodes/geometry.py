@@ -13,10 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import Co3sopError
+
 _FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
 # A camera's optical frame (x right, y down, z along the view) from its body frame (x along the view, y left,
 # z up): the rows are the optical axes in body coordinates.
 OPTICAL_FROM_BODY = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])
+
+
+MAX_POSITION = 1e5  # m: farther from the map origin is a corrupt pose, not a place
 
 
 @dataclass(frozen=True)
@@ -35,6 +40,16 @@ class Pose:
     @classmethod
     def from_matrix(cls, m: np.ndarray) -> "Pose":
         return cls(tuple(float(v) for v in m[:3, 3]), rotation_to_quaternion(m[:3, :3]))
+
+    def check(self, what: str, max_distance: float = MAX_POSITION) -> None:
+        """Raises a Co3sopError naming `what` if the pose is not finite, too far, or not a rotation."""
+        p, q = np.asarray(self.position, float), np.asarray(self.orientation, float)
+        if not (np.isfinite(p).all() and np.isfinite(q).all()):
+            raise Co3sopError(f"{what}: pose is not finite (position {p.tolist()}, orientation {q.tolist()})")
+        if np.abs(p).max() > max_distance:
+            raise Co3sopError(f"{what}: position {p.tolist()} is more than {max_distance:g} m from the origin")
+        if abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise Co3sopError(f"{what}: orientation {q.tolist()} is not a unit quaternion (norm {np.linalg.norm(q):.4g})")
 
 
 def quaternion_to_rotation(q) -> np.ndarray:

@@ -14,12 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import opv2v
+from ..collaboration import nearest_collaborators
 from ..errors import DatasetError
 from ..model.config import ModelConfig
 from ..model.inputs import camera_inputs, lidar_occupancy
-
-COMM_RANGE = 70.0  # m, OpenCOOD's default communication range
-
 
 @dataclass
 class AgentRecord:
@@ -66,11 +64,8 @@ class OccupancyDataset:
         f, j = self.index[i]
         (split, name, ts), agents = self.frames[f]
         ego = agents[j]
-        others = []
-        for a in agents:
-            d = float(np.linalg.norm(a.world_from_lidar[:2, 3] - ego.world_from_lidar[:2, 3]))
-            if a is not ego and d <= COMM_RANGE:
-                others.append((d, a))
-        others = [a for _, a in sorted(others, key=lambda x: x[0])][: self.cfg.max_collaborators if max_collaborators is None else max_collaborators]
+        by_id = {a.cav_id: a for a in agents if a is not ego}
+        k = self.cfg.max_collaborators if max_collaborators is None else max_collaborators
+        others = [by_id[i] for i in nearest_collaborators(ego.world_from_lidar, {i: a.world_from_lidar for i, a in by_id.items()}, k=k)]
         rel = np.stack([np.linalg.inv(a.world_from_lidar) @ ego.world_from_lidar for a in others]) if others else np.zeros((0, 4, 4))
         return Sample((split, name, ts, ego.cav_id), ego, others, rel)

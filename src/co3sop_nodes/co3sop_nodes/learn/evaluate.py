@@ -23,29 +23,21 @@ import numpy as np
 import torch
 
 from ..cli.common import progress, run
-from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig, decode_features, encode_features
+from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig, decode_features
 from ..metrics import CONVENTIONS, Confusion, markdown_table
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
+from ..model.outputs import decoded_output, encode_output
+from ..model.predict import predict_frame
 from .dataset import OccupancyDataset
 
 
 
-def noisy_relative(world_from_ego: np.ndarray, world_from_other: np.ndarray, mu: float, sigma: float, rng) -> np.ndarray:
-    """neighbour_from_ego after Co3SOP's pose noise on the neighbour's world pose."""
-    noisy = world_from_other.copy()
-    if mu or sigma:
-        noisy[:2, 3] += rng.normal(mu, sigma, 2)
-        noisy[2, 3] += rng.normal(0.0, 0.01)
-    return np.linalg.inv(noisy) @ world_from_ego
-
-
 def through_codec(out: VehicleOutput, cfg: FeatureCodecConfig, grid) -> tuple[VehicleOutput, int]:
     """A vehicle output as the ego receives it over V2X through `cfg`, and the bytes it took."""
-    enc = encode_features(out.features[0].numpy(), out.confidence[0, 0].numpy(), grid, cfg)
-    dec = decode_features(enc)
-    return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(dec.confidence)[None, None]), enc.payload_bytes
+    enc = encode_output(out, grid, cfg)
+    return decoded_output(decode_features(enc)), enc.payload_bytes
 
 
 @torch.no_grad()
@@ -71,16 +63,15 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
             return cache[key]
 
         ego = vehicle(sample.ego)
-        others = []
+        candidates = {}
         for record in sample.others:
             out = vehicle(record)
             if codec is not None:
                 out, size = through_codec(out, codec, model.cfg.feature_grid)
                 sent.append(size)
-            others.append(out)
-        rel = np.stack([noisy_relative(sample.ego.world_from_lidar, r.world_from_lidar, mu, sigma, rng) for r in sample.others]) if others else None
-        logits = model.ego(ego, others, None if rel is None else torch.from_numpy(rel).float()[None])
-        confusion.add(logits[-1][0].argmax(0).numpy().astype(np.uint8), sample.ego.labels)
+            candidates[record.cav_id] = (out, record.world_from_lidar)
+        pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
+        confusion.add(pred.labels, sample.ego.labels)
         bar.update(1)
     bar.close()
     return confusion.summary(), float(np.mean(sent)) if sent else 0.0

@@ -13,7 +13,7 @@ from PIL import Image
 from ..frames import CameraFrame
 from ..geometry import OPTICAL_FROM_BODY
 from ..grid import GridSpec
-
+from .config import ModelConfig
 
 
 def camera_inputs(cameras: list[CameraFrame], world_from_lidar: np.ndarray, image_size: tuple[int, int]):
@@ -44,3 +44,17 @@ def lidar_occupancy(points: np.ndarray, grid: GridSpec) -> np.ndarray:
 def to_batch(inputs: dict) -> dict:
     """One agent's numpy inputs -> VehicleHalf keyword tensors with a batch dimension of 1."""
     return {k: torch.from_numpy(v)[None] for k, v in inputs.items()}
+
+
+def sensor_inputs(cfg: ModelConfig, world_from_lidar: np.ndarray, cameras=(), points: np.ndarray | None = None) -> dict:
+    """One agent's numpy VehicleHalf inputs from sensor messages' contents, as the vehicle node and bag evaluation build them.
+
+    cameras: (name, rgb (H, W, 3) uint8, intrinsics (3, 3), lidar_from_optical (4, 4)) per camera; points: (N, 3) LiDAR frame.
+    """
+    if cfg.modality == "lidar":
+        return {"occupancy": lidar_occupancy(points, cfg.grid)}
+    body_from_optical = np.linalg.inv(OPTICAL_FROM_BODY)
+    frames = [CameraFrame(name, world_from_lidar @ lidar_from_optical @ body_from_optical, np.asarray(k, np.float64), rgb)
+              for name, rgb, k, lidar_from_optical in cameras]
+    images, lidar2img = camera_inputs(frames, world_from_lidar, cfg.image_size)
+    return {"images": images, "lidar2img": lidar2img}

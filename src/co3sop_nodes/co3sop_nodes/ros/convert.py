@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import importlib
+
+import numpy as np
 from builtin_interfaces.msg import Time
 from co3sop_msgs.msg import GridSpec as GridSpecMsg
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
+from sensor_msgs.msg import PointCloud2, PointField
 
+from ..cloud import CLOUD_DTYPE, cloud_xyz
 from ..codec import EncodedFeatures, EncodedLabels
+from ..errors import DatasetError
 from ..geometry import Pose
 from ..grid import GridSpec
 
@@ -115,3 +122,40 @@ def labels_from_msg(msg: SemanticOccupancy) -> EncodedLabels:
         confidence=memoryview(msg.confidence),
         confidence_raw_size=msg.confidence_raw_size,
     )
+
+
+def message_class(msgtype: str):
+    """'pkg/msg/Type' -> the generated Python class (as ros2 bag play finds it)."""
+    package, _, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        raise DatasetError(f"message type {msgtype} is not installed: source the workspace that defines it") from None
+
+
+def cloud_to_msg(cloud: np.ndarray, *, stamp_ns: int, frame_id: str) -> PointCloud2:
+    """A cloud.CLOUD_DTYPE array -> PointCloud2 (x, y, z, rgb, label)."""
+    msg = PointCloud2(height=1, width=len(cloud), is_bigendian=False, point_step=CLOUD_DTYPE.itemsize,
+                      row_step=CLOUD_DTYPE.itemsize * len(cloud), is_dense=True)
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    types = {"<f4": PointField.FLOAT32, "u1": PointField.UINT8}
+    msg.fields = [PointField(name=name, offset=CLOUD_DTYPE.fields[name][1], datatype=types[CLOUD_DTYPE.fields[name][0].str.lstrip("|")], count=1)
+                  for name in CLOUD_DTYPE.names]
+    msg.data = cloud.tobytes()
+    return msg
+
+
+def cloud_points(msg: PointCloud2) -> np.ndarray:
+    """(N, 3) float32 x, y, z of a PointCloud2; raises DatasetError on a layout without them."""
+    fields = [(f.name, f.offset, f.datatype) for f in msg.fields]
+    return cloud_xyz(bytes(msg.data), fields, msg.point_step, msg.width, msg.height)
+
+
+def diagnostics_msg(stamp_ns: int, name: str, hardware_id: str, level: bytes, message: str, values: dict) -> DiagnosticArray:
+    """One DiagnosticStatus (values as strings) in a DiagnosticArray, as /diagnostics carries."""
+    status = DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                              values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    return msg

@@ -14,7 +14,6 @@ runs backwards).
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import time
 
@@ -25,17 +24,8 @@ from rosgraph_msgs.msg import Clock
 
 from ..bags import open_reader
 from ..errors import DatasetError
-from .convert import ns_to_stamp
+from .convert import message_class, ns_to_stamp
 from .dds import spin_node
-
-
-def message_class(msgtype: str):
-    """'pkg/msg/Type' -> the generated Python class (as ros2 bag play finds it)."""
-    package, _, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
-        raise DatasetError(f"message type {msgtype} is not installed: source the workspace that defines it") from None
 
 
 def recorded_qos(connection) -> QoSProfile:
@@ -44,10 +34,12 @@ def recorded_qos(connection) -> QoSProfile:
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
     if profiles:
         p = profiles[0]
-        if int(p.durability) == int(DurabilityPolicy.TRANSIENT_LOCAL):
+        # rosbags gives its own enums (same numbers as rmw's)
+        if int(getattr(p.durability, "value", p.durability)) == int(DurabilityPolicy.TRANSIENT_LOCAL):
             qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
-            qos.depth = max(1, p.depth)
-        if int(p.reliability) == int(ReliabilityPolicy.BEST_EFFORT):
+            # keep every latched message of the bag (e.g. one /tf_static per CAV), not just the last
+            qos.depth = max(1, p.depth, connection.msgcount)
+        if int(getattr(p.reliability, "value", p.reliability)) == int(ReliabilityPolicy.BEST_EFFORT):
             qos.reliability = ReliabilityPolicy.BEST_EFFORT
     return qos
 
@@ -65,7 +57,7 @@ class Player(Node):
             try:
                 self._pubs[c.id] = self.create_publisher(message_class(c.msgtype), c.topic, recorded_qos(c))
                 conns.append(c)
-            except DatasetError as exc:  # e.g. tf2_msgs, which no PyPI wheel provides
+            except DatasetError as exc:  # a type this environment lacks: play the rest
                 self.get_logger().warning(f"{c.topic} not played: {exc}")
         if not conns:
             raise DatasetError(f"{opts.bag}: no topic to play (asked for: {opts.topics or 'all'})")

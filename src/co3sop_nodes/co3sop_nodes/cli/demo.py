@@ -1,0 +1,185 @@
+"""`demo`: the whole graph on a small scenario, scored: player + vehicles + ego + recorder, then `score`.
+
+    ros2 run co3sop_nodes demo [--bag BAG] [--out results/demo] [--frames 10] [--rate 0.04]
+
+Without --bag it generates one scenario with three CAVs (once; kept in
+data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
+(at most --vehicles) as separate processes, plays the bag once at --rate,
+waits until the ego has fused every frame, stops everything with SIGINT,
+scores the MCAP (table printed, pictures beside it) and checks the recording
+holds every /ego/occupancy message the ego published.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from ament_index_python.packages import get_package_prefix
+
+from .. import topics
+from ..bags import open_reader
+from ..errors import Co3sopError
+from ..model.checkpoint import read_checkpoint, shipped_checkpoint
+from . import generate, score
+from .common import run
+
+DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed", "7", "--image-size", "320x240",
+                 "--lidar-steps", "512", "--workers", "1"]
+
+
+def say(text: str) -> None:
+    print(f"[demo] {text}", flush=True)
+
+
+def executable(name: str) -> str:
+    """A co3sop_nodes executable, found as `ros2 run` finds it."""
+    return str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", name))
+
+
+class Process:
+    """A child process whose output is echoed with a prefix and searched for markers."""
+
+    def __init__(self, label: str, argv: list[str], echo: bool = True):
+        self.label = label
+        self.lines: list[str] = []
+        self._echo = echo
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ),
+                                     start_new_session=True)  # Ctrl-C on the demo reaches the demo only; it stops the children
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            line = line.rstrip()
+            self.lines.append(line)
+            if self._echo:
+                print(f"  [{self.label}] {line}", flush=True)
+
+    def count(self, pattern: str) -> int:
+        return sum(1 for line in list(self.lines) if re.search(pattern, line))
+
+    def wait_for(self, pattern: str, timeout: float, n: int = 1) -> None:
+        deadline = time.monotonic() + timeout
+        while self.count(pattern) < n:
+            if self.proc.poll() is not None:
+                raise Co3sopError(f"{self.label} exited with code {self.proc.returncode} before '{pattern}'")
+            if time.monotonic() > deadline:
+                raise Co3sopError(f"{self.label}: no '{pattern}' within {timeout:.0f} s")
+            time.sleep(0.1)
+
+    def stop(self, timeout: float = 30) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._reader.join(5)
+        return self.proc.returncode
+
+
+def bag_contents(bag: Path) -> tuple[list[int], int]:
+    """(CAV ids, frames) of a bag."""
+    reader = open_reader(bag)
+    with reader:
+        poses = {c.topic: c.msgcount for c in reader.connections if re.fullmatch(r"/cav_\d+/lidar/pose", c.topic)}
+    if not poses:
+        raise Co3sopError(f"{bag}: no /cav_N/lidar/pose topic: not a CAV bag")
+    cavs = sorted(int(t.split("/")[1][4:]) for t in poses)
+    return cavs, max(poses.values())
+
+
+def modality(params: list[str]) -> str:
+    """The vehicles' sensor modality: their checkpoint's."""
+    chosen = [p.split(":=", 1)[1] for p in params if p.startswith("checkpoint:=")]
+    return read_checkpoint(Path(chosen[-1]) if chosen else shipped_checkpoint())["config"]["modality"]
+
+
+def played_topics(cavs: list[int], sensors: str) -> list[str]:
+    """What the graph listens to (so the player waits for exactly those subscribers): sensors, mounts, ground truth."""
+    played = [topics.TF_STATIC]
+    for c in cavs:
+        played.append(topics.lidar_pose(c))
+        if sensors == "lidar":
+            played.append(topics.lidar_points(c))
+        else:
+            played += [f(c, f"camera{i}") for i in range(4) for f in (topics.camera_image, topics.camera_info)]
+        played += [topics.ground_truth(c, r) for r in topics.RANGE_SUFFIX]
+    return played
+
+
+def ensure_scenario(opts) -> Path:
+    if opts.bag:
+        return opts.bag
+    bags = opts.bags
+    found = sorted(bags.glob("test/*/metadata.yaml"))
+    if not found:
+        say(f"no demo scenario yet: generating one (3 CAVs, 10 frames) into {opts.data} and {bags} (about 2-3 minutes)")
+        generate.main(["--out", str(opts.data), "--bags", str(bags), *DEMO_SCENARIO])
+        found = sorted(bags.glob("test/*/metadata.yaml"))
+    return found[0].parent
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bag", type=Path, help="a CAV bag to play (default: the generated demo scenario)")
+    parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
+    parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
+    parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
+    parser.add_argument("--rate", type=float, default=0.04, help="playback rate (0.04: a 10 Hz frame every 2.5 s, what 2 cores keep up with)")
+    parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
+    parser.add_argument("--params", nargs="*", default=[], help="extra vehicle parameters, e.g. codec.dtype:=int8")
+    parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
+    opts = parser.parse_args(args)
+    t0 = time.monotonic()
+    bag = ensure_scenario(opts)
+    cavs, frames = bag_contents(bag)
+    cavs = cavs[: opts.vehicles]
+    ego = cavs[0]
+    opts.out.mkdir(parents=True, exist_ok=True)
+    mcap = opts.out / "demo.mcap"
+    say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego cav {ego}; recording to {mcap}")
+    ros_params = [x for p in opts.params for x in ("-p", p)]
+    echo = not opts.quiet
+    recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
+    nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}"], echo)]
+    nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *ros_params], echo) for c in cavs]
+    player = None
+    try:
+        say("waiting for the nodes to load the model")
+        for node in nodes:
+            node.wait_for(r"ready:", timeout=180)
+        recorder.wait_for(r"recording to", timeout=60)
+        say(f"playing the bag at rate {opts.rate}")
+        player = Process("player", [executable("player"), str(bag), "--rate", str(opts.rate), "--wait-subscribers", "30",
+                                    "--topics", *played_topics(cavs, modality(opts.params))], echo)
+        if player.proc.wait() != 0:
+            raise Co3sopError(f"player failed with code {player.proc.returncode}")
+        say("bag played; waiting for the ego to fuse the last frames")
+        nodes[0].wait_for(r"published #", timeout=120, n=frames)
+    finally:
+        for p in [player, *nodes, recorder]:  # the recorder last, so it sees everything
+            if p is not None:
+                p.stop()
+    published = nodes[0].count(r"published #")
+    recorder_line = next((line for line in recorder.lines if "finalised" in line), "")
+    say(f"graph stopped after {time.monotonic() - t0:.0f} s; ego published {published} predictions; {recorder_line.strip()}")
+    code = score.main([str(mcap), "--out", str(opts.out)])
+    recorded = re.search(rf"{re.escape(topics.EGO_OCCUPANCY)} (\d+)", recorder_line)
+    if recorded is None or int(recorded.group(1)) != published:
+        say(f"error: the recording holds {recorded.group(1) if recorded else 0} of the {published} /ego/occupancy messages published")
+        return 1
+    say(f"the recording holds all {published} /ego/occupancy messages; done in {time.monotonic() - t0:.0f} s")
+    return code
+
+
+entry = run(main)

@@ -1,0 +1,45 @@
+"""Occupied voxels as a coloured point list, for PointCloud2 viewers (RViz2, Foxglove) (ROS-free)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .classes import EMPTY, IGNORE, PALETTE
+from .errors import DatasetError
+from .grid import GridSpec
+
+# x, y, z (float32, m), rgb (float32 holding 0x00RRGGBB, the PCL / RViz convention), label (uint8)
+CLOUD_DTYPE = np.dtype({"names": ["x", "y", "z", "rgb", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
+                        "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
+
+
+def occupancy_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """(N,) CLOUD_DTYPE: the centre of every voxel that is neither empty nor ignored, in the grid's frame."""
+    idx = np.argwhere((labels != EMPTY) & (labels != IGNORE))  # (N, 3) i, j, k
+    lab = labels[tuple(idx.T)]
+    centres = np.asarray(grid.origin) + (idx + 0.5) * grid.voxel_size
+    rgb = PALETTE[np.minimum(lab, len(PALETTE) - 1)].astype(np.uint32)
+    cloud = np.zeros(len(idx), CLOUD_DTYPE)
+    cloud["x"], cloud["y"], cloud["z"] = centres.T
+    cloud["rgb"] = ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).view(np.float32)
+    cloud["label"] = lab
+    return cloud
+
+
+# sensor_msgs/PointField datatypes -> numpy
+_POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+
+
+def cloud_xyz(data: bytes, fields: list[tuple[str, int, int]], point_step: int, width: int, height: int = 1) -> np.ndarray:
+    """(N, 3) float32 x, y, z of a little-endian PointCloud2 payload; fields: (name, offset, datatype)."""
+    layout = {name: (offset, _POINT_FIELD_TYPES.get(datatype)) for name, offset, datatype in fields}
+    missing = [a for a in "xyz" if a not in layout or layout[a][1] is None]
+    if missing:
+        raise DatasetError(f"point cloud has no numeric {', '.join(missing)} field (fields: {', '.join(layout)})")
+    n = width * height
+    if point_step <= 0 or len(data) < n * point_step:
+        raise DatasetError(f"point cloud data holds {len(data)} bytes, {n} points of {point_step} bytes need {n * point_step}")
+    dtype = np.dtype({"names": list("xyz"), "formats": [layout[a][1] for a in "xyz"], "offsets": [layout[a][0] for a in "xyz"],
+                      "itemsize": point_step})
+    cloud = np.frombuffer(data, dtype, count=n)
+    return np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float32)

@@ -1,0 +1,50 @@
+"""Offline predictions on a bag: the node graph's computation without DDS (ROS-free).
+
+Reads the bag with rosbags, builds each CAV's inputs exactly as `vehicle`
+does (same sensor_inputs, same mounts from /tf_static), passes every vehicle
+output through the same feature codec and fuses with the same predict_frame
+as `ego`. The graph's /ego/occupancy must equal these predictions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from .. import topics
+from ..bags import read_frames, read_static_transforms
+from ..codec import FeatureCodecConfig, decode_features
+from ..errors import DatasetError
+from ..model.inputs import sensor_inputs, to_batch
+from ..model.model import Co3SOP
+from ..model.outputs import decoded_output, encode_output
+from ..model.predict import FramePrediction, predict_frame
+
+
+@torch.no_grad()
+def predict_bag(model: Co3SOP, bag: Path, ego_id: int, codec: FeatureCodecConfig, cavs: list[int] | None = None,
+                **predict_kw) -> dict[int, FramePrediction]:
+    """Stamp -> the ego's prediction, for every frame of the bag in which the ego appears; `cavs` limits who takes part."""
+    cfg = model.cfg
+    mounts = read_static_transforms(bag)
+    results = {}
+    for stamp, agents in read_frames(bag):
+        if ego_id not in agents:
+            continue
+        received = {}
+        for cav, data in sorted(agents.items()):
+            if cavs is not None and cav not in cavs:
+                continue
+            if "pose" not in data:
+                raise DatasetError(f"{bag}: frame {stamp} of cav {cav} has no pose")
+            world_from_lidar = data["pose"]
+            cameras = [(name, rgb, data["intrinsics"][name], mounts.lookup(topics.lidar_frame(cav), data["optical_frames"][name]))
+                       for name, rgb in sorted(data["cameras"].items())]
+            inputs = sensor_inputs(cfg, world_from_lidar, cameras, data.get("points"))
+            out = model.vehicle(**to_batch(inputs))
+            received[cav] = (decoded_output(decode_features(encode_output(out, cfg.feature_grid, codec))), world_from_lidar)
+        ego, world_from_ego = received.pop(ego_id)
+        results[stamp] = predict_frame(model, ego, world_from_ego, received, **predict_kw)
+    return results
+

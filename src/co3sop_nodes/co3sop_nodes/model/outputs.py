@@ -1,0 +1,33 @@
+"""The model's outputs as they cross process boundaries (ROS-free), shared by offline evaluation and the nodes.
+
+A vehicle half's output is encoded with a feature codec and decoded by the
+ego exactly the same way in both paths, and the ego's logits become labels
+the same way, so the graph and `evaluate` agree bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..codec import DecodedFeatures, EncodedFeatures, FeatureCodecConfig, encode_features
+from ..grid import GridSpec
+from .model import VehicleOutput
+
+
+def encode_output(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -> EncodedFeatures:
+    """A batch-of-one vehicle output -> what the vehicle sends."""
+    return encode_features(out.features[0].numpy(), out.confidence[0, 0].numpy(), grid, cfg)
+
+
+def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
+    """What the ego received -> a batch-of-one vehicle output (voxels not sent: features 0, confidence 0)."""
+    conf = dec.confidence if dec.confidence is not None else np.zeros(dec.features.shape[1:], np.float32)
+    return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(conf)[None, None])
+
+
+def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution logits (1, K, X, Y, Z) -> labels (X, Y, Z) uint8 and round(255 * their probability) uint8."""
+    labels = logits[0].argmax(0)  # (X, Y, Z)
+    prob = torch.softmax(logits[0], 0).gather(0, labels[None])[0]  # (X, Y, Z)
+    return labels.numpy().astype(np.uint8), np.round(prob.numpy() * 255).astype(np.uint8)

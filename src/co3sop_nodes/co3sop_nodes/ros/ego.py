@@ -1,0 +1,230 @@
+"""`ego`: fuses its own and its neighbours' voxel features and publishes the semantic occupancy.
+
+    ros2 run co3sop_nodes ego --ros-args -p ego_id:=1 [--params-file ego.yaml]
+
+Subscribes to /cav_<ego_id>/voxel_features and to every other
+/cav_<N>/voxel_features as it appears. Each message is checked (agent id,
+pose, grid, payload, size limit, age) and decoded on arrival; a bad one is
+dropped with a warning naming the topic and the reason, and counted. For each
+of its own frames the ego waits (at most max_wait s) for every live neighbour's
+frame within `tolerance` s of its stamp, keeps the nearest max_collaborators
+within comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
+runs the model's ego half and publishes /ego/occupancy
+(co3sop_msgs/SemanticOccupancy), /ego/occupancy/points (PointCloud2: x, y, z,
+rgb, label) and its diagnostics on /diagnostics (neighbours used and missing,
+their age, bytes received, time per stage, drops by reason).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import PointCloud2
+
+from .. import topics
+from ..cloud import occupancy_cloud
+from ..codec import decode_features, encode_labels
+from ..collaboration import COMM_RANGE
+from ..errors import Co3sopError, PayloadTooLargeError
+from ..model.checkpoint import load_model, shipped_checkpoint
+from ..model.model import VehicleOutput
+from ..model.outputs import decoded_output
+from ..model.predict import predict_frame
+from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
+from .dds import OCCUPANCY_QOS, spin_node
+from .vehicle import DIAGNOSTICS_QOS
+
+FEATURES_TOPIC = re.compile(r"^/cav_(\d+)/voxel_features$")
+FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
+
+
+@dataclass
+class Received:
+    stamp: int
+    out: VehicleOutput
+    world_from_lidar: np.ndarray  # (4, 4)
+    wire_bytes: int
+    received_wall_ns: int
+    decode_ms: float
+
+
+class Ego(Node):
+    def __init__(self):
+        super().__init__("ego")
+        p = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
+        self.ego_id = p("ego_id", -1)
+        if self.ego_id < 0:
+            raise Co3sopError("no ego id: pass -p ego_id:=N")
+        checkpoint = p("checkpoint", "")
+        self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        self.cfg = self.model.cfg
+        self.tolerance_ns = int(p("tolerance", 0.05) * 1e9)
+        self.comm_range = p("comm_range", COMM_RANGE)
+        k = p("max_collaborators", -1)
+        self.max_collaborators = self.cfg.max_collaborators if k < 0 else min(k, self.cfg.max_collaborators)
+        self.mu, self.sigma = p("pose_noise_mu", 0.0), p("pose_noise_sigma", 0.0)
+        self.rng = np.random.default_rng(p("seed", 0))
+        self.max_wait = p("max_wait", 2.0)
+        self.neighbour_timeout_ns = int(p("neighbour_timeout", 5.0) * 1e9)
+        self.max_raw_bytes = int(p("max_payload_mb", 64.0) * 2**20)
+        self.publish_points = p("publish_points", True)
+        torch.set_num_threads(p("threads", 1))
+        # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
+        self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
+        self._received: dict[int, deque[Received]] = {}
+        self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last accepted message
+        self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
+        self._last_stamp = -1
+        self._subs: dict[str, object] = {}
+        self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
+        self.dropped: Counter[str] = Counter()
+        self.published = 0
+        self._occupancy = self.create_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
+        self._points = self.create_publisher(PointCloud2, topics.EGO_OCCUPANCY + "/points", OCCUPANCY_QOS)
+        self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._subscribe(topics.voxel_features(self.ego_id), self.ego_id)
+        self.create_timer(p("discovery_period", 0.5), self._discover)
+        self.create_timer(0.05, self._fuse_ready)
+        self.get_logger().info(f"ready: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
+                               f"{self.max_collaborators} collaborators within {self.comm_range:g} m")
+
+    # --- receiving ---------------------------------------------------------------------------------
+
+    def _subscribe(self, topic: str, agent: int) -> None:
+        self._agents[topic] = agent
+        self._subs[topic] = self.create_subscription(
+            VoxelFeatures, topic, lambda raw, t=topic, a=agent: self._on_features(t, a, raw), self._qos, raw=True)
+
+    def _discover(self) -> None:
+        for name, types in self.get_topic_names_and_types():
+            m = FEATURES_TOPIC.match(name)
+            if m and FEATURES_TYPE in types and name not in self._subs:
+                self._subscribe(name, int(m.group(1)))
+                self.get_logger().info(f"neighbour discovered: {name}")
+
+    def _drop(self, topic: str, kind: str, reason: str) -> None:
+        self.dropped[kind] += 1
+        self.get_logger().warning(f"{topic}: dropped ({kind}): {reason}")
+
+    def _on_features(self, topic: str, agent: int, raw: bytes) -> None:
+        wall = time.time_ns()
+        msg = deserialize_message(raw, VoxelFeatures)
+        stamp = stamp_to_ns(msg.header.stamp)
+        try:
+            if msg.agent_id != agent:
+                raise Co3sopError(f"agent_id {msg.agent_id} does not match the topic's vehicle {agent}")
+            pose = pose_from_msg(msg.lidar_pose)
+            pose.check("lidar_pose")
+        except Co3sopError as exc:
+            return self._drop(topic, "header", str(exc))
+        if stamp < self._last_stamp - self.tolerance_ns:
+            return self._drop(topic, "stale", f"stamp {stamp} is {(self._last_stamp - stamp) / 1e6:.0f} ms older than the last "
+                                              f"fused frame, more than the tolerance {self.tolerance_ns / 1e6:.0f} ms")
+        t0 = time.perf_counter()
+        try:
+            enc = features_from_msg(msg)
+            if enc.grid != self.cfg.feature_grid or enc.channels != self.cfg.embed_dims:
+                raise Co3sopError(f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
+                                  f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
+                                  f"{self.cfg.feature_grid.voxel_size:g} m x {self.cfg.embed_dims}")
+            out = decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes))
+        except PayloadTooLargeError as exc:
+            return self._drop(topic, "size", str(exc))
+        except Co3sopError as exc:  # GridError, CodecError: a bad grid or a corrupt / truncated payload
+            return self._drop(topic, "payload", str(exc))
+        record = Received(stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
+        self._received.setdefault(agent, deque(maxlen=8)).append(record)
+        self._last_heard[agent] = wall
+        if agent == self.ego_id:
+            self._pending.append((stamp, time.monotonic() + self.max_wait))
+        self._fuse_ready()
+
+    # --- fusing ------------------------------------------------------------------------------------
+
+    def _match(self, agent: int, stamp: int) -> Received | None:
+        """The agent's frame closest to `stamp`, if within the tolerance."""
+        best = min(self._received.get(agent, ()), key=lambda r: abs(r.stamp - stamp), default=None)
+        return best if best is not None and abs(best.stamp - stamp) <= self.tolerance_ns else None
+
+    def _live_neighbours(self) -> list[int]:
+        """Discovered neighbours with a publisher, not silent for longer than neighbour_timeout."""
+        now = time.time_ns()
+        return [a for a in self._agents.values() if a != self.ego_id and now - self._last_heard.get(a, now) < self.neighbour_timeout_ns
+                and self.count_publishers(topics.voxel_features(a)) > 0]
+
+    def _fuse_ready(self) -> None:
+        while self._pending:
+            stamp, deadline = self._pending[0]
+            waiting = [a for a in self._live_neighbours() if self._match(a, stamp) is None
+                       and all(r.stamp < stamp for r in self._received.get(a, ()))]
+            if waiting and time.monotonic() < deadline:
+                return  # a live neighbour's frame may still come
+            self._pending.popleft()
+            self._fuse(stamp)
+
+    def _fuse(self, stamp: int) -> None:
+        cpu0, t0 = time.process_time(), time.perf_counter()
+        ego = self._match(self.ego_id, stamp)
+        if ego is None:  # evicted by newer own frames while waiting
+            return
+        heard = sorted(a for a in self._received if a != self.ego_id)
+        matched = {a: r for a in heard if (r := self._match(a, stamp)) is not None}
+        pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
+                             self.comm_range, self.max_collaborators, self.mu, self.sigma, self.rng)
+        chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
+        t2 = time.perf_counter()
+        frame = topics.lidar_frame(self.ego_id)
+        enc = encode_labels(pred.labels, self.cfg.grid, self.cfg.num_classes, confidence=pred.confidence)
+        self._occupancy.publish(labels_to_msg(enc, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id))
+        published_wall = time.time_ns()
+        if self.publish_points:
+            self._points.publish(cloud_to_msg(occupancy_cloud(pred.labels, self.cfg.grid), stamp_ns=stamp, frame_id=frame))
+        t3 = time.perf_counter()
+        self.published += 1
+        self._last_stamp = max(self._last_stamp, stamp)
+        for a, frames in self._received.items():  # what can no longer pair with a future frame
+            while frames and frames[0].stamp < stamp - self.tolerance_ns:
+                frames.popleft()
+        missing = [a for a in heard if a not in matched]
+        out_of_range = [a for a in matched if a not in chosen]
+        used = [ego, *others]
+        values = {
+            "stamp": stamp, "neighbours_used": len(others), "neighbours": ",".join(map(str, chosen)),
+            "neighbours_missing": ",".join(map(str, missing)), "neighbours_not_chosen": ",".join(map(str, out_of_range)),
+            "neighbour_age_ms": ",".join(f"{(stamp - r.stamp) / 1e6:.0f}" for r in others),
+            "received_wall_ns": ",".join(f"{a}:{r.received_wall_ns}" for a, r in zip([self.ego_id, *chosen], used)),
+            "bytes_received": sum(r.wire_bytes for r in used), "bytes_per_agent": ",".join(f"{a}:{r.wire_bytes}" for a, r in zip([self.ego_id, *chosen], used)),
+            "decode_ms": f"{sum(r.decode_ms for r in used):.1f}", "fuse_ms": f"{1e3 * pred.fuse_s:.1f}", "head_ms": f"{1e3 * pred.head_s:.1f}",
+            "publish_ms": f"{1e3 * (t3 - t2):.1f}", "total_ms": f"{1e3 * (t3 - t0):.1f}", "published_wall_ns": published_wall,
+            "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
+            "dropped": sum(self.dropped.values()), **{f"dropped_{k}": v for k, v in sorted(self.dropped.items())},
+        }
+        level = DiagnosticStatus.WARN if missing else DiagnosticStatus.OK
+        text = f"{len(others)} neighbours used" + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
+        self._diag.publish(diagnostics_msg(stamp, "ego", frame, level, text, values))
+        self.get_logger().info(f"frame {stamp}: published #{self.published}, {text}, {1e3 * (t3 - t0):.0f} ms")
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = sys.argv if args is None else args
+    try:
+        return spin_node(Ego, argv)
+    except Co3sopError as exc:
+        print(f"ego: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

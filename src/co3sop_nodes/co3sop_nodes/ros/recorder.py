@@ -1,0 +1,98 @@
+"""`recorder`: writes predictions, ground truth and diagnostics to one MCAP file, never deserialising.
+
+    ros2 run co3sop_nodes recorder --out results/demo/demo.mcap [--topics REGEX ...] [--flush-period 1.0]
+
+Subscribes raw (the CDR bytes as they arrived) to every topic whose name
+matches one of the patterns, as topics appear (default: /ego/occupancy, the
+ground truth of every CAV, /diagnostics), and writes them to an MCAP file in
+the ros2 profile with their schemas embedded (rosbags, `ros2 bag` and
+Foxglove read it). Chunks are flushed as they fill and at least every
+--flush-period s; SIGINT or SIGTERM finalises the file. After a crash, at
+most the last chunk is lost and `recover` makes the file readable again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+
+from ..errors import Co3sopError
+from ..recording import McapRecorder
+from .convert import message_class
+from .dds import spin_node
+
+DEFAULT_TOPICS = (r"/ego/occupancy", r"/cav_\d+/ground_truth/occupancy_\w+", r"/diagnostics")
+# Deep reliable queues: the recorder must keep up with bursts rather than lose messages.
+RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class Recorder(Node):
+    def __init__(self, opts: argparse.Namespace):
+        super().__init__("recorder")
+        self._patterns = [re.compile(f"^{t}$") for t in opts.topics]
+        self._types: dict[str, str] = {}
+        self._subs = []
+        self.mcap = McapRecorder(opts.out, chunk_size=opts.chunk_size)
+        self.create_timer(0.2, self._discover)
+        self.create_timer(opts.flush_period, self.mcap.flush)
+        self._discover()
+        self.get_logger().info(f"recording to {opts.out}: topics matching {', '.join(opts.topics)}")
+
+    def _discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._types or not any(p.match(topic) for p in self._patterns):
+                continue
+            try:
+                cls = message_class(types[0])
+            except Co3sopError as exc:
+                self._types[topic] = types[0]
+                self.get_logger().warning(f"{topic} not recorded: {exc}")
+                continue
+            self._types[topic] = types[0]
+            self._subs.append(self.create_subscription(cls, topic, lambda raw, t=topic: self._on_message(t, raw), RECORD_QOS, raw=True))
+            self.get_logger().info(f"recording {topic} ({types[0]})")
+
+    def _on_message(self, topic: str, raw: bytes) -> None:
+        self.mcap.write(topic, self._types[topic], raw, time.time_ns())
+
+    def close(self) -> None:
+        self.mcap.close()
+        counts = ", ".join(f"{t} {n}" for t, n in sorted(self.mcap.counts.items())) or "nothing"
+        # after rclpy shut down: plain output
+        print(f"[recorder] finalised {self.mcap.path}: {sum(self.mcap.counts.values())} messages ({counts})", flush=True)
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="recorder", description=__doc__.split("\n\n")[1])
+    parser.add_argument("--out", type=Path, required=True, help="the MCAP file to write")
+    parser.add_argument("--topics", nargs="+", default=list(DEFAULT_TOPICS), help="regular expressions of topic names")
+    parser.add_argument("--chunk-size", type=int, default=256 * 1024, help="bytes per MCAP chunk (what a crash may lose)")
+    parser.add_argument("--flush-period", type=float, default=1.0, help="seconds between flushes of a partly filled chunk")
+    argv = sys.argv if args is None else args
+    opts = parser.parse_args(remove_ros_args(argv)[1:])
+    recorder = None
+
+    def make() -> Node:
+        nonlocal recorder
+        recorder = Recorder(opts)
+        return recorder
+
+    try:
+        return spin_node(make, argv)
+    except OSError as exc:
+        print(f"recorder: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if recorder is not None:
+            recorder.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,190 @@
+"""`vehicle`: one CAV's encoder: its sensors -> the model's vehicle half -> compressed voxel features over DDS.
+
+    ros2 run co3sop_nodes vehicle --id 3 [--ros-args --params-file vehicle.yaml -p codec.dtype:=int8]
+
+Subscribes to /cav_<id>/camera0..3/image_raw + camera_info and
+/cav_<id>/lidar/pose (or /cav_<id>/lidar/points with a LiDAR checkpoint) and
+the camera mounts on /tf_static; groups each frame by its header stamp, runs
+the vehicle half of the checkpoint (default: the shipped tiny one), encodes
+the feature volume and confidence with the codec parameters and publishes
+co3sop_msgs/VoxelFeatures on /cav_<id>/voxel_features (reliable), plus its
+per-frame timings on /diagnostics. Parameters: see config/vehicle.yaml.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from co3sop_msgs.msg import VoxelFeatures
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from tf2_msgs.msg import TFMessage
+
+from .. import topics
+from ..codec import FeatureCodecConfig
+from ..errors import Co3sopError
+from ..geometry import Pose
+from ..model.checkpoint import load_model, shipped_checkpoint
+from ..model.inputs import sensor_inputs, to_batch
+from ..model.outputs import encode_output
+from ..transforms import StaticTransforms
+from .convert import cloud_points, diagnostics_msg, features_to_msg, pose_from_msg, stamp_to_ns
+from .dds import FEATURES_QOS, spin_node
+
+SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def codec_parameters(node: Node) -> FeatureCodecConfig:
+    p = lambda name, default: node.declare_parameter(f"codec.{name}", default).value  # noqa: E731
+    return FeatureCodecConfig(dtype=p("dtype", "float16"), selection=p("selection", "dense"), topk=p("topk", 4096),
+                              threshold=p("threshold", 0.5), codec=p("compression", "zstd"), level=p("level", 3))
+
+
+def rgb_of(msg: Image, topic: str) -> np.ndarray:
+    if msg.encoding != "rgb8":
+        raise Co3sopError(f"{topic}: encoding {msg.encoding!r}, expected rgb8")
+    data = np.frombuffer(msg.data, np.uint8)
+    if msg.step < 3 * msg.width or len(data) < msg.step * msg.height:
+        raise Co3sopError(f"{topic}: {len(data)} bytes do not hold {msg.height} rows of {msg.step} bytes")
+    return data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, : 3 * msg.width].reshape(msg.height, msg.width, 3)
+
+
+class Vehicle(Node):
+    def __init__(self, agent_id: int | None):
+        super().__init__(f"vehicle_{agent_id}" if agent_id is not None else "vehicle")
+        p = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
+        self.agent_id = agent_id if agent_id is not None else p("id", -1)
+        if self.agent_id < 0:
+            raise Co3sopError("no vehicle id: pass --id N (or -p id:=N)")
+        checkpoint = p("checkpoint", "")
+        self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        self.cfg = cfg = self.model.cfg
+        for name, have in (("modality", cfg.modality), ("range", cfg.range)):
+            wanted = p(name, "")
+            if wanted and wanted != have:
+                raise Co3sopError(f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it")
+        self.codec = codec_parameters(self)
+        torch.set_num_threads(p("threads", 1))
+        self.cameras = list(p("cameras", ["camera0", "camera1", "camera2", "camera3"]))
+        self.max_pending = p("max_pending", 10)
+        a = self.agent_id
+        self.lidar_frame = topics.lidar_frame(a)
+        self._tf = StaticTransforms()
+        self._pending: dict[int, dict] = {}  # stamp -> {part: message, "first_wall_ns": int}
+        self._last_stamp = -1
+        self.published = self.dropped = 0
+        self.create_subscription(TFMessage, topics.TF_STATIC, self._on_static, STATIC_QOS)
+        self._parts = {"pose": topics.lidar_pose(a)}
+        self.create_subscription(PoseStamped, topics.lidar_pose(a), self._part("pose"), SENSOR_QOS)
+        if cfg.modality == "camera":
+            for cam in self.cameras:
+                self._parts[f"image:{cam}"] = topics.camera_image(a, cam)
+                self._parts[f"info:{cam}"] = topics.camera_info(a, cam)
+                self.create_subscription(Image, topics.camera_image(a, cam), self._part(f"image:{cam}"), SENSOR_QOS)
+                self.create_subscription(CameraInfo, topics.camera_info(a, cam), self._part(f"info:{cam}"), SENSOR_QOS)
+        else:
+            self._parts["points"] = topics.lidar_points(a)
+            self.create_subscription(PointCloud2, topics.lidar_points(a), self._part("points"), SENSOR_QOS)
+        self._pub = self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
+        self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.get_logger().info(
+            f"ready: cav {a}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
+            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}")
+
+    def _on_static(self, msg: TFMessage) -> None:
+        for t in msg.transforms:
+            tr, q = t.transform.translation, t.transform.rotation
+            self._tf.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
+        self._encode_ready()
+
+    def _ready(self, entry: dict) -> bool:
+        """Every message of the frame is in, and the mounts of its cameras are known (topics carry no order between them)."""
+        return all(k in entry for k in self._parts) and all(
+            entry[f"image:{cam}"].header.frame_id in self._tf for cam in self.cameras if self.cfg.modality == "camera")
+
+    def _encode_ready(self) -> None:
+        for stamp in sorted(self._pending):
+            if self._ready(self._pending[stamp]):
+                self._encode(stamp, self._pending.pop(stamp))
+
+    def _part(self, key: str):
+        def callback(msg) -> None:
+            stamp = stamp_to_ns(msg.header.stamp)
+            if stamp <= self._last_stamp:
+                return self._drop(self._parts[key], f"stamp {stamp} is not newer than the last encoded frame {self._last_stamp}")
+            entry = self._pending.setdefault(stamp, {"first_wall_ns": time.time_ns()})
+            entry[key] = msg
+            self._encode_ready()
+            while len(self._pending) > self.max_pending:  # a frame that never completes must not pile up
+                old = min(self._pending)
+                lacking = [self._parts[k] for k in self._parts if k not in self._pending.pop(old)]
+                self._drop(lacking[0] if lacking else topics.TF_STATIC,
+                           f"frame {old} incomplete (no {', '.join(lacking) or 'camera mounts'}) after {self.max_pending} newer frames")
+        return callback
+
+    def _drop(self, topic: str, reason: str) -> None:
+        self.dropped += 1
+        self.get_logger().warning(f"{topic}: dropped: {reason}")
+
+    def _encode(self, stamp: int, entry: dict) -> None:
+        cpu0, t0 = time.process_time(), time.perf_counter()
+        try:
+            pose = pose_from_msg(entry["pose"].pose)
+            pose.check(self._parts["pose"])
+            world_from_lidar = pose.matrix()
+            cameras, points = [], None
+            if self.cfg.modality == "camera":
+                for cam in self.cameras:
+                    image, info = entry[f"image:{cam}"], entry[f"info:{cam}"]
+                    k = np.array(info.k, np.float64).reshape(3, 3)
+                    cameras.append((cam, rgb_of(image, self._parts[f"image:{cam}"]), k, self._tf.lookup(self.lidar_frame, image.header.frame_id)))
+            else:
+                points = cloud_points(entry["points"])
+            inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
+        except Co3sopError as exc:
+            return self._drop(self._parts["pose"].rsplit("/", 2)[0], f"frame {stamp}: {exc}")
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            out = self.model.vehicle(**to_batch(inputs))
+        t2 = time.perf_counter()
+        enc = encode_output(out, self.cfg.feature_grid, self.codec)
+        msg = features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose)
+        t3 = time.perf_counter()
+        self._pub.publish(msg)
+        published_wall = time.time_ns()
+        self._last_stamp = stamp
+        self.published += 1
+        values = {"stamp": stamp, "first_input_wall_ns": entry["first_wall_ns"], "published_wall_ns": published_wall,
+                  "inputs_ms": f"{1e3 * (t1 - t0):.1f}", "encoder_ms": f"{1e3 * (t2 - t1):.1f}", "codec_ms": f"{1e3 * (t3 - t2):.1f}",
+                  "payload_bytes": enc.payload_bytes, "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
+                  "frames_published": self.published, "dropped": self.dropped}
+        self._diag.publish(diagnostics_msg(stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
+                                           f"frame {self.published} encoded", values))
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="vehicle", description=__doc__.split("\n\n")[1])
+    parser.add_argument("--id", type=int, help="this vehicle's CAV id (default: parameter id)")
+    argv = sys.argv if args is None else args
+    opts = parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        return spin_node(lambda: Vehicle(opts.id), argv)
+    except Co3sopError as exc:
+        print(f"vehicle: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

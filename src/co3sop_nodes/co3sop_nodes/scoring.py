@@ -1,0 +1,115 @@
+"""Scores a recording of the graph: each /ego/occupancy against its ground truth by stamp and agent (ROS-free).
+
+Ground truth of an ego agent with no prediction at that stamp is a missed
+frame: it is listed and scored as an all-empty prediction (a deployed system
+that says nothing has seen nothing), never dropped. Predictions without
+ground truth are listed and not scored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+
+from . import topics
+from .bags import occupancy_labels, typestore
+from .errors import DatasetError
+from .grid import BENCHMARK_RANGES, GridSpec
+from .metrics import Confusion
+
+DIAGNOSTICS = "/diagnostics"
+
+
+def range_of(grid: GridSpec) -> str:
+    for name, spec in BENCHMARK_RANGES.items():
+        if spec == grid:
+            return name
+    raise DatasetError(f"grid {grid} is none of the benchmark ranges ({', '.join(BENCHMARK_RANGES)})")
+
+
+@dataclass
+class Recording:
+    predictions: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> (X, Y, Z) labels
+    range_name: str
+    truths: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> labels at range_name, ego agents only
+    diagnostics: list[dict[str, str]] = field(default_factory=list)  # the ego's per-frame key/values
+
+
+def _open(path: Path) -> AnyReader:
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such recording")
+    try:
+        reader = AnyReader([path], default_typestore=typestore())
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for a damaged file
+        raise DatasetError(f"{path}: not a readable MCAP recording ({exc}); if the recorder crashed, run `recover {path}` first") from None
+    return reader
+
+
+def _messages(reader: AnyReader, connections: list):
+    """Deserialized messages of these connections (none for an empty list, where rosbags would give all)."""
+    if connections:
+        for conn, _, raw in reader.messages(connections=connections):
+            yield reader.deserialize(raw, conn.msgtype)
+
+
+def read_recording(path: Path, range_name: str | None = None) -> Recording:
+    """Predictions, the ego agents' ground truth at the predictions' range, and the ego's diagnostics."""
+    reader = _open(path)
+    try:
+        preds: dict[tuple[int, int], np.ndarray] = {}
+        ranges = set()
+        pred_conns = [c for c in reader.connections if c.topic == topics.EGO_OCCUPANCY]
+        for msg in _messages(reader, pred_conns):
+            labels, grid = occupancy_labels(msg)
+            ranges.add(range_of(grid))
+            preds[(msg.agent_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)] = labels
+        if not preds and range_name is None:
+            raise DatasetError(f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames")
+        if len(ranges) > 1:
+            raise DatasetError(f"{path}: predictions at several ranges ({', '.join(sorted(ranges))})")
+        range_name = range_name or ranges.pop()
+        if range_name not in BENCHMARK_RANGES:
+            raise DatasetError(f"unknown range {range_name!r} (known: {', '.join(BENCHMARK_RANGES)})")
+        egos = {a for a, _ in preds}  # no prediction at all: every agent's ground truth counts as missed
+        wanted = {topics.ground_truth(a, range_name) for a in egos}
+        suffix = topics.ground_truth(0, range_name).removeprefix("/cav_0")
+        gt_conns = [c for c in reader.connections if c.topic in wanted or (not egos and c.topic.endswith(suffix))]
+        truths = {}
+        for msg in _messages(reader, gt_conns):
+            truths[(msg.agent_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)] = occupancy_labels(msg)[0]
+        diagnostics = []
+        for msg in _messages(reader, [c for c in reader.connections if c.topic == DIAGNOSTICS]):
+            for status in msg.status:
+                if status.name == "ego":
+                    diagnostics.append({kv.key: kv.value for kv in status.values})
+    finally:
+        reader.close()
+    return Recording(preds, range_name, truths, diagnostics)
+
+
+@dataclass
+class Score:
+    summary: dict  # metrics.Confusion.summary() over scored frames
+    range_name: str
+    scored: int  # frames with ground truth (predicted + missed)
+    missed: list[tuple[int, int]]  # (agent, stamp) with ground truth but no prediction
+    unmatched: list[tuple[int, int]]  # predictions without ground truth
+
+
+def score(rec: Recording) -> Score:
+    confusion = Confusion()
+    missed = []
+    for key in sorted(rec.truths):
+        truth = rec.truths[key]
+        prediction = rec.predictions.get(key)
+        if prediction is None:
+            missed.append(key)
+            prediction = np.zeros_like(truth)
+        confusion.add(prediction, truth)
+    unmatched = sorted(k for k in rec.predictions if k not in rec.truths)
+    return Score(confusion.summary(), rec.range_name, len(rec.truths), missed, unmatched)

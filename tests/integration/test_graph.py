@@ -1,0 +1,150 @@
+"""The node graph over real DDS: player + vehicles + ego + recorder equal the offline path; faults are survived."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import executable
+
+from co3sop_nodes.codec import FeatureCodecConfig
+from co3sop_nodes.learn.bag_eval import predict_bag
+from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
+from co3sop_nodes.scoring import read_recording
+
+FRAMES = 4
+
+
+class Graph:
+    """Node processes with their output in files (a full pipe would stall a node)."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, *argv: str) -> subprocess.Popen:
+        log = open(self.folder / f"{name}.log", "w")
+        self.procs[name] = subprocess.Popen(list(argv), stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
+        return self.procs[name]
+
+    def log(self, name: str) -> str:
+        return (self.folder / f"{name}.log").read_text()
+
+    def wait_for(self, name: str, pattern: str, n: int = 1, timeout: float = 120) -> None:
+        deadline = time.monotonic() + timeout
+        while len(re.findall(pattern, self.log(name))) < n:
+            assert self.procs[name].poll() is None, f"{name} exited:\n{self.log(name)}"
+            assert time.monotonic() < deadline, f"{name}: fewer than {n} '{pattern}' in {timeout} s:\n{self.log(name)}"
+            time.sleep(0.2)
+
+    def stop(self, name: str, sig=signal.SIGINT, timeout: float = 30) -> int:
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(sig)
+        return proc.wait(timeout)
+
+    def close(self) -> None:
+        for name, proc in self.procs.items():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for proc in self.procs.values():
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+@pytest.fixture
+def graph(tmp_path):
+    g = Graph(tmp_path)
+    yield g
+    g.close()
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory) -> tuple[Path, list[int]]:
+    """A small generated scenario bag (the demo's town and traffic, smaller images) and its CAV ids."""
+    root = tmp_path_factory.mktemp("scenario")
+    done = subprocess.run([executable("generate"), "--out", str(root / "data"), "--bags", str(root / "bags"), "--splits", "test=1",
+                           "--frames", str(FRAMES), "--cavs", "3", "--seed", "7", "--image-size", "160x120", "--lidar-steps", "256",
+                           "--workers", "1"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    bag = next((root / "bags" / "test").iterdir())
+    cavs = sorted(int(p.name) for p in next((root / "data" / "test").iterdir()).iterdir() if p.is_dir())
+    return bag, cavs
+
+
+def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str], ego_params: list[str] = ()) -> Path:
+    """Recorder, ego (the first CAV), one vehicle per CAV; the bag played once; everything stopped; the MCAP path."""
+    mcap = graph.folder / "run.mcap"
+    graph.start("recorder", executable("recorder"), "--out", str(mcap))
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0", *ego_params)
+    for c in cavs:
+        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *[x for p in vehicle_params for x in ("-p", p)])
+    for name in ["ego", *(f"vehicle{c}" for c in cavs)]:
+        graph.wait_for(name, "ready:")
+    graph.wait_for("recorder", "recording /ego/occupancy")
+    played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in cavs for s in
+                               ["lidar/pose", "ground_truth/occupancy_50m", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
+    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    assert player.wait(120) == 0, graph.log("player")
+    graph.wait_for("ego", r"published #", n=FRAMES, timeout=180)
+    for c in cavs:
+        graph.stop(f"vehicle{c}")
+    graph.stop("ego")
+    assert graph.stop("recorder") == 0
+    return mcap
+
+
+@pytest.mark.parametrize("codec", [FeatureCodecConfig("float32", "dense", codec="none"), FeatureCodecConfig("int8", "topk", topk=1024)],
+                         ids=lambda c: c.name)
+def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
+    bag, cavs = scenario
+    params = [f"codec.dtype:={codec.dtype}", f"codec.selection:={codec.selection}", f"codec.topk:={codec.topk}",
+              f"codec.compression:={codec.codec}"]
+    mcap = run_graph(graph, bag, cavs, params)
+    rec = read_recording(mcap)
+    published = len(re.findall(r"published #", graph.log("ego")))
+    assert len(rec.predictions) == published == FRAMES  # the recording holds every prediction the ego published
+    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics), rec.diagnostics  # collaboration really ran
+
+    torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
+    model, _ = load_model(shipped_checkpoint())
+    offline = predict_bag(model, bag, cavs[0], codec)
+    assert sorted(offline) == sorted(s for _, s in rec.predictions)
+    for (agent, stamp), labels in rec.predictions.items():
+        assert agent == cavs[0]
+        assert np.array_equal(labels, offline[stamp].labels), f"frame {stamp}: {(labels != offline[stamp].labels).mean():.2%} of voxels differ"
+    assert rec.truths.keys() == rec.predictions.keys()
+
+
+def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
+    bag, cavs = scenario
+    ego, neighbour = cavs[0], cavs[-1]
+    mcap = graph.folder / "run.mcap"
+    graph.start("recorder", executable("recorder"), "--out", str(mcap), "--topics", "/diagnostics", "/ego/occupancy")
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=2.0")
+    for c in (ego, neighbour):
+        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
+    for name in ("ego", f"vehicle{ego}", f"vehicle{neighbour}"):
+        graph.wait_for(name, "ready:")
+    played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in (ego, neighbour) for s in
+                               ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
+    graph.start("player", executable("player"), str(bag), "--rate", "0.02", "--wait-subscribers", "30", "--topics", *played)
+    graph.wait_for("ego", r"published #\d+, 1 neighbours used", timeout=180)
+    graph.procs[f"vehicle{neighbour}"].kill()  # no goodbye: as a crash
+    graph.wait_for("ego", rf"published #\d+, 0 neighbours used; no frame from cav {neighbour}", timeout=180)
+    assert graph.procs["ego"].poll() is None
+    graph.stop("player")
+    graph.stop("ego")
+    assert graph.stop("recorder") == 0
+    diags = read_recording(mcap).diagnostics
+    assert diags[0]["neighbours_used"] == "1"
+    assert diags[-1]["neighbours_used"] == "0" and diags[-1]["neighbours_missing"] == str(neighbour)
