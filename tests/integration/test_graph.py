@@ -16,7 +16,9 @@ from conftest import executable
 
 from co3sop_nodes.codec import FeatureCodecConfig
 from co3sop_nodes.learn.bag_eval import predict_bag
-from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
+from co3sop_nodes.model.checkpoint import export_model, load_model, shipped_checkpoint
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.model import build_model
 from co3sop_nodes.scoring import read_recording
 
 FRAMES = 4
@@ -113,7 +115,7 @@ def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
     rec = read_recording(mcap)
     published = len(re.findall(r"published #", graph.log("ego")))
     assert len(rec.predictions) == published == FRAMES  # the recording holds every prediction the ego published
-    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics), rec.diagnostics  # collaboration really ran
+    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics  # collaboration really ran
 
     torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
     model, _ = load_model(shipped_checkpoint())
@@ -145,6 +147,25 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     graph.stop("player")
     graph.stop("ego")
     assert graph.stop("recorder") == 0
-    diags = read_recording(mcap).diagnostics
+    diags = read_recording(mcap).diagnostics["ego"]
     assert diags[0]["neighbours_used"] == "1"
     assert diags[-1]["neighbours_used"] == "0" and diags[-1]["neighbours_missing"] == str(neighbour)
+
+
+def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path):
+    """The cheap modality: a LiDAR encoder (LMSCNet, same feature grid) as a neighbour of the camera ego."""
+    bag, cavs = scenario
+    ego, neighbour = cavs[0], cavs[-1]
+    lidar = tmp_path / "lidar.pt"
+    torch.manual_seed(0)
+    export_model(lidar, build_model(preset("tiny-lmscnet")), {"made_by": "test: random weights"})
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0")
+    graph.start("camera", executable("vehicle"), "--id", str(ego))
+    graph.start("lidar", executable("vehicle"), "--id", str(neighbour), "--ros-args", "-p", f"checkpoint:={lidar}", "-p", "modality:=lidar")
+    for name in ("ego", "camera", "lidar"):
+        graph.wait_for(name, "ready:")
+    assert "tiny-lmscnet (lidar" in graph.log("lidar")
+    played = ["/tf_static", f"/cav_{neighbour}/lidar/pose", f"/cav_{neighbour}/lidar/points", f"/cav_{ego}/lidar/pose",
+              *(f"/cav_{ego}/camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]
+    graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    graph.wait_for("ego", r"published #\d+, 1 neighbours used", n=2, timeout=180)

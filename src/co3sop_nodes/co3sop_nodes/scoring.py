@@ -35,7 +35,7 @@ class Recording:
     predictions: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> (X, Y, Z) labels
     range_name: str
     truths: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> labels at range_name, ego agents only
-    diagnostics: list[dict[str, str]] = field(default_factory=list)  # the ego's per-frame key/values
+    diagnostics: dict[str, list[dict[str, str]]] = field(default_factory=dict)  # status name ("ego", "vehicle cav_3") -> per-frame key/values
 
 
 def _open(path: Path) -> AnyReader:
@@ -82,11 +82,10 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         truths = {}
         for msg in _messages(reader, gt_conns):
             truths[(msg.agent_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)] = occupancy_labels(msg)[0]
-        diagnostics = []
+        diagnostics: dict[str, list[dict[str, str]]] = {}
         for msg in _messages(reader, [c for c in reader.connections if c.topic == DIAGNOSTICS]):
             for status in msg.status:
-                if status.name == "ego":
-                    diagnostics.append({kv.key: kv.value for kv in status.values})
+                diagnostics.setdefault(status.name, []).append({kv.key: kv.value for kv in status.values})
     finally:
         reader.close()
     return Recording(preds, range_name, truths, diagnostics)

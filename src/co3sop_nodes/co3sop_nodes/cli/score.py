@@ -67,7 +67,7 @@ def main(args: list[str] | None = None) -> int:
              f"{len(result.missed)} missed (scored as empty), {len(result.unmatched)} predictions without ground truth"]
     lines += [f"- missed: cav {a} at stamp {s}" for a, s in result.missed]
     lines += [f"- no ground truth: cav {a} at stamp {s}" for a, s in result.unmatched]
-    lines.append(_diagnostics_summary(rec.diagnostics))
+    lines.append(_diagnostics_summary(rec.diagnostics.get("ego", [])))
     keys = sorted(rec.truths)
     if opts.frames:
         chosen = [k for k in keys if k[1] in set(opts.frames)]

@@ -28,11 +28,14 @@ from .. import topics
 from ..bags import open_reader
 from ..errors import Co3sopError
 from ..model.checkpoint import read_checkpoint, shipped_checkpoint
-from . import generate, score
-from .common import run
+from ..cli import generate, score
+from ..cli.common import run
 
 DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed", "7", "--image-size", "320x240",
                  "--lidar-steps", "512", "--workers", "1"]
+
+
+LOSSLESS = ["codec.dtype:=float32", "codec.selection:=dense", "codec.compression:=none"]
 
 
 def say(text: str) -> None:
@@ -137,7 +140,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
     parser.add_argument("--rate", type=float, default=0.04, help="playback rate (0.04: a 10 Hz frame every 2.5 s, what 2 cores keep up with)")
     parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
-    parser.add_argument("--params", nargs="*", default=[], help="extra vehicle parameters, e.g. codec.dtype:=int8")
+    parser.add_argument("--params", nargs="*", default=[],
+                        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
     opts = parser.parse_args(args)
     t0 = time.monotonic()
@@ -152,7 +156,10 @@ def main(args: list[str] | None = None) -> int:
     echo = not opts.quiet
     recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
     nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}"], echo)]
-    nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *ros_params], echo) for c in cavs]
+    # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
+    lossless = [x for p in LOSSLESS for x in ("-p", p)]
+    nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *(lossless if c == ego else ros_params)], echo)
+              for c in cavs]
     player = None
     try:
         say("waiting for the nodes to load the model")

@@ -1,0 +1,99 @@
+"""Benchmark of the node graph: bytes on the wire and mIoU per feature codec, latency, CPU per node, DDS share.
+
+    ros2_ws/benchmarks/bench_graph.py [--bag BAG] [--out results/bench_graph]
+
+Runs the demo graph (player + 3 vehicles + ego + recorder, separate processes
+over DDS, at the demo's rate) once per V2X codec setting of the neighbours
+(the ego's own encoder is lossless, as in `demo`), then reads the
+recordings: ego and vehicle diagnostics on /diagnostics give bytes received
+per agent-frame, stage times and CPU time per frame (time.process_time of the
+frame's work) and wall-clock marks on this host's clock; `score` gives mIoU.
+Latency = ego's /ego/occupancy publication - the first sensor message of that
+frame reaching a vehicle; DDS share = (features received by the ego - published
+by the vehicle) / latency.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from ament_index_python.packages import get_package_prefix
+
+from co3sop_nodes.scoring import read_recording
+
+SETTINGS = {  # name -> vehicle parameters; the lossless reference first
+    "float32-dense-none": ["codec.dtype:=float32", "codec.selection:=dense", "codec.compression:=none"],
+    "float16-dense-zstd": ["codec.dtype:=float16", "codec.selection:=dense"],
+    "int8-dense-zstd": ["codec.dtype:=int8", "codec.selection:=dense"],
+    "int8-topk4096-zstd": ["codec.dtype:=int8", "codec.selection:=topk", "codec.topk:=4096"],
+    "int8-topk1024-zstd": ["codec.dtype:=int8", "codec.selection:=topk", "codec.topk:=1024"],
+}
+
+
+def pairs(text: str) -> dict[int, int]:
+    return {int(a): int(b) for a, b in (x.split(":") for x in text.split(",") if x)}
+
+
+def measure(mcap: Path) -> dict:
+    rec = read_recording(mcap)
+    ego = rec.diagnostics["ego"]
+    vehicles = {int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds} for name, ds in rec.diagnostics.items() if name.startswith("vehicle")}
+    sizes, latency, dds_share = [], [], []
+    for d in ego:
+        stamp = int(d["stamp"])
+        sizes += list(pairs(d["bytes_per_agent"]).values())[1:]  # V2X only: the first is the ego's own, sent losslessly on board
+        marks = {a: v[stamp] for a, v in vehicles.items() if stamp in v}
+        first_input = min(int(m["first_input_wall_ns"]) for m in marks.values())
+        total = int(d["published_wall_ns"]) - first_input
+        latency.append(total / 1e6)
+        transport = [r - int(marks[a]["published_wall_ns"]) for a, r in pairs(d["received_wall_ns"]).items() if a in marks]
+        dds_share.append(max(transport) / total)
+    cpu = {"ego": np.median([float(d["cpu_ms"]) for d in ego])}
+    cpu.update({f"vehicle {a}": np.median([float(d["cpu_ms"]) for d in v.values()]) for a, v in sorted(vehicles.items())})
+    stages = {k: float(np.median([float(d[k]) for d in ego])) for k in ("decode_ms", "fuse_ms", "head_ms", "publish_ms")}
+    return {"bytes_per_agent_frame": float(np.mean(sizes)), "latency_ms_p50": float(np.percentile(latency, 50)),
+            "latency_ms_p95": float(np.percentile(latency, 95)), "dds_share_p50": float(np.median(dds_share)),
+            "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()}, "ego_stage_ms": stages, "frames": len(ego)}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[1])
+    parser.add_argument("--bag", type=Path, help="default: the demo scenario")
+    parser.add_argument("--out", type=Path, default=Path("results/bench_graph"))
+    parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
+    opts = parser.parse_args()
+    demo = Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo")
+    results = {}
+    for name in opts.settings:
+        out = opts.out / name
+        argv = [str(demo), "--out", str(out), "--quiet", "--params", *SETTINGS[name]] + (["--bag", str(opts.bag)] if opts.bag else [])
+        print(f"[bench_graph] {name}: running the demo graph", flush=True)
+        done = subprocess.run(argv, capture_output=True, text=True)
+        if done.returncode != 0:
+            print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
+            return 1
+        score = json.loads((out / "score.json").read_text())
+        results[name] = {**measure(out / "demo.mcap"), "miou": score["co3sop-readme"]["miou"], "miou_code": score["co3sop-code"]["miou"]}
+    ref = results[opts.settings[0]]
+    print(f"\n| V2X feature codec (neighbours) | bytes per neighbour-frame | vs {opts.settings[0]} | mIoU co3sop-readme | change (points) | "
+          "latency p50 / p95 (ms) | DDS share p50 |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for name, r in results.items():
+        print(f"| {name} | {r['bytes_per_agent_frame']:,.0f} | {r['bytes_per_agent_frame'] / ref['bytes_per_agent_frame']:.3f} | "
+              f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | "
+              f"{100 * r['dds_share_p50']:.1f} % |")
+    r = results[opts.settings[-1]]
+    print(f"\nCPU time per frame (ms, median) with {opts.settings[-1]}: " + ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_ms_per_frame"].items()))
+    print("ego stages (ms, median): " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f}" for k, v in r["ego_stage_ms"].items()))
+    opts.out.mkdir(parents=True, exist_ok=True)
+    (opts.out / "bench_graph.json").write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

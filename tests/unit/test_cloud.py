@@ -1,0 +1,30 @@
+"""Occupied voxels as coloured points; PointCloud2 payloads back to x, y, z."""
+
+import numpy as np
+import pytest
+
+from co3sop_nodes.classes import IGNORE, PALETTE
+from co3sop_nodes.cloud import CLOUD_DTYPE, cloud_xyz, occupancy_cloud
+from co3sop_nodes.errors import DatasetError
+from co3sop_nodes.grid import GridSpec
+
+
+def test_occupied_voxel_centres_in_the_palette():
+    grid = GridSpec((-1.0, -1.0, 0.0), 0.5, (4, 4, 2))
+    labels = np.zeros(grid.dims, np.uint8)
+    labels[1, 2, 1] = 7
+    labels[3, 0, 0] = IGNORE
+    cloud = occupancy_cloud(labels, grid)
+    assert len(cloud) == 1 and cloud["label"][0] == 7
+    assert np.allclose([cloud["x"][0], cloud["y"][0], cloud["z"][0]], [-0.25, 0.25, 0.75])
+    rgb = cloud["rgb"].view(np.uint32)[0]
+    assert ((rgb >> 16) & 255, (rgb >> 8) & 255, rgb & 255) == tuple(PALETTE[7])
+    fields = [(n, CLOUD_DTYPE.fields[n][1], 7) for n in "xyz"]
+    assert np.allclose(cloud_xyz(cloud.tobytes(), fields, CLOUD_DTYPE.itemsize, len(cloud)), [[-0.25, 0.25, 0.75]])
+
+
+def test_bad_clouds_are_explained():
+    with pytest.raises(DatasetError, match="no numeric z"):
+        cloud_xyz(b"\0" * 16, [("x", 0, 7), ("y", 4, 7)], 16, 1)
+    with pytest.raises(DatasetError, match="need 32"):
+        cloud_xyz(b"\0" * 16, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], 16, 2)
