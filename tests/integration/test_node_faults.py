@@ -166,3 +166,15 @@ def test_score_and_recover_explain_bad_files(tmp_path):
     for tool in ("score", "recover"):
         done = subprocess.run([executable(tool), str(junk)], capture_output=True, text=True, timeout=60)
         assert done.returncode == 2 and "junk.mcap" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["vehicle"], "vehicle: error: no vehicle id"),
+    (["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:=/nowhere/model.pt"], "/nowhere/model.pt: no such checkpoint"),
+    (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=lidar"], "pick a checkpoint trained for it"),
+    (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
+    (["ego"], "ego: error: no ego id"),
+])
+def test_nodes_explain_bad_parameters(argv, message):
+    done = subprocess.run([executable(argv[0]), *argv[1:]], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable
 
 import rclpy
@@ -10,6 +11,8 @@ from ament_index_python.packages import get_package_share_directory
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from ..errors import Co3sopError
 
 PACKAGE = "co3sop_nodes"
 
@@ -45,12 +48,21 @@ def configure_environment() -> None:
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", fastdds_profile_path())
 
 
-def spin_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
+def spin_node(make_node: Callable[[], Node], args: list[str] | None = None, prog: str = "") -> int:
     """The Jazzy node idiom: init, spin until Ctrl-C or shutdown, always clean up.
 
     `make_node` may raise SystemExit (e.g. a node that finished its job); its
-    code is returned.
+    code is returned. Bad input (Co3sopError) or a file problem (OSError)
+    prints `<prog>: error: <message>` and returns 2, never a traceback.
     """
+    try:
+        return _spin(make_node, args)
+    except (Co3sopError, OSError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _spin(make_node: Callable[[], Node], args: list[str] | None) -> int:
     configure_environment()
     rclpy.init(args=args)
     node = None

@@ -17,7 +17,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -26,10 +25,10 @@ from ament_index_python.packages import get_package_prefix
 
 from .. import topics
 from ..bags import open_reader
-from ..errors import Co3sopError
-from ..model.checkpoint import read_checkpoint, shipped_checkpoint
 from ..cli import generate, score
 from ..cli.common import run
+from ..errors import Co3sopError
+from ..model.checkpoint import read_checkpoint, shipped_checkpoint
 
 DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed", "7", "--image-size", "320x240",
                  "--lidar-steps", "512", "--workers", "1"]
@@ -126,7 +125,7 @@ def ensure_scenario(opts) -> Path:
     bags = opts.bags
     found = sorted(bags.glob("test/*/metadata.yaml"))
     if not found:
-        say(f"no demo scenario yet: generating one (3 CAVs, 10 frames) into {opts.data} and {bags} (about 2-3 minutes)")
+        say(f"no demo scenario yet: generating one (3 CAVs, 10 frames) into {opts.data} and {bags} (about a minute)")
         generate.main(["--out", str(opts.data), "--bags", str(bags), *DEMO_SCENARIO])
         found = sorted(bags.glob("test/*/metadata.yaml"))
     return found[0].parent

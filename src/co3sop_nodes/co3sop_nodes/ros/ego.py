@@ -218,12 +218,7 @@ class Ego(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    argv = sys.argv if args is None else args
-    try:
-        return spin_node(Ego, argv)
-    except Co3sopError as exc:
-        print(f"ego: error: {exc}", file=sys.stderr)
-        return 2
+    return spin_node(Ego, sys.argv if args is None else args, "ego")
 
 
 if __name__ == "__main__":

@@ -178,7 +178,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=0.0, help="exit after this many seconds (0: never)")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
-    return spin_node(lambda: Monitor(opts.topics, opts.period, opts.count, opts.duration), argv)
+    return spin_node(lambda: Monitor(opts.topics, opts.period, opts.count, opts.duration), argv, "monitor")
 
 
 if __name__ == "__main__":

@@ -122,11 +122,7 @@ def main(args: list[str] | None = None) -> int:
             player.close()
         raise SystemExit(0)  # done: spin_node cleans up
 
-    try:
-        return spin_node(make, argv)
-    except DatasetError as exc:
-        print(f"player: error: {exc}", file=sys.stderr)
-        return 2
+    return spin_node(make, argv, "player")
 
 
 if __name__ == "__main__":

@@ -85,10 +85,7 @@ def main(args: list[str] | None = None) -> int:
         return recorder
 
     try:
-        return spin_node(make, argv)
-    except OSError as exc:
-        print(f"recorder: error: {exc}", file=sys.stderr)
-        return 2
+        return spin_node(make, argv, "recorder")
     finally:
         if recorder is not None:
             recorder.close()

@@ -89,7 +89,7 @@ def main(args: list[str] | None = None) -> int:
                         help="hold the first frame up to this many seconds until every topic has a subscriber")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
-    return spin_node(lambda: SampleStream(opts), argv)
+    return spin_node(lambda: SampleStream(opts), argv, "sample_stream")
 
 
 if __name__ == "__main__":

@@ -179,11 +179,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--id", type=int, help="this vehicle's CAV id (default: parameter id)")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
-    try:
-        return spin_node(lambda: Vehicle(opts.id), argv)
-    except Co3sopError as exc:
-        print(f"vehicle: error: {exc}", file=sys.stderr)
-        return 2
+    return spin_node(lambda: Vehicle(opts.id), argv, "vehicle")
 
 
 if __name__ == "__main__":
