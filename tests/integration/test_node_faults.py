@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from ament_index_python.packages import get_package_share_directory
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from conftest import executable
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -178,3 +179,15 @@ def test_score_and_recover_explain_bad_files(tmp_path):
 def test_nodes_explain_bad_parameters(argv, message):
     done = subprocess.run([executable(argv[0]), *argv[1:]], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_vehicle_takes_the_installed_parameter_file(tmp_path):
+    """The shipped YAML (every parameter with its default) loads; -p after it overrides."""
+    params = Path(get_package_share_directory("co3sop_nodes"), "config", "vehicle.yaml")
+    proc, log = start(tmp_path, "vehicle", executable("vehicle"), "--id", "3", "--ros-args", "--params-file", str(params),
+                      "-p", "codec.dtype:=int8", "-p", "codec.selection:=topk", "-p", "codec.topk:=1024")
+    try:
+        assert "as int8-topk1024-zstd" in wait_for(log, "ready:", proc)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
