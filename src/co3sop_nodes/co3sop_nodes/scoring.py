@@ -20,9 +20,6 @@ from .errors import DatasetError
 from .grid import BENCHMARK_RANGES, GridSpec
 from .metrics import Confusion
 
-DIAGNOSTICS = "/diagnostics"
-
-
 def range_of(grid: GridSpec) -> str:
     for name, spec in BENCHMARK_RANGES.items():
         if spec == grid:
@@ -83,7 +80,7 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         for msg in _messages(reader, gt_conns):
             truths[(msg.agent_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)] = occupancy_labels(msg)[0]
         diagnostics: dict[str, list[dict[str, str]]] = {}
-        for msg in _messages(reader, [c for c in reader.connections if c.topic == DIAGNOSTICS]):
+        for msg in _messages(reader, [c for c in reader.connections if c.topic == topics.DIAGNOSTICS]):
             for status in msg.status:
                 diagnostics.setdefault(status.name, []).append({kv.key: kv.value for kv in status.values})
     finally:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 EGO_OCCUPANCY = "/ego/occupancy"  # co3sop_msgs/SemanticOccupancy: the ego's fused prediction
+EGO_POINTS = "/ego/occupancy/points"  # sensor_msgs/PointCloud2: the same, as coloured points
+DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray: per-frame status of the ego and each vehicle
 TF = "/tf"
 TF_STATIC = "/tf_static"
 WORLD_FRAME = "map"

@@ -30,6 +30,8 @@ OCCUPANCY_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+# /diagnostics: one status per node per frame; reliable so the recorder and benchmarks see every one
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def fastdds_profile_path() -> str:

@@ -43,8 +43,7 @@ from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import predict_frame
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
-from .dds import OCCUPANCY_QOS, spin_node
-from .vehicle import DIAGNOSTICS_QOS
+from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, spin_node
 
 FEATURES_TOPIC = re.compile(r"^/cav_(\d+)/voxel_features$")
 FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
@@ -92,8 +91,8 @@ class Ego(Node):
         self.dropped: Counter[str] = Counter()
         self.published = 0
         self._occupancy = self.create_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
-        self._points = self.create_publisher(PointCloud2, topics.EGO_OCCUPANCY + "/points", OCCUPANCY_QOS)
-        self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._points = self.create_publisher(PointCloud2, topics.EGO_POINTS, OCCUPANCY_QOS)
+        self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self._subscribe(topics.voxel_features(self.ego_id), self.ego_id)
         self.create_timer(p("discovery_period", 0.5), self._discover)
         self.create_timer(0.05, self._fuse_ready)

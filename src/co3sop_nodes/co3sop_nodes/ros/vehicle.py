@@ -38,12 +38,11 @@ from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, pose_from_msg, stamp_to_ns
-from .dds import FEATURES_QOS, spin_node
+from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, spin_node
 
 SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def codec_parameters(node: Node) -> FeatureCodecConfig:
@@ -98,7 +97,7 @@ class Vehicle(Node):
             self._parts["points"] = topics.lidar_points(a)
             self.create_subscription(PointCloud2, topics.lidar_points(a), self._part("points"), SENSOR_QOS)
         self._pub = self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
-        self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
             f"ready: cav {a}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
             f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}")
