@@ -14,11 +14,11 @@ import torch
 
 from .. import topics
 from ..bags import read_frames, read_static_transforms
-from ..codec import FeatureCodecConfig, decode_features
+from ..codec import FeatureCodecConfig
 from ..errors import DatasetError
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.model import Co3SOP
-from ..model.outputs import decoded_output, encode_output
+from ..model.outputs import through_codec
 from ..model.predict import FramePrediction, predict_frame
 
 
@@ -43,7 +43,7 @@ def predict_bag(model: Co3SOP, bag: Path, ego_id: int, codec: FeatureCodecConfig
                        for name, rgb in sorted(data["cameras"].items())]
             inputs = sensor_inputs(cfg, world_from_lidar, cameras, data.get("points"))
             out = model.vehicle(**to_batch(inputs))
-            received[cav] = (decoded_output(decode_features(encode_output(out, cfg.feature_grid, codec))), world_from_lidar)
+            received[cav] = (through_codec(out, cfg.feature_grid, codec)[0], world_from_lidar)
         ego, world_from_ego = received.pop(ego_id)
         results[stamp] = predict_frame(model, ego, world_from_ego, received, **predict_kw)
     return results

@@ -23,21 +23,15 @@ import numpy as np
 import torch
 
 from ..cli.common import progress, run
-from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig, decode_features
+from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
 from ..metrics import CONVENTIONS, Confusion, markdown_table
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
-from ..model.outputs import decoded_output, encode_output
+from ..model.outputs import through_codec
 from ..model.predict import predict_frame
 from .dataset import OccupancyDataset
 
-
-
-def through_codec(out: VehicleOutput, cfg: FeatureCodecConfig, grid) -> tuple[VehicleOutput, int]:
-    """A vehicle output as the ego receives it over V2X through `cfg`, and the bytes it took."""
-    enc = encode_output(out, grid, cfg)
-    return decoded_output(decode_features(enc)), enc.payload_bytes
 
 
 @torch.no_grad()
@@ -67,7 +61,7 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
         for record in sample.others:
             out = vehicle(record)
             if codec is not None:
-                out, size = through_codec(out, codec, model.cfg.feature_grid)
+                out, size = through_codec(out, model.cfg.feature_grid, codec)
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
         pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)

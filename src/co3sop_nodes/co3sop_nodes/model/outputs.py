@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..codec import DecodedFeatures, EncodedFeatures, FeatureCodecConfig, encode_features
+from ..codec import DecodedFeatures, EncodedFeatures, FeatureCodecConfig, decode_features, encode_features
 from ..grid import GridSpec
 from .model import VehicleOutput
 
@@ -24,6 +24,12 @@ def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
     """What the ego received -> a batch-of-one vehicle output (voxels not sent: features 0, confidence 0)."""
     conf = dec.confidence if dec.confidence is not None else np.zeros(dec.features.shape[1:], np.float32)
     return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(conf)[None, None])
+
+
+def through_codec(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -> tuple[VehicleOutput, int]:
+    """A vehicle output as the ego receives it through `cfg` without DDS, and the payload bytes it took."""
+    enc = encode_output(out, grid, cfg)
+    return decoded_output(decode_features(enc)), enc.payload_bytes
 
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
