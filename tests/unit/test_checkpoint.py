@@ -1,5 +1,7 @@
 """Checkpoints round-trip: the loaded model computes what the saved one did."""
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -65,3 +67,12 @@ def test_the_shipped_checkpoint_is_installed_small_and_loads():
     model, data = load_model(path)
     assert model.cfg.name == "tiny" and [h["stage"] for h in data["meta"]["history"]] == ["ego", "fusion"]
     assert all("--seed" in h["command"] for h in data["meta"]["history"])
+
+
+def test_the_shipped_checkpoints_card_lists_the_commands_that_made_it():
+    from co3sop_nodes.model.checkpoint import shipped_checkpoint
+
+    card = (Path(__file__).parents[2] / "src/co3sop_nodes/checkpoints/tiny.md").read_text()
+    _, data = load_model(shipped_checkpoint())
+    for step in data["meta"]["history"]:
+        assert f"$L/{step['command']}" in card, step["command"]
