@@ -51,8 +51,6 @@ def measure(mcap: Path) -> dict:
         stamp = int(d["stamp"])
         sizes += list(pairs(d["bytes_per_agent"]).values())[1:]  # V2X only: the first is the ego's own, sent losslessly on board
         marks = {a: v[stamp] for a, v in vehicles.items() if stamp in v}
-        if not marks:  # the recorder missed every vehicle's diagnostics of this frame (discovery race at start-up)
-            continue
         first_input = min(int(m["first_input_wall_ns"]) for m in marks.values())
         total = int(d["published_wall_ns"]) - first_input
         latency.append(total / 1e6)

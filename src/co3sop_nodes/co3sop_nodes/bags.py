@@ -234,7 +234,8 @@ def open_reader(path: Path) -> AnyReader:
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
 
 
-def _stamp(header) -> int:
+def header_stamp_ns(header) -> int:
+    """A deserialized std_msgs/Header's stamp in ns."""
     return header.stamp.sec * 10**9 + header.stamp.nanosec
 
 
@@ -261,7 +262,7 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
             if not parts[0].startswith("cav_"):
                 continue
             msg = reader.deserialize(raw, conn.msgtype)
-            entry = by_stamp[_stamp(msg.header)][int(parts[0][4:])]
+            entry = by_stamp[header_stamp_ns(msg.header)][int(parts[0][4:])]
             if parts[1:] == ["lidar", "pose"]:
                 p, o = msg.pose.position, msg.pose.orientation
                 entry["pose"] = Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w)).matrix()

@@ -15,10 +15,11 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from . import topics
-from .bags import occupancy_labels, typestore
+from .bags import header_stamp_ns, occupancy_labels, typestore
 from .errors import DatasetError
 from .grid import BENCHMARK_RANGES, GridSpec
 from .metrics import Confusion
+
 
 def range_of(grid: GridSpec) -> str:
     for name, spec in BENCHMARK_RANGES.items():
@@ -64,7 +65,7 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         for msg in _messages(reader, pred_conns):
             labels, grid = occupancy_labels(msg)
             ranges.add(range_of(grid))
-            preds[(msg.agent_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)] = labels
+            preds[(msg.agent_id, header_stamp_ns(msg.header))] = labels
         if not preds and range_name is None:
             raise DatasetError(f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames")
         if len(ranges) > 1:
@@ -74,11 +75,11 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
             raise DatasetError(f"unknown range {range_name!r} (known: {', '.join(BENCHMARK_RANGES)})")
         egos = {a for a, _ in preds}  # no prediction at all: every agent's ground truth counts as missed
         wanted = {topics.ground_truth(a, range_name) for a in egos}
-        suffix = topics.ground_truth(0, range_name).removeprefix("/cav_0")
+        suffix = topics.ground_truth(0, range_name).removeprefix(topics.namespace(0))
         gt_conns = [c for c in reader.connections if c.topic in wanted or (not egos and c.topic.endswith(suffix))]
         truths = {}
         for msg in _messages(reader, gt_conns):
-            truths[(msg.agent_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)] = occupancy_labels(msg)[0]
+            truths[(msg.agent_id, header_stamp_ns(msg.header))] = occupancy_labels(msg)[0]
         diagnostics: dict[str, list[dict[str, str]]] = {}
         for msg in _messages(reader, [c for c in reader.connections if c.topic == topics.DIAGNOSTICS]):
             for status in msg.status:

@@ -12,43 +12,48 @@ WORLD_FRAME = "map"
 RANGE_SUFFIX = {"25.6m": "25m", "51.2m": "50m", "76.8m": "76m"}
 
 
+def namespace(agent_id: int) -> str:
+    """Every topic of vehicle `agent_id` lies under this namespace."""
+    return f"/cav_{agent_id}"
+
+
 def voxel_features(agent_id: int) -> str:
     """co3sop_msgs/VoxelFeatures published by vehicle `agent_id`'s encoder."""
-    return f"/cav_{agent_id}/voxel_features"
+    return f"{namespace(agent_id)}/voxel_features"
 
 
 def camera_image(agent_id: int, camera: str) -> str:
     """sensor_msgs/Image (rgb8) of camera0..3 (front, right, left, back)."""
-    return f"/cav_{agent_id}/{camera}/image_raw"
+    return f"{namespace(agent_id)}/{camera}/image_raw"
 
 
 def camera_info(agent_id: int, camera: str) -> str:
-    return f"/cav_{agent_id}/{camera}/camera_info"
+    return f"{namespace(agent_id)}/{camera}/camera_info"
 
 
 def camera_depth(agent_id: int, camera: str) -> str:
     """sensor_msgs/Image (32FC1, m) from simulated bags only."""
-    return f"/cav_{agent_id}/{camera}/depth"
+    return f"{namespace(agent_id)}/{camera}/depth"
 
 
 def camera_semantic(agent_id: int, camera: str) -> str:
     """sensor_msgs/Image (mono8 labels) from simulated bags only."""
-    return f"/cav_{agent_id}/{camera}/semantic"
+    return f"{namespace(agent_id)}/{camera}/semantic"
 
 
 def lidar_points(agent_id: int) -> str:
     """sensor_msgs/PointCloud2: x, y, z, intensity (float32), label (uint8, simulated bags)."""
-    return f"/cav_{agent_id}/lidar/points"
+    return f"{namespace(agent_id)}/lidar/points"
 
 
 def lidar_pose(agent_id: int) -> str:
     """geometry_msgs/PoseStamped: the LiDAR's pose in the world frame."""
-    return f"/cav_{agent_id}/lidar/pose"
+    return f"{namespace(agent_id)}/lidar/pose"
 
 
 def ground_truth(agent_id: int, range_name: str) -> str:
     """co3sop_msgs/SemanticOccupancy ground truth of one benchmark range, in the LiDAR frame."""
-    return f"/cav_{agent_id}/ground_truth/occupancy_{RANGE_SUFFIX[range_name]}"
+    return f"{namespace(agent_id)}/ground_truth/occupancy_{RANGE_SUFFIX[range_name]}"
 
 
 def base_frame(agent_id: int) -> str:

@@ -164,7 +164,8 @@ def main(args: list[str] | None = None) -> int:
         say("waiting for the nodes to load the model")
         for node in nodes:
             node.wait_for(r"ready:", timeout=180)
-        recorder.wait_for(r"recording to", timeout=60)
+        for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS):  # the nodes' outputs are recorded from their first frame on
+            recorder.wait_for(rf"recording {re.escape(topic)} ", timeout=60)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable("player"), str(bag), "--rate", str(opts.rate), "--wait-subscribers", "30",
                                     "--topics", *played_topics(cavs, modality(opts.params))], echo)

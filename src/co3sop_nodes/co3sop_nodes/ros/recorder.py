@@ -23,12 +23,13 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 
+from .. import topics
 from ..errors import Co3sopError
 from ..recording import McapRecorder
 from .convert import message_class
 from .dds import spin_node
 
-DEFAULT_TOPICS = (r"/ego/occupancy", r"/cav_\d+/ground_truth/occupancy_\w+", r"/diagnostics")
+DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), r"/cav_\d+/ground_truth/occupancy_\w+", re.escape(topics.DIAGNOSTICS))
 # Deep reliable queues: the recorder must keep up with bursts rather than lose messages.
 RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -49,13 +50,12 @@ class Recorder(Node):
         for topic, types in self.get_topic_names_and_types():
             if topic in self._types or not any(p.match(topic) for p in self._patterns):
                 continue
+            self._types[topic] = types[0]
             try:
                 cls = message_class(types[0])
             except Co3sopError as exc:
-                self._types[topic] = types[0]
                 self.get_logger().warning(f"{topic} not recorded: {exc}")
                 continue
-            self._types[topic] = types[0]
             self._subs.append(self.create_subscription(cls, topic, lambda raw, t=topic: self._on_message(t, raw), RECORD_QOS, raw=True))
             self.get_logger().info(f"recording {topic} ({types[0]})")
 

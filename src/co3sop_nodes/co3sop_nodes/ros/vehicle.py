@@ -153,7 +153,7 @@ class Vehicle(Node):
                 points = cloud_points(entry["points"])
             inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
         except Co3sopError as exc:
-            return self._drop(self._parts["pose"].rsplit("/", 2)[0], f"frame {stamp}: {exc}")
+            return self._drop(topics.namespace(self.agent_id), f"frame {stamp}: {exc}")
         t1 = time.perf_counter()
         with torch.no_grad():
             out = self.model.vehicle(**to_batch(inputs))
