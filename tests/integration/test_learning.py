@@ -82,6 +82,12 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert "mIoU co3sop-readme" in result.stdout and "mIoU surroundocc" in result.stdout
     data_json = json.loads((out / "results" / "evaluation.json").read_text())
     assert data_json["tiny 51.2m"]["frames"] == 4  # 2 frames x 2 CAVs, each the ego in turn
+    alone = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), str(out / "ego" / "model.pt"), "--collaborators", "0",
+                 "--data", data, "--splits", "validate", "--out", str(out / "alone"))
+    assert alone.returncode == 0, alone.stderr
+    columns = json.loads((out / "alone" / "evaluation.json").read_text())
+    # one preset twice: the run folder tells the columns apart
+    assert {"tiny 51.2m, 0 collaborators", "tiny 51.2m, 0 collaborators (ego)"} <= set(columns)
     history = torch.load(out / "fusion" / "model.pt", weights_only=False)["meta"]["history"]
     assert [h["stage"] for h in history] == ["ego", "fusion"]
 

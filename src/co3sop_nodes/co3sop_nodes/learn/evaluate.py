@@ -5,6 +5,7 @@
     ros2 run co3sop_nodes evaluate ... --ablation pose-noise      # mu in 0, 0.1, ..., 0.5, sigma 0.02
     ros2 run co3sop_nodes evaluate ... --ablation collaboration   # off vs on
     ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
+    ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown
 (per-class IoU in %, mIoU in the three conventions of co3sop_nodes.metrics)
@@ -138,9 +139,13 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results"))
     parser.add_argument("--ablation", nargs="*", default=[], choices=sorted(ABLATIONS),
                         help="ablations to run for each model (they share the vehicle halves' outputs)")
+    parser.add_argument("--collaborators", type=int, metavar="N",
+                        help="at most N collaborators, nearest first (0: every model alone; default: each model's maximum)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     opts = parser.parse_args(args)
+    if opts.collaborators is not None and opts.collaborators < 0:
+        parser.error("--collaborators must be 0 or more")
     torch.set_num_threads(opts.threads)
     table: dict[str, dict] = {}
     for path in opts.model or [shipped_checkpoint()]:
@@ -154,7 +159,10 @@ def main(args: list[str] | None = None) -> int:
             return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)  # runs of one model share vehicle outputs
 
         if not opts.ablation:
-            table[f"{cfg.name} {cfg.range}"] = measure(desc=f"{cfg.name} {cfg.range}")[0]
+            label = f"{cfg.name} {cfg.range}" + ("" if opts.collaborators is None else f", {opts.collaborators} collaborators")
+            if label in table:  # two runs of one preset: tell the columns apart by run folder
+                label += f" ({path.parent.name})"
+            table[label] = measure(collaborators=opts.collaborators, desc=label)[0]
         for ablation in opts.ablation:
             ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure)
     if table:
