@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from collections.abc import Callable
 
 import rclpy
 from ament_index_python.packages import get_package_share_directory
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -32,6 +34,15 @@ OCCUPANCY_QOS = QoSProfile(
 )
 # /diagnostics: one status per node per frame; reliable so the recorder and benchmarks see every one
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def flush_publishers(node: Node, publishers, timeout: float = 5.0) -> None:
+    """Waits (at most `timeout` s in all) until reliable subscribers acknowledged everything published:
+    a node that exits right after its last publish would otherwise take those messages down with it."""
+    deadline = time.monotonic() + timeout
+    for pub in publishers:
+        if not pub.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic()))):
+            node.get_logger().warning(f"{pub.topic_name}: not every subscriber acknowledged the last messages")
 
 
 def fastdds_profile_path() -> str:

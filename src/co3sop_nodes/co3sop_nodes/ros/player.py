@@ -17,7 +17,6 @@ import argparse
 import sys
 import time
 
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
@@ -26,7 +25,7 @@ from rosgraph_msgs.msg import Clock
 from ..bags import open_reader
 from ..errors import DatasetError
 from .convert import message_class, ns_to_stamp
-from .dds import spin_node
+from .dds import flush_publishers, spin_node
 
 
 def recorded_qos(connection) -> QoSProfile:
@@ -97,17 +96,8 @@ class Player(Node):
             if not self._opts.loop:
                 break
             self._loops += 1
-        self.flush()
+        flush_publishers(self, self._pubs.values())
         self.get_logger().info(f"end of bag: {self.published} messages published")
-
-    def flush(self, timeout: float = 5.0) -> None:
-        """Waits until reliable subscribers have acknowledged everything: exiting right after the last
-        publish would otherwise take the bag's last messages down with the process."""
-        deadline = time.monotonic() + timeout
-        for pub in self._pubs.values():
-            left = max(0.0, deadline - time.monotonic())
-            if not pub.wait_for_all_acked(Duration(seconds=left)):
-                self.get_logger().warning(f"{pub.topic_name}: not every subscriber acknowledged the last messages")
 
 
 def main(args: list[str] | None = None) -> int:

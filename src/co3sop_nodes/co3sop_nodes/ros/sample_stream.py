@@ -23,7 +23,7 @@ from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, enco
 from ..geometry import Pose
 from ..grid import BENCHMARK_RANGES, GridSpec
 from .convert import features_to_msg, labels_to_msg
-from .dds import FEATURES_QOS, OCCUPANCY_QOS, spin_node
+from .dds import FEATURES_QOS, OCCUPANCY_QOS, flush_publishers, spin_node
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 
 
@@ -55,9 +55,10 @@ class SampleStream(Node):
         )
 
     def _tick(self) -> None:
-        if self._sent >= self._opts.frames:
-            raise SystemExit(0)
         pubs = [*self._features.values(), self._occupancy]
+        if self._sent >= self._opts.frames:
+            flush_publishers(self, pubs)
+            raise SystemExit(0)
         if time.monotonic() < self._wait_until and any(p.get_subscription_count() == 0 for p in pubs):
             return  # nobody listens yet: frames sent now would be lost
         (features, confidence), labels = self._frames[self._sent % len(self._frames)]
