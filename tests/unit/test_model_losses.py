@@ -249,3 +249,38 @@ def test_occupancy_loss_all_ignored_target_is_zero():
     parts = occupancy_loss([logits], [target])
     assert parts["sem@1/4"].item() == 0.0  # the guarded term
     assert {k: v.item() for k, v in parts.items()} == {"ce@1/4": 0.0, "sem@1/4": 0.0, "geo@1/4": 0.0}
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_downsample_labels_equals_counting_every_block(seed):
+    """The bincount histogram against the rule applied block by block (ties: the lowest occupied label)."""
+    g = torch.Generator().manual_seed(seed)
+    k, f = 6, 2
+    labels = torch.randint(0, k, (2, 4, 6, 4), generator=g)
+    labels[torch.rand(labels.shape, generator=g) < 0.3] = IGNORE
+    labels[torch.rand(labels.shape, generator=g) < 0.3] = EMPTY
+    out = downsample_labels(labels, f, k)
+    for b, i, j, l in torch.cartesian_prod(*(torch.arange(n) for n in out.shape)).tolist():
+        block = labels[b, i * f:(i + 1) * f, j * f:(j + 1) * f, l * f:(l + 1) * f].flatten().tolist()
+        counts = Counter(v for v in block if v != IGNORE)
+        occupied = {c: n for c, n in counts.items() if c != EMPTY}
+        best = min(occupied, key=lambda c: (-occupied[c], c)) if occupied else (EMPTY if counts else IGNORE)
+        assert out[b, i, j, l].item() == best, (b, i, j, l, block)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sem_scal_equals_the_definition_class_by_class(seed):
+    """The vectorised sem_scal against MonoScene's definition written as a loop over the present classes."""
+    g = torch.Generator().manual_seed(seed)
+    logits = torch.randn(2, 5, 7, 3, generator=g)
+    target = torch.randint(0, 5, (2, 7, 3), generator=g)
+    target[torch.rand(target.shape, generator=g) < 0.2] = IGNORE
+    valid = target != IGNORE
+    p, y = torch.softmax(logits, 1).movedim(1, -1)[valid], target[valid]
+    terms = []
+    for c in torch.unique(y).tolist():
+        pc, is_c = p[:, c], (y == c).float()
+        precision, recall = (pc * is_c).sum() / pc.sum(), (pc * is_c).sum() / is_c.sum()
+        specificity = ((1 - pc) * (1 - is_c)).sum() / (1 - is_c).sum()
+        terms.append(-(precision.log() + recall.log() + specificity.log()))
+    assert sem_scal(logits, target).item() == pytest.approx(torch.stack(terms).mean().item(), rel=1e-5)

@@ -20,12 +20,12 @@ def sample_2d(values: list[torch.Tensor], locations: torch.Tensor, weights: torc
     weights: (B, Q, H, L, P). Returns (B, Q, H*Ch).
     """
     b, q, h, levels, p, _ = locations.shape
-    grids = 2 * locations - 1
     out = 0
-    for lvl, value in enumerate(values):
-        g = grids[:, :, :, lvl].permute(0, 2, 1, 3, 4).reshape(b * h, q, p, 2)  # (B*H, Q, P, 2)
+    # unbind, not indexing per level: each index's backward would zero-fill a gradient of the full tensor
+    for value, g, w in zip(values, (2 * locations - 1).unbind(3), weights.unbind(3)):
+        g = g.permute(0, 2, 1, 3, 4).reshape(b * h, q, p, 2)  # (B*H, Q, P, 2)
         s = F.grid_sample(value, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B*H, Ch, Q, P)
-        w = weights[:, :, :, lvl].permute(0, 2, 1, 3).reshape(b * h, 1, q, p)
+        w = w.permute(0, 2, 1, 3).reshape(b * h, 1, q, p)
         out = out + (s * w).sum(-1)  # (B*H, Ch, Q)
     ch = out.shape[1]
     return out.view(b, h, ch, q).permute(0, 3, 1, 2).reshape(b, q, h * ch)
@@ -42,10 +42,10 @@ def sample_3d(values: torch.Tensor, locations: torch.Tensor, weights: torch.Tens
     # grid_sample reads a 5D input (N, C, D, H, W) = (.., X, Y, Z) with grid coordinates ordered (W, H, D) = (z, y, x)
     grids = (2 * locations - 1).flip(-1)
     out = 0
-    for a in range(agents):
-        g = grids[:, :, :, a].permute(0, 2, 1, 3, 4).reshape(bh, q, p, 1, 3)  # (B*H, Q, P, 1, 3)
-        s = F.grid_sample(values[:, a], g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B*H, Ch, Q, P, 1)
-        w = weights[:, :, :, a].permute(0, 2, 1, 3).reshape(bh, 1, q, p)
+    for value, g, w in zip(values.unbind(1), grids.unbind(3), weights.unbind(3)):  # per agent
+        g = g.permute(0, 2, 1, 3, 4).reshape(bh, q, p, 1, 3)  # (B*H, Q, P, 1, 3)
+        s = F.grid_sample(value, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B*H, Ch, Q, P, 1)
+        w = w.permute(0, 2, 1, 3).reshape(bh, 1, q, p)
         out = out + (s[..., 0] * w).sum(-1)  # (B*H, Ch, Q)
     return out.view(b, h, ch, q).permute(0, 3, 1, 2).reshape(b, q, h * ch)
 

@@ -46,8 +46,12 @@ class OccupancyHead(nn.Module):
         i, j, k = index // (fy * fz), (index // fz) % fy, index % fz
         parent = ((i // 2) * y1 + j // 2) * z1 + k // 2  # (B, N) flat index at 1/2
         feat = torch.gather(f1.flatten(2), 2, parent[:, None].expand(b, c1, -1))  # (B, C1, N)
-        w = self.up2.weight[:, :, i % 2, j % 2, k % 2]  # (C1, C2, B, N): the octant's slice per voxel
-        f2 = torch.einsum("bcn,cdbn->bdn", feat, w) + self.up2.bias[None, :, None]
+        # all 8 octants of the parent, then the voxel's own: gathering a kernel slice per voxel instead
+        # makes the backward pass scatter N kernel slices into the kernel one by one
+        c2 = self.up2.out_channels
+        octants = torch.einsum("bcn,cdo->bodn", feat, self.up2.weight.flatten(2))  # (B, 8, C2, N)
+        octant = ((i % 2) * 4 + (j % 2) * 2 + k % 2)[:, None, None].expand(b, 1, c2, -1)  # (B, 1, C2, N)
+        f2 = torch.gather(octants, 1, octant)[:, 0] + self.up2.bias[None, :, None]  # (B, C2, N)
         f2 = F.relu(torch.einsum("bcn,dc->bdn", F.relu(f2), self.point2.weight[:, :, 0, 0, 0]) + self.point2.bias[None, :, None])
         cls = self.classify[2]
         return [self.classify[0](f0), self.classify[1](f1),

@@ -54,19 +54,22 @@ class ImageCrossAttention(nn.Module):
         shapes = torch.tensor([[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device)  # (L, 2) W, H
         off = self.offsets(query).view(b, q, h, lv, p, 2) / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
         w = torch.softmax(self.weights(query).view(b, q, h, lv * p), -1).view(b, q, h, lv, p)
-        values = [self.value(f.permute(0, 2, 3, 1)).permute(0, 3, 1, 2) for f in feats]  # L x (B*N, C, Hl, Wl)
+        # per level, every image's value map split by head: L x (B*N) x (H, C/H, Hl, Wl)
+        values = [self.value(f.permute(0, 2, 3, 1)).permute(0, 3, 1, 2).unflatten(1, (h, c // h)).unbind(0) for f in feats]
         pooled = []
         for i in range(b):
-            total, count = query.new_zeros(q, c), query.new_zeros(q, 1)
-            for cam in range(n):  # only the (query, camera) pairs where the camera sees the query
-                idx = visible[i, cam].nonzero()[:, 0]
-                if not len(idx):
-                    continue
-                per_head = [v[i * n + cam].reshape(h, c // h, *v.shape[-2:]) for v in values]  # L x (H, C/H, Hl, Wl)
-                loc = uv[i, cam, idx][:, None, None, None, :] + off[i, idx]  # (Qv, H, L, P, 2)
-                total = total.index_add(0, idx, sample_2d(per_head, loc[None], w[i, idx][None])[0])
-                count[idx] += 1
-            pooled.append(total / count.clamp(min=1))  # mean over the cameras that see each query
+            # only the (camera, query) pairs where the camera sees the query, camera-major; one gather for all
+            # pairs (a gather per camera would zero-fill a full-size gradient for each), then split by camera
+            cam, idx = visible[i].nonzero(as_tuple=True)
+            per_cam = torch.bincount(cam, minlength=n).tolist()
+            locs = (uv[i, cam, idx][:, None, None, None, :] + off[i, idx]).split(per_cam)  # N x (Qv, H, L, P, 2)
+            weights = w[i, idx].split(per_cam)  # N x (Qv, H, L, P)
+            sampled = [sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0] for k in range(n) if per_cam[k]]
+            total = query.new_zeros(q, c)
+            if sampled:
+                total = total.index_add(0, idx, torch.cat(sampled))  # (Q, C)
+            count = torch.bincount(idx, minlength=q).clamp(min=1).to(query.dtype)[:, None]
+            pooled.append(total / count)  # mean over the cameras that see each query
         return self.output(torch.stack(pooled))
 
 

@@ -33,15 +33,20 @@ def sem_scal(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     valid = target != IGNORE
     p = torch.softmax(logits, 1).movedim(1, -1)[valid]  # (N, K)
     y = target[valid]  # (N,)
-    terms = []
-    for c in torch.unique(y):
-        pc, is_c = p[:, c], (y == c).float()
-        precision = (pc * is_c).sum() / pc.sum().clamp(min=_EPS)
-        recall = (pc * is_c).sum() / is_c.sum()
-        not_c = 1 - is_c
-        specificity = ((1 - pc) * not_c).sum() / not_c.sum() if not_c.sum() > 0 else torch.ones((), device=p.device)
-        terms.append(_log_terms(precision, recall, specificity))
-    return torch.stack(terms).mean() if terms else logits.sum() * 0
+    # every class at once, from per-class sums (a per-class column pick would zero-fill an (N, K) gradient each)
+    k = p.shape[1]
+    count = torch.bincount(y, minlength=k).to(p.dtype)  # (K,) voxels of class c
+    present = count > 0
+    if not present.any():
+        return logits.sum() * 0
+    hit = p.new_zeros(k).index_add(0, y, p.gather(1, y[:, None])[:, 0])  # sum of p_c over the voxels of class c
+    mass = p.sum(0)  # sum of p_c over every voxel
+    precision = hit / mass.clamp(min=_EPS)
+    recall = hit / count.clamp(min=1)
+    others = len(y) - count
+    # sum of (1 - p_c) over the other voxels; a class that fills every valid voxel has no negatives: specificity 1
+    specificity = torch.where(others > 0, (others - (mass - hit)) / others.clamp(min=1), torch.ones_like(hit))
+    return _log_terms(precision[present], recall[present], specificity[present]).mean()
 
 
 def geo_scal(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -65,7 +70,11 @@ def downsample_labels(labels: torch.Tensor, factor: int, classes: int) -> torch.
     b, x, y, z = labels.shape
     blocks = labels.view(b, x // factor, factor, y // factor, factor, z // factor, factor).permute(0, 1, 3, 5, 2, 4, 6)
     blocks = blocks.reshape(b, x // factor, y // factor, z // factor, -1)
-    counts = F.one_hot(blocks.clamp(max=classes).long(), classes + 1)[..., :classes].sum(-2)  # ignore -> dropped column
+    # Per-block label histogram by one bincount (a one-hot of the full grid costs 25x its memory and time).
+    coarse = blocks.shape[:-1]
+    block_id = torch.arange(coarse.numel(), device=labels.device).view(*coarse, 1)
+    keys = block_id * (classes + 1) + blocks.clamp(max=classes).long()  # ignore -> the extra, dropped column
+    counts = torch.bincount(keys.flatten(), minlength=coarse.numel() * (classes + 1)).view(*coarse, classes + 1)[..., :classes]
     occupied = counts[..., EMPTY + 1 :]
     label = torch.where(occupied.sum(-1) > 0, occupied.argmax(-1) + EMPTY + 1, torch.full_like(counts[..., 0], EMPTY))
     return torch.where(counts.sum(-1) > 0, label, torch.full_like(label, IGNORE))
