@@ -71,7 +71,7 @@ def _tiny(**kw) -> ModelConfig:
 
 
 PRESETS: dict[str, ModelConfig] = {
-    # CPU-sized Co3SOP-Base: its two stages train on small generated splits in about an hour on 2 cores.
+    # CPU-sized Co3SOP-Base: its two stages train on small generated splits on 2 cores (step times: BENCHMARKS.md).
     "tiny": _tiny(),
     # The paper's sizes (ResNet101-DCN, FPN 4 levels, 3 image / 3 fusion layers, 4 heads, 4 points), for a GPU.
     "paper": ModelConfig(
