@@ -19,7 +19,7 @@ def sample_2d(values: list[torch.Tensor], locations: torch.Tensor, weights: torc
     values: L x (B*H, Ch, Hl, Wl); locations: (B, Q, H, L, P, 2) as (x, y) in [0, 1];
     weights: (B, Q, H, L, P). Returns (B, Q, H*Ch).
     """
-    b, q, h, levels, p, _ = locations.shape
+    b, q, h, _, p, _ = locations.shape
     out = 0
     # unbind, not indexing per level: each index's backward would zero-fill a gradient of the full tensor
     for value, g, w in zip(values, (2 * locations - 1).unbind(3), weights.unbind(3)):
@@ -37,7 +37,7 @@ def sample_3d(values: torch.Tensor, locations: torch.Tensor, weights: torch.Tens
     values: (B*H, A, Ch, X, Y, Z); locations: (B, Q, H, A, P, 3) as (x, y, z) in [0, 1];
     weights: (B, Q, H, A, P). Returns (B, Q, H*Ch).
     """
-    bh, agents, ch = values.shape[:3]
+    bh, _, ch = values.shape[:3]
     b, q, h, _, p, _ = locations.shape
     # grid_sample reads a 5D input (N, C, D, H, W) = (.., X, Y, Z) with grid coordinates ordered (W, H, D) = (z, y, x)
     grids = (2 * locations - 1).flip(-1)
