@@ -66,7 +66,7 @@ def small_split(tmp_path_factory):
 def test_train_stages_resume_and_evaluate(small_split):
     out, data = small_split, str(small_split / "data")
     common = ("--data", data, "--threads", "2", "--sample-fraction", "0.05")
-    ego = tool("train", *common, "--preset", "tiny", "--stage", "ego", "--steps", "3", "--save-every", "2", "--out", str(out / "ego"))
+    ego = tool("train", *common, "--preset", "tiny", "--stage", "ego", "--device", "cpu", "--steps", "3", "--save-every", "2", "--out", str(out / "ego"))
     assert ego.returncode == 0, ego.stderr
     for name in ("state.pt", "model.pt", "log.csv", "loss.png"):
         assert (out / "ego" / name).is_file()
@@ -97,3 +97,6 @@ def test_train_explains_bad_input(tmp_path):
     assert result.returncode == 2 and "--init" in result.stderr and "Traceback" not in result.stderr
     result = tool("evaluate", "--model", str(tmp_path / "missing.pt"), "--data", str(tmp_path))
     assert result.returncode == 2 and "no such checkpoint" in result.stderr
+    for command in ("train", "evaluate"):
+        result = tool(command, "--data", str(tmp_path), "--device", "gpu", "--out", str(tmp_path / "run"))
+        assert result.returncode == 2 and "--device 'gpu': not a device" in result.stderr and "Traceback" not in result.stderr

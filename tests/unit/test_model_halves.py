@@ -277,9 +277,32 @@ def test_sampled_full_resolution_logits_equal_dense(train):
 # ---------------------------------------------------------------- training
 
 
-def test_every_parameter_gets_a_gradient_with_two_collaborators():
-    cfg = replace(SMALL, backbone=replace(SMALL.backbone, deform_stages=(False, True, True, True)),
-                  fusion_attention=AttentionConfig(layers=2, heads=2, points=2))
+# The paper's sizes (ResNet-101 with DCN, 256-channel FPN, 3 + 3 attention layers) on the small grid and images.
+PAPER_SMALL = preset("paper", image_size=(W, H), custom_grid=(SMALL_GRID.origin, SMALL_GRID.voxel_size, SMALL_GRID.dims))
+
+
+def test_paper_preset_has_the_papers_sizes():
+    cfg = preset("paper")
+    assert cfg.backbone.depth == (3, 4, 23, 3) and cfg.backbone.bottleneck  # ResNet-101
+    assert cfg.backbone.channels == (256, 512, 1024, 2048) and cfg.backbone.deform_stages == (False, True, True, True)
+    assert cfg.fpn_levels == 4 and cfg.fpn_channels == 256
+    assert (cfg.fusion_attention.layers, cfg.fusion_attention.heads, cfg.fusion_attention.points) == (3, 4, 4)
+    assert cfg.image_attention.layers == 3 and cfg.max_collaborators == 6 and cfg.fusion
+    model = _model(PAPER_SMALL)
+    backbone = model.vehicle.backbone
+    assert [len(stage) for stage in backbone.stages] == [3, 4, 23, 3]
+    # a 3x3 DCN in every block of the last three stages
+    assert sum(isinstance(m, DeformConv2d) for m in backbone.modules()) == 4 + 23 + 3
+    # torchvision's ResNet-101 without its classifier holds 42,500,160 parameters; each DCNv2 adds a 3x3 conv to
+    # 27 offset/mask channels from the block's C mid channels
+    offsets = sum(n * (27 * 9 * c + 27) for c, n in ((128, 4), (256, 23), (512, 3)))
+    assert sum(p.numel() for p in backbone.parameters()) == 42_500_160 + offsets
+
+
+@pytest.mark.parametrize("size", ["small", "paper"])
+def test_every_parameter_gets_a_gradient_with_two_collaborators(size):
+    cfg = (replace(SMALL, backbone=replace(SMALL.backbone, deform_stages=(False, True, True, True)),
+                   fusion_attention=AttentionConfig(layers=2, heads=2, points=2)) if size == "small" else PAPER_SMALL)
     model = _model(cfg, 3).train()
     agents = [_camera_inputs(1, 30 + s) for s in range(3)]
     t = _transforms(1, 2, 3, cfg.feature_grid.voxel_size)

@@ -32,6 +32,7 @@ from ..model.model import Co3SOP, VehicleOutput
 from ..model.outputs import through_codec
 from ..model.predict import predict_frame
 from .dataset import OccupancyDataset
+from .device import add_device_argument, select_device
 
 
 
@@ -44,6 +45,7 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
     `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings).
     """
     rng = np.random.default_rng(seed)
+    device = next(model.parameters()).device
     confusion, sent = Confusion(model.cfg.num_classes), []
     cache = {} if cache is None else cache
     bar = progress(len(dataset), desc, "sample")
@@ -54,7 +56,7 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
         def vehicle(record) -> VehicleOutput:
             key = (f, record.cav_id)
             if key not in cache:
-                cache[key] = model.vehicle(**to_batch(record.inputs))
+                cache[key] = model.vehicle(**to_batch(record.inputs, device))
             return cache[key]
 
         ego = vehicle(sample.ego)
@@ -143,13 +145,16 @@ def main(args: list[str] | None = None) -> int:
                         help="at most N collaborators, nearest first (0: every model alone; default: each model's maximum)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
+    add_device_argument(parser)
     opts = parser.parse_args(args)
     if opts.collaborators is not None and opts.collaborators < 0:
         parser.error("--collaborators must be 0 or more")
     torch.set_num_threads(opts.threads)
+    device = select_device(opts.device)
     table: dict[str, dict] = {}
     for path in opts.model or [shipped_checkpoint()]:
         model, _ = load_model(path)
+        model.to(device)
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg)
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"

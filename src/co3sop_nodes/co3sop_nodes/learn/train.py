@@ -10,6 +10,7 @@ at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
 (log.csv), loss plot (loss.png), resumable training state (state.pt, written
 atomically every --save-every steps; --resume continues it) and the exported
 model (model.pt, float16 weights + config + the command that made it).
+`--device` picks CPU (the default without a GPU) or a CUDA GPU.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from ..model.losses import confidence_loss, downsample_labels, occupancy_loss
 from ..model.model import VehicleOutput, build_model
 from ..cli.common import progress, run
 from .dataset import OccupancyDataset
+from .device import add_device_argument, select_device
 
 
 def seed_everything(seed: int) -> None:
@@ -44,8 +46,9 @@ def seed_everything(seed: int) -> None:
 class Trainer:
     """One optimisation step per sample; the frozen vehicle half's outputs are cached in the fusion stage."""
 
-    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float):
-        self.model, self.dataset, self.stage = model, dataset, stage
+    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float,
+                 device: torch.device = torch.device("cpu")):
+        self.model, self.dataset, self.stage, self.device = model, dataset, stage, device
         self.sample_fraction = sample_fraction
         self.cache: dict[tuple[int, int], VehicleOutput] = {}
         if stage == "fusion":
@@ -58,10 +61,10 @@ class Trainer:
 
     def _vehicle(self, record_key, inputs) -> VehicleOutput:
         if self.stage != "fusion":
-            return self.model.vehicle(**to_batch(inputs))
+            return self.model.vehicle(**to_batch(inputs, self.device))
         if record_key not in self.cache:  # frozen: computed once, in eval mode
             with torch.no_grad():
-                out = self.model.vehicle.eval()(**to_batch(inputs))
+                out = self.model.vehicle.eval()(**to_batch(inputs, self.device))
             self.cache[record_key] = VehicleOutput(out.features.half(), out.confidence.half())
         out = self.cache[record_key]
         return VehicleOutput(out.features.float(), out.confidence.float())
@@ -74,10 +77,10 @@ class Trainer:
         f, _ = self.dataset.index[i]
         ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
         others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
-        labels = torch.from_numpy(sample.ego.labels).long()[None]  # (1, X, Y, Z)
+        labels = torch.from_numpy(sample.ego.labels).long()[None].to(self.device)  # (1, X, Y, Z)
         n = labels[0].numel()
-        index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None]
-        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None] if others else None
+        index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(self.device)
+        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None
         logits = self.model.ego(ego, others, rel, sample_index=index)
         k = self.model.cfg.num_classes
         targets = [downsample_labels(labels, 4, k), downsample_labels(labels, 2, k), torch.gather(labels.flatten(1), 1, index)]
@@ -133,11 +136,13 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="CPU threads for torch")
+    add_device_argument(parser)
     parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")
     parser.add_argument("--save-every", type=int, default=200)
     opts = parser.parse_args(args)
     torch.set_num_threads(opts.threads)
+    device = select_device(opts.device)
     seed_everything(opts.seed)
     if opts.stage == "fusion" and not (opts.init or opts.resume):
         raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
@@ -152,11 +157,13 @@ def main(args: list[str] | None = None) -> int:
     else:
         overrides = {"range": opts.range} if opts.range else {}
         model = build_model(preset(opts.preset, **overrides))
+    model.to(device)  # before the optimizer exists: a resumed optimizer state follows its parameters' device
     cfg = model.cfg
-    print(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters", flush=True)
+    print(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
+          f"on {device}", flush=True)
     dataset = OccupancyDataset(opts.data, opts.splits, cfg)
     print(f"train: {len(dataset)} samples from {len(dataset.frames)} frames", flush=True)
-    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr)
+    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device)
     if state is not None:
         trainer.optimizer.load_state_dict(state["optimizer"])
     opts.out.mkdir(parents=True, exist_ok=True)

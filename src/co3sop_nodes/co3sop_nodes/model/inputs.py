@@ -41,9 +41,9 @@ def lidar_occupancy(points: np.ndarray, grid: GridSpec) -> np.ndarray:
     return occ[None]
 
 
-def to_batch(inputs: dict) -> dict:
-    """One agent's numpy inputs -> VehicleHalf keyword tensors with a batch dimension of 1."""
-    return {k: torch.from_numpy(v)[None] for k, v in inputs.items()}
+def to_batch(inputs: dict, device: torch.device | str = "cpu") -> dict:
+    """One agent's numpy inputs -> VehicleHalf keyword tensors with a batch dimension of 1, on `device`."""
+    return {k: torch.from_numpy(v)[None].to(device) for k, v in inputs.items()}
 
 
 def sensor_inputs(cfg: ModelConfig, world_from_lidar: np.ndarray, cameras=(), points: np.ndarray | None = None) -> dict:

@@ -35,6 +35,9 @@ class VehicleOutput:
     features: torch.Tensor  # (B, C, X, Y, Z) feature grid, sender's LiDAR frame
     confidence: torch.Tensor  # (B, 1, X, Y, Z) in [0, 1]
 
+    def to(self, device: torch.device) -> VehicleOutput:
+        return VehicleOutput(self.features.to(device), self.confidence.to(device))
+
 
 class VehicleHalf(nn.Module):
     def __init__(self, cfg: ModelConfig):

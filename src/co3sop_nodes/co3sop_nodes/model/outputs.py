@@ -17,7 +17,7 @@ from .model import VehicleOutput
 
 def encode_output(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -> EncodedFeatures:
     """A batch-of-one vehicle output -> what the vehicle sends."""
-    return encode_features(out.features[0].numpy(), out.confidence[0, 0].numpy(), grid, cfg)
+    return encode_features(out.features[0].cpu().numpy(), out.confidence[0, 0].cpu().numpy(), grid, cfg)
 
 
 def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
@@ -34,6 +34,7 @@ def through_codec(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """Full-resolution logits (1, K, X, Y, Z) -> labels (X, Y, Z) uint8 and round(255 * their probability) uint8."""
+    logits = logits.cpu()
     labels = logits[0].argmax(0)  # (X, Y, Z)
     prob = torch.softmax(logits[0], 0).gather(0, labels[None])[0]  # (X, Y, Z)
     return labels.numpy().astype(np.uint8), np.round(prob.numpy() * 255).astype(np.uint8)

@@ -32,13 +32,15 @@ def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
                   candidates: Mapping[int, tuple[VehicleOutput, np.ndarray]], comm_range: float = COMM_RANGE,
                   max_collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
                   rng: np.random.Generator | None = None) -> FramePrediction:
-    """candidates: agent id -> (its output as received, its world_from_lidar)."""
+    """candidates: agent id -> (its output as received, its world_from_lidar); all are moved to the ego output's device."""
     k = model.cfg.max_collaborators if max_collaborators is None else max_collaborators
     chosen = nearest_collaborators(world_from_ego, {a: m for a, (_, m) in candidates.items()}, comm_range, k)
     rng = rng or np.random.default_rng(0)
     rel = [noisy_relative(world_from_ego, candidates[a][1], mu, sigma, rng) for a in chosen]
+    device = ego.features.device
     t0 = time.perf_counter()
-    fused = model.ego.fuse(ego, [candidates[a][0] for a in chosen], torch.from_numpy(np.stack(rel)).float()[None] if rel else None)
+    fused = model.ego.fuse(ego, [candidates[a][0].to(device) for a in chosen],
+                           torch.from_numpy(np.stack(rel)).float()[None].to(device) if rel else None)
     t1 = time.perf_counter()
     labels, confidence = labels_from_logits(model.ego.head(fused)[-1])
     return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)

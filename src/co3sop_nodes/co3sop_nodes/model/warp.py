@@ -22,12 +22,12 @@ _REVERSE = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
 def warp_theta(neighbour_from_ego: torch.Tensor, grid: GridSpec) -> torch.Tensor:
     """(B, 4, 4) T_n<-e -> (B, 3, 4) affine_grid matrices in grid_sample's (z, y, x) order."""
     t = neighbour_from_ego.to(torch.float64)
-    half = torch.tensor(grid.extent, dtype=torch.float64) / 2  # D
-    centre = torch.tensor(grid.origin, dtype=torch.float64) + half  # c
+    half = torch.tensor(grid.extent, dtype=torch.float64, device=t.device) / 2  # D
+    centre = torch.tensor(grid.origin, dtype=torch.float64, device=t.device) + half  # c
     rot, trans = t[:, :3, :3], t[:, :3, 3]
     a = rot * half[None, None, :] / half[None, :, None]  # D^-1 R D
     b = (torch.einsum("bij,j->bi", rot, centre) + trans - centre) / half
-    rev = _REVERSE.to(torch.float64)
+    rev = _REVERSE.to(t)
     theta = torch.cat([rev @ a @ rev, (rev @ b[..., None])], dim=-1)
     return theta.to(torch.float32)
 
