@@ -299,10 +299,12 @@ def test_paper_preset_has_the_papers_sizes():
     assert sum(p.numel() for p in backbone.parameters()) == 42_500_160 + offsets
 
 
-@pytest.mark.parametrize("size", ["small", "paper"])
-def test_every_parameter_gets_a_gradient_with_two_collaborators(size):
-    cfg = (replace(SMALL, backbone=replace(SMALL.backbone, deform_stages=(False, True, True, True)),
-                   fusion_attention=AttentionConfig(layers=2, heads=2, points=2)) if size == "small" else PAPER_SMALL)
+SMALL_DCN = replace(SMALL, backbone=replace(SMALL.backbone, deform_stages=(False, True, True, True)),
+                    fusion_attention=AttentionConfig(layers=2, heads=2, points=2))
+
+
+@pytest.mark.parametrize("cfg", [SMALL_DCN, PAPER_SMALL], ids=["small", "paper"])
+def test_every_parameter_gets_a_gradient_with_two_collaborators(cfg):
     model = _model(cfg, 3).train()
     agents = [_camera_inputs(1, 30 + s) for s in range(3)]
     t = _transforms(1, 2, 3, cfg.feature_grid.voxel_size)

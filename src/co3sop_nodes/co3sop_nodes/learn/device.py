@@ -25,7 +25,7 @@ def select_device(name: str) -> torch.device:
         return device
     if device.type != "cuda":
         raise Co3sopError(f"--device {name!r}: only cpu and cuda are supported")
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    count = torch.cuda.device_count()  # 0 on a CPU-only build or without a driver
     if count == 0:
         raise Co3sopError(f"--device {name}: this torch build ({torch.__version__}) sees no CUDA GPU")
     if device.index is not None and device.index >= count:
