@@ -169,17 +169,39 @@ def test_annotate_equals_brute_force_in_a_town(seed):
     cav = traffic.cavs[0]
     world_from_lidar = cav.pose() @ rig.vehicle_from_lidar()
     grid = GridSpec.centred(12.8, (-2.0, 2.8), 0.2)
-    got = annotate(objects, world_from_lidar, grid)
-    np.testing.assert_array_equal(got, annotate_brute_force(objects, world_from_lidar, grid))
-    # the CAV itself: a point of its body (vehicle frame (0, 0, 0.5)) is a vehicle voxel
-    body = np.linalg.inv(rig.vehicle_from_lidar()) @ [0.0, 0.0, 0.5, 1.0]
-    ijk = np.floor((body[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int)
-    assert got[tuple(ijk)] == L["vehicle"]
-    # and the road surface lies just under it (world z in (-0.2, 0])
+    got = annotate(objects, world_from_lidar, grid, ignore=(cav.id,))
+    np.testing.assert_array_equal(got, annotate_brute_force(objects, world_from_lidar, grid, ignore=(cav.id,)))
+    body = np.linalg.inv(rig.vehicle_from_lidar()) @ [0.0, 0.0, 0.5, 1.0]  # a point of its body, vehicle frame
+    ijk = tuple(np.floor((body[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))
+    # the sensor ignores the CAV that carries it (Co3SOP's self_ignore) ...
+    assert got[ijk] == L["empty"]
+    assert annotate(objects, world_from_lidar, grid)[ijk] == L["vehicle"]
+    # ... and the road surface lies just under it (world z in (-0.2, 0])
     under = np.linalg.inv(rig.vehicle_from_lidar()) @ [2.0, 0.0, -0.05, 1.0]
     assert got[tuple(np.floor((under[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))] in (L["road"], L["roadline"], L["railtrack"])
-    assert {L["vehicle"], L["road"]} <= set(np.unique(got).tolist())
+    assert L["road"] in set(np.unique(got).tolist())
 
+
+def test_only_the_carrying_cav_is_ignored():
+    """Another CAV in the grid stays labelled: ignoring is by object id, not by class."""
+    seed = 0
+    town = generate_town(TownConfig(), seed)
+    traffic = Traffic(town, TrafficConfig(cavs=2), seed + 1)
+    objects = town.objects + traffic.objects()
+    me, other = traffic.cavs[:2]
+    world_from_lidar = me.pose() @ rig.vehicle_from_lidar()
+    grid = GridSpec.centred(76.8, (-2.0, 2.8), 0.3)
+    sensor_from_world = np.linalg.inv(world_from_lidar)
+
+    def voxel(world_point):
+        p = sensor_from_world @ world_point  # homogeneous (4,)
+        return tuple(np.floor((p[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))
+
+    other_body = voxel(other.pose() @ [0.0, 0.0, 0.8, 1.0])
+    assert all(0 <= i < n for i, n in zip(other_body, grid.dims)), "the two CAVs start within 38 m of each other"
+    got = annotate(objects, world_from_lidar, grid, ignore=(me.id,))
+    assert got[other_body] == L["vehicle"]
+    assert got[voxel(me.pose() @ [0.0, 0.0, 0.8, 1.0])] == L["empty"]
 
 # --- the overlap rule ---------------------------------------------------------------------------
 

@@ -1,6 +1,7 @@
 """`generate`: simulate train/validate/test splits of OPV2V-style scenarios with Co3SOP labels.
 
     ros2 run co3sop_nodes generate --out data/ --splits train=4 validate=1 test=1 --frames 20 --bags bags/
+    ros2 run co3sop_nodes generate --recipe share/co3sop_nodes/config/benchmark.yaml --out data/bench
 
 Each scenario is a procedural town with 2..7 CAVs (four cameras and a LiDAR each)
 and traffic, written in the OPV2V folder layout with Co3SOP voxel labels for
@@ -125,8 +126,30 @@ def parse_splits(items: list[str]) -> dict[str, int]:
     return splits
 
 
+RECIPE_KEYS = ("splits", "frames", "seed", "cavs", "vehicles", "image_size", "lidar_steps")
+
+
+def read_recipe(path: Path) -> dict:
+    """A dataset recipe's `dataset` section (config/benchmark.yaml) as generate's option defaults."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"{path}: not YAML ({exc})") from None
+    recipe = data.get("dataset") if isinstance(data, dict) else None
+    if not isinstance(recipe, dict):
+        raise DatasetError(f"{path}: expected a 'dataset' mapping")
+    unknown = sorted(set(recipe) - set(RECIPE_KEYS))
+    if unknown:
+        raise DatasetError(f"{path}: unknown dataset key(s) {', '.join(unknown)} (known: {', '.join(RECIPE_KEYS)})")
+    if isinstance(recipe.get("splits"), dict):
+        recipe["splits"] = [f"{k}={v}" for k, v in recipe["splits"].items()]
+    return {k: str(v) if k in ("cavs", "image_size") else v for k, v in recipe.items()}
+
+
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="generate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--recipe", type=Path, help="a dataset recipe (YAML, e.g. config/benchmark.yaml): its values are the defaults; "
+                                                   "options given on the command line win")
     parser.add_argument("--out", type=Path, required=True, help="dataset root (OPV2V layout)")
     parser.add_argument("--splits", nargs="+", default=["train=4", "validate=1", "test=1"], help="NAME=COUNT scenarios per split")
     parser.add_argument("--frames", type=int, default=20, help="10 Hz frames per scenario")
@@ -140,6 +163,9 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--bags", type=Path, help="also write one rosbag2 (MCAP) bag per scenario under this folder")
     parser.add_argument("--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures")
     parser.add_argument("--picture-range", default="51.2m", choices=list(opv2v.LABEL_FOLDERS))
+    recipe_path = parser.parse_known_args(args)[0].recipe
+    if recipe_path:
+        parser.set_defaults(**read_recipe(recipe_path))
     opts = parser.parse_args(args)
 
     splits = parse_splits(opts.splits)

@@ -54,7 +54,7 @@ def main(args: list[str] | None = None) -> int:
         for timestamp, town, traffic, dynamic in world_states(cfg, protocol["co3sop_sim"]["seed"]):
             objects = town.objects + dynamic
             for cav in traffic.cavs:
-                labels = annotate(objects, cav.pose() @ rig.vehicle_from_lidar(), grid, opts.workers)
+                labels = annotate(objects, cav.pose() @ rig.vehicle_from_lidar(), grid, opts.workers, ignore=(cav.id,))
                 path = partial / str(cav.id) / f"{timestamp:06d}_voxels.npz"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 np.savez_compressed(path, voxels=geo.ros_to_carla_grid(labels))

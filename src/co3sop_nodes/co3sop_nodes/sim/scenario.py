@@ -100,7 +100,7 @@ def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFram
                     points=scan.points,
                     intensity=scan.intensity,
                     point_labels=scan.label,
-                    labels={r: annotate(objects, world_lidar, g, cfg.workers) for r, g in grids.items()},
+                    labels={r: annotate(objects, world_lidar, g, cfg.workers, ignore=(cav.id,)) for r, g in grids.items()},
                     vehicles=_others(traffic, cav),
                     plan=plan,
                     world_from_predicted=predicted,

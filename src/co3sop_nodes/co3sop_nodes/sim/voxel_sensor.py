@@ -13,6 +13,10 @@ annotated in the paper's three stages (Co3SOP, Sec. III-A):
 3. Label assignment: an object's voxels take its semantic label; every other
    voxel is 0 (empty). There is no "unknown".
 
+The sensor ignores the vehicle that carries it, as Co3SOP's does (its
+`self_ignore` option, on in its replay configuration): `ignore` names the
+object ids left out (the carrying CAV); the other CAVs stay labelled.
+
 Overlap rule: a voxel that two objects both occupy takes the label ranked
 higher in LABEL_PRIORITY (thin and dynamic things win over the large static
 surfaces they stand on or touch, e.g. a tyre over the road, a pole over the
@@ -27,7 +31,7 @@ checks every voxel against every object and must give the identical grid.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -162,23 +166,33 @@ def _assign(grid: GridSpec, objects: Sequence[SceneObject], occupied: Sequence[n
     return labels.reshape(grid.dims)
 
 
+def _kept(objects: Sequence[SceneObject], ignore: Collection[int]) -> list[SceneObject]:
+    return [o for o in objects if o.id not in ignore]
+
+
 def annotate(
-    objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec, workers: int = 2
+    objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec, workers: int = 2,
+    ignore: Collection[int] = (),
 ) -> np.ndarray:
-    """The voxel sensor: (nx, ny, nz) uint8 labels of `grid`, axis-aligned in the sensor frame."""
-    local = in_sensor_frame(_near(objects, world_from_sensor, grid), world_from_sensor)
+    """The voxel sensor: (nx, ny, nz) uint8 labels of `grid`, axis-aligned in the sensor frame.
+
+    Objects whose id is in `ignore` (the sensor's own vehicle) are not labelled.
+    """
+    local = in_sensor_frame(_near(_kept(objects, ignore), world_from_sensor, grid), world_from_sensor)
     with ThreadPoolExecutor(max(1, workers)) as pool:
         occupied = list(pool.map(lambda o: _grow(grid, o), local))
     return _assign(grid, local, occupied)
 
 
-def annotate_brute_force(objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec) -> np.ndarray:
+def annotate_brute_force(
+    objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec, ignore: Collection[int] = ()
+) -> np.ndarray:
     """The oracle: every voxel checked against every object, then the same overlap rule.
 
     Each (voxel, object) pair is first tested against the object's bounding box
     (exact and conservative: an object lies inside its box), then exactly.
     """
-    local = in_sensor_frame(objects, world_from_sensor)
+    local = in_sensor_frame(_kept(objects, ignore), world_from_sensor)
     nx, ny, nz = grid.dims
     v, origin = grid.voxel_size, np.asarray(grid.origin)
     axes_c = [origin[a] + (np.arange(n) + 0.5) * v for a, n in enumerate(grid.dims)]  # voxel centres per axis
