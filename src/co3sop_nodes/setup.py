@@ -37,6 +37,7 @@ setup(
             f"voxelize = {PACKAGE}.cli.voxelize:entry",
             f"train = {PACKAGE}.learn.train:entry",
             f"evaluate = {PACKAGE}.learn.evaluate:entry",
+            f"report = {PACKAGE}.learn.report:entry",
         ],
     },
 )

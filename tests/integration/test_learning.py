@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import torch
 
 from co3sop_nodes import synthetic
 from co3sop_nodes.metrics import Confusion
+from co3sop_nodes.model.checkpoint import shipped_checkpoint
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
 from co3sop_nodes.model.model import build_model
@@ -90,6 +92,23 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert {"tiny 51.2m, 0 collaborators", "tiny 51.2m, 0 collaborators (ego)"} <= set(columns)
     history = torch.load(out / "fusion" / "model.pt", weights_only=False)["meta"]["history"]
     assert [h["stage"] for h in history] == ["ego", "fusion"]
+    # the protocol's last two steps: ablations with intervals on two scenarios, then the page made from their JSON
+    bench = out / "bench" / "tiny-51.2m-s1"
+    result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "train", "validate",
+                  "--ablation", "collaboration", "inputs", "--out", str(bench))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((bench / "tiny_51.2m_collaboration.json").read_text())
+    assert report["on"]["scenarios"] == 2 and set(report["differences"]) == {"on"}
+    page = out / "benchmark.md"
+    result = tool("report", str(out / "bench"), "--out", str(page))
+    assert result.returncode == 0, result.stderr
+    text = page.read_text()
+    gain = report["differences"]["on"]["co3sop-code"]
+    assert f"| tiny | 51.2m | 1 | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
+    assert f"{100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}]" in text
+    assert "Input controls" in text and "| blank |" in text
+    bad = tool("report", str(out / "ego"), "--out", str(page))
+    assert bad.returncode == 2 and "no <preset>-<range>-s<seed> folder" in bad.stderr and page.read_text() == text
 
 
 def test_train_explains_bad_input(tmp_path):
@@ -100,3 +119,32 @@ def test_train_explains_bad_input(tmp_path):
     for command in ("train", "evaluate"):
         result = tool(command, "--data", str(tmp_path), "--device", "gpu", "--out", str(tmp_path / "run"))
         assert result.returncode == 2 and "--device 'gpu': not a device" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.fixture(scope="module")
+def street_split(tmp_path_factory):
+    """Two small scenarios at the cameras' and LiDAR's usual sizes, with a seed no training split uses."""
+    out = tmp_path_factory.mktemp("street")
+    result = tool("generate", "--out", str(out), "--splits", "test=2", "--frames", "2", "--cavs", "2", "--seed", "11",
+                  "--image-size", "320x240", "--lidar-steps", "512")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def shipped_models() -> list[Path]:
+    return sorted(shipped_checkpoint().parent.glob("*.pt"))
+
+
+@pytest.mark.parametrize("model", [p.name for p in shipped_models()])
+def test_shipped_models_use_their_sensors(street_split, tmp_path, model):
+    """Input controls: every shipped model beats itself with blank sensors by a clear margin, with intervals."""
+    result = tool("evaluate", "--model", str(shipped_checkpoint(model)), "--data", str(street_split), "--splits", "test",
+                  "--ablation", "inputs", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    report = json.loads(next(tmp_path.glob("*_inputs.json")).read_text())
+    assert report["reference"] == "real" and set(report["differences"]) == {"blank", "shuffled"}
+    real = report["real"]
+    assert real["scenarios"] == 2 and set(real["ci95"]) == {"co3sop-readme", "co3sop-code", "surroundocc", "geometry"}
+    blank = report["differences"]["blank"]["co3sop-readme"]
+    assert blank["delta"] < -0.02, blank  # more than 2 points of mIoU lost without sensors
+    assert "Paired differences" in result.stdout and "95 % interval" in result.stdout

@@ -119,6 +119,9 @@ def test_presets_and_feature_grid():
     assert tiny.fusion and tiny.modality == "camera" and tiny.feature_grid.dims == (64, 64, 6)
     assert preset("tiny-single").fusion is False
     assert preset("tiny-sscnet").lidar.kind == "sscnet" and preset("tiny-lmscnet").modality == "lidar"
+    lidar = preset("tiny-lidar")  # collaborative LiDAR Co3SOP-Base: tiny-sscnet's vehicle half, tiny's fusion and head
+    assert lidar.fusion and lidar.modality == "lidar" and lidar.lidar == preset("tiny-sscnet").lidar
+    assert replace(lidar, name="tiny", modality="camera", lidar=tiny.lidar) == tiny
     assert preset("tiny", max_collaborators=2).max_collaborators == 2
     with pytest.raises(Co3sopError):
         preset("no-such-model")
@@ -376,6 +379,9 @@ def test_lidar_modality_end_to_end_with_fusion(kind):
         outs = [model.vehicle(**a) for a in agents]
     assert outs[0].features.shape == (1, 8, 8, 8, 4)
     assert [tuple(lg.shape) for lg in logits] == [(1, 24, 8, 8, 4), (1, 24, 16, 16, 8), (1, 24, 32, 32, 16)]
+    with torch.no_grad():  # scans arrive as uint8 0/1 (model.inputs.lidar_occupancy): the same as float input
+        as_bytes = model.vehicle(occupancy=agents[0]["occupancy"].to(torch.uint8))
+    torch.testing.assert_close(as_bytes.features, outs[0].features, atol=0, rtol=0)
 
 
 def test_max_collaborators_caps_the_number_used():

@@ -10,6 +10,12 @@ of tp / gt / pred). Voxels labelled 255 in the ground truth are ignored.
   prediction as IoU 0, as Co3SOP's code does.
 - "surroundocc": geometry IoU (occupied vs empty) and mean over the semantic
   classes 1..23 that occur in the ground truth (absent classes are left out).
+
+Intervals (`Bootstrap`): 95 % percentile intervals from resampling scenarios
+with replacement, the counts pooled over each resample as for the point
+estimate. Scenarios, not frames, are the unit: frames of one scenario (and
+its CAVs, each the ego in turn) see the same town and are far from
+independent. Paired differences resample the same scenarios for both sides.
 """
 
 from __future__ import annotations
@@ -19,6 +25,24 @@ import numpy as np
 from .classes import CLASS_NAMES, EMPTY, IGNORE, NUM_CLASSES
 
 CONVENTIONS = ("co3sop-readme", "co3sop-code", "surroundocc")
+SCORES = (*CONVENTIONS, "geometry")  # the three mIoUs and SurroundOcc's geometry IoU
+
+
+def scores(tp: np.ndarray, gt: np.ndarray, pred: np.ndarray, geo: np.ndarray) -> dict[str, np.ndarray]:
+    """Counts (..., K) and geometry counts (..., 3) -> each of SCORES (...) and per-class IoU (..., K, NaN: absent)."""
+    union = gt + pred - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
+    zero_absent = np.nan_to_num(iou, nan=0.0)
+    present = np.where(gt[..., 1:] > 0, iou[..., 1:], np.nan)  # IoU is defined wherever the class is in the truth
+    n_present = (gt[..., 1:] > 0).sum(-1)
+    return {
+        "co3sop-readme": zero_absent.mean(-1),
+        "co3sop-code": zero_absent[..., 1:].mean(-1),
+        "surroundocc": np.where(n_present > 0, np.nansum(present, -1) / np.maximum(n_present, 1), np.nan),
+        "geometry": geo[..., 0] / np.maximum(geo[..., 1] + geo[..., 2] - geo[..., 0], 1),
+        "iou": iou,
+    }
 
 
 class Confusion:
@@ -43,25 +67,77 @@ class Confusion:
         self.geo += [int((po & to).sum()), int(to.sum()), int(po.sum())]
         self.frames += 1
 
+    def merge(self, other: "Confusion") -> "Confusion":
+        """In place: adds another confusion's counts (e.g. pooling scenarios)."""
+        self.tp += other.tp
+        self.gt += other.gt
+        self.pred += other.pred
+        self.geo += other.geo
+        self.frames += other.frames
+        return self
+
     def iou(self) -> np.ndarray:
         """(K,) IoU per class; NaN where the class is in neither ground truth nor prediction."""
-        union = self.gt + self.pred - self.tp
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(union > 0, self.tp / np.maximum(union, 1), np.nan)
+        return scores(self.tp, self.gt, self.pred, self.geo)["iou"]
 
     def summary(self) -> dict:
-        iou = self.iou()
-        zero_absent = np.nan_to_num(iou, nan=0.0)
-        present = self.gt[1:] > 0
-        tp, gt, pred = self.geo
+        s = scores(self.tp, self.gt, self.pred, self.geo)
         return {
             "frames": self.frames,
-            "per_class_iou": {CLASS_NAMES[c]: (None if np.isnan(iou[c]) else float(iou[c])) for c in range(self.classes)},
-            "co3sop-readme": {"miou": float(zero_absent.mean())},
-            "co3sop-code": {"miou": float(zero_absent[1:].mean())},
-            "surroundocc": {"iou": float(tp / max(gt + pred - tp, 1)),
-                            "miou": float(iou[1:][present].mean()) if present.any() else float("nan")},
+            "per_class_iou": {CLASS_NAMES[c]: (None if np.isnan(s["iou"][c]) else float(s["iou"][c])) for c in range(self.classes)},
+            "co3sop-readme": {"miou": float(s["co3sop-readme"])},
+            "co3sop-code": {"miou": float(s["co3sop-code"])},
+            "surroundocc": {"iou": float(s["geometry"]), "miou": float(s["surroundocc"])},
         }
+
+
+def pooled(confusions: dict) -> Confusion:
+    """One confusion of every scenario's counts."""
+    total = Confusion(next(iter(confusions.values())).classes)
+    for c in confusions.values():
+        total.merge(c)
+    return total
+
+
+def point(summary: dict, score: str) -> float:
+    """One of SCORES read from a Confusion.summary()."""
+    return summary["surroundocc"]["iou"] if score == "geometry" else summary[score]["miou"]
+
+
+class Bootstrap:
+    """95 % intervals over scenarios (module docstring); one set of resamples shared by every run it scores."""
+
+    def __init__(self, scenarios: list, draws: int = 2000, seed: int = 0):
+        self.scenarios = list(scenarios)
+        n = len(self.scenarios)
+        self.counts = np.random.default_rng(seed).multinomial(n, np.full(n, 1 / n), size=draws)  # (B, S) times drawn
+
+    def _resampled(self, confusions: dict) -> dict[str, np.ndarray]:
+        missing = [k for k in self.scenarios if k not in confusions]
+        if missing:
+            raise ValueError(f"no counts for scenario(s) {missing}")
+        stack = [np.stack([getattr(confusions[k], a) for k in self.scenarios]) for a in ("tp", "gt", "pred", "geo")]  # (S, K) / (S, 3)
+        return scores(*(self.counts @ x for x in stack))  # each (B,)
+
+    def interval(self, confusions: dict) -> dict[str, list[float]]:
+        """{score: [low, high]} for each of SCORES."""
+        draws = self._resampled(confusions)
+        return {name: _percentiles(draws[name]) for name in SCORES}
+
+    def summary(self, confusions: dict) -> dict:
+        """The pooled summary of per-scenario confusions, with `ci95` and the number of scenarios."""
+        return {**pooled(confusions).summary(), "scenarios": len(self.scenarios), "ci95": self.interval(confusions)}
+
+    def difference(self, run: dict, reference: dict) -> dict[str, dict]:
+        """{score: {"delta": run - reference, "ci95": [low, high]}}, paired over the same resampled scenarios."""
+        a, b = self._resampled(run), self._resampled(reference)
+        sa, sb = pooled(run).summary(), pooled(reference).summary()
+        return {name: {"delta": point(sa, name) - point(sb, name), "ci95": _percentiles(a[name] - b[name])} for name in SCORES}
+
+
+def _percentiles(values: np.ndarray) -> list[float]:
+    values = values[np.isfinite(values)]
+    return [float(v) for v in np.percentile(values, [2.5, 97.5])] if len(values) else [float("nan")] * 2
 
 
 def markdown_table(results: dict[str, dict]) -> str:
@@ -77,4 +153,22 @@ def markdown_table(results: dict[str, dict]) -> str:
     lines.append("| **mIoU co3sop-code** (1..23) | " + " | ".join(f"**{100 * results[n]['co3sop-code']['miou']:.2f}**" for n in names) + " |")
     lines.append("| **mIoU surroundocc** (present 1..23) | " + " | ".join(f"**{100 * results[n]['surroundocc']['miou']:.2f}**" for n in names) + " |")
     lines.append("| IoU geometry (surroundocc) | " + " | ".join(f"{100 * results[n]['surroundocc']['iou']:.2f}" for n in names) + " |")
+    if all("ci95" in results[n] for n in names):
+        for score in SCORES:
+            lines.append(f"| 95 % interval {score} | " + " | ".join(_span(results[n]["ci95"][score]) for n in names) + " |")
+        lines.append("| scenarios | " + " | ".join(str(results[n]["scenarios"]) for n in names) + " |")
+    return "\n".join(lines)
+
+
+def _span(low_high: list[float]) -> str:
+    low, high = low_high
+    return f"[{100 * low:.2f}, {100 * high:.2f}]"
+
+
+def difference_table(differences: dict[str, dict], reference: str) -> str:
+    """Paired differences (points of IoU, %) against `reference`, with 95 % intervals; one row per run."""
+    lines = [f"| against {reference} | " + " | ".join(f"Δ {s}" for s in SCORES) + " |", "|---|" + "---:|" * len(SCORES)]
+    for name, diff in differences.items():
+        cells = [f"{100 * diff[s]['delta']:+.2f} {_span(diff[s]['ci95'])}" for s in SCORES]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

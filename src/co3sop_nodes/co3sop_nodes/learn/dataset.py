@@ -47,6 +47,7 @@ class OccupancyDataset:
                 if isinstance(frames, DatasetError):
                     raise frames
                 self.frames.append(((split, name, ts), [self._record(f) for f in frames]))
+        self.scenarios = list(dict.fromkeys(key[:2] for key, _ in self.frames))  # (split, name) with frames, in order
         self.index = [(i, j) for i, (_, agents) in enumerate(self.frames) for j in range(len(agents))]
 
     def _record(self, frame) -> AgentRecord:

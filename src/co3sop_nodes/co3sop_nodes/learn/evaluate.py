@@ -5,11 +5,16 @@
     ros2 run co3sop_nodes evaluate ... --ablation pose-noise      # mu in 0, 0.1, ..., 0.5, sigma 0.02
     ros2 run co3sop_nodes evaluate ... --ablation collaboration   # off vs on
     ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
+    ros2 run co3sop_nodes evaluate ... --ablation inputs          # real vs blank vs shuffled sensors (input controls)
     ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown
 (per-class IoU in %, mIoU in the three conventions of co3sop_nodes.metrics)
 and written as <out>/<name>.md and .json; ablations also write a PNG plot.
+Every mIoU carries a 95 % bootstrap interval over scenarios, and every
+ablation step its paired difference to the step's reference (off, 0
+collaborators, no noise, real inputs, the lossless codec) with its interval
+(co3sop_nodes.metrics.Bootstrap).
 Pose noise follows Co3SOP: neighbours only, dx, dy ~ N(mu, sigma) (a biased
 offset), dz ~ N(0, 0.01), applied to their world poses before alignment.
 """
@@ -25,12 +30,13 @@ import torch
 
 from ..cli.common import progress, run
 from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
-from ..metrics import CONVENTIONS, Confusion, markdown_table
+from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
 from ..model.outputs import through_codec
 from ..model.predict import predict_frame
+from .controls import INPUT_CONTROLS, ControlledInputs
 from .dataset import OccupancyDataset
 from .device import add_device_argument, select_device
 
@@ -39,24 +45,27 @@ from .device import add_device_argument, select_device
 @torch.no_grad()
 def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
              codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
-             cache: dict | None = None) -> tuple[dict, float]:
-    """(metrics summary, mean bytes per collaborator frame sent) over every sample of the dataset.
+             cache: dict | None = None, inputs: str = "real") -> tuple[dict, float]:
+    """({(split, scenario): Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
-    `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings).
+    `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
+    `inputs` is one of learn.controls.INPUT_CONTROLS.
     """
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
-    confusion, sent = Confusion(model.cfg.num_classes), []
+    confusions, sent = {}, []
     cache = {} if cache is None else cache
+    controlled = ControlledInputs(dataset, inputs)
     bar = progress(len(dataset), desc, "sample")
     for i in range(len(dataset)):
         sample = dataset.sample(i, collaborators)
         f, _ = dataset.index[i]
+        position = {a.cav_id: j for j, a in enumerate(dataset.frames[f][1])}
 
         def vehicle(record) -> VehicleOutput:
-            key = (f, record.cav_id)
+            key = (f, record.cav_id, inputs)
             if key not in cache:
-                cache[key] = model.vehicle(**to_batch(record.inputs, device))
+                cache[key] = model.vehicle(**to_batch(controlled(f, position[record.cav_id]), device))
             return cache[key]
 
         ego = vehicle(sample.ego)
@@ -68,10 +77,10 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
         pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
-        confusion.add(pred.labels, sample.ego.labels)
+        confusions.setdefault(sample.key[:2], Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
         bar.update(1)
     bar.close()
-    return confusion.summary(), float(np.mean(sent)) if sent else 0.0
+    return confusions, float(np.mean(sent)) if sent else 0.0
 
 
 def _plot(path: Path, x, series: dict[str, list[float]], xlabel: str, title: str) -> None:
@@ -100,37 +109,57 @@ def _write(out: Path, name: str, text: str, data: dict) -> None:
     print(text)
 
 
-def _collaboration(opts, cfg, stem, title, measure) -> None:
+def _compare(opts, stem: str, heading: str, title: str, runs: dict[str, dict], reference: str, boot: Bootstrap) -> dict:
+    """Writes runs (per-scenario confusions) as one table with intervals, plus each run's paired difference to `reference`."""
+    summaries = {name: boot.summary(c) for name, c in runs.items()}
+    differences = {name: boot.difference(c, runs[reference]) for name, c in runs.items() if name != reference}
+    text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
+            + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
+            + difference_table(differences, reference))
+    _write(opts.out, stem, text, {"title": title, "reference": reference, **summaries, "differences": differences})
+    return summaries
+
+
+def _collaboration(opts, cfg, stem, title, measure, boot) -> None:
     runs = {"off": measure(collaborators=0, desc="collaboration off")[0], "on": measure(desc="collaboration on")[0]}
-    _write(opts.out, f"{stem}_collaboration", f"### Collaboration off / on: {title}\n\n" + markdown_table(runs), {"title": title, **runs})
+    _compare(opts, f"{stem}_collaboration", "Collaboration off / on", title, runs, "off", boot)
 
 
-def _collaborators(opts, cfg, stem, title, measure) -> None:
+def _collaborators(opts, cfg, stem, title, measure, boot) -> None:
     counts = list(range(cfg.max_collaborators + 1))
     runs = {f"{n} collaborators": measure(collaborators=n, desc=f"{n} collaborators")[0] for n in counts}
-    _write(opts.out, f"{stem}_collaborators", f"### Number of collaborators (nearest first): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
-    _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in runs.values()] for c in CONVENTIONS}, "collaborators used", title)
+    summaries = _compare(opts, f"{stem}_collaborators", "Number of collaborators (nearest first)", title, runs, "0 collaborators", boot)
+    _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS}, "collaborators used", title)
 
 
-def _pose_noise(opts, cfg, stem, title, measure) -> None:
+def _pose_noise(opts, cfg, stem, title, measure, boot) -> None:
     mus = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
     runs = {f"mu={m:.1f}": measure(mu=m, sigma=0.02 if m else 0.0, desc=f"pose noise {m:.1f}")[0] for m in mus}
-    _write(opts.out, f"{stem}_pose_noise", f"### Pose noise (sigma 0.02 m, neighbours only): {title}\n\n" + markdown_table(runs), {"title": title, **runs})
-    _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in runs.values()] for c in CONVENTIONS}, "pose noise mean mu (m)", title)
+    summaries = _compare(opts, f"{stem}_pose_noise", "Pose noise (sigma 0.02 m, neighbours only)", title, runs, "mu=0.0", boot)
+    _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS}, "pose noise mean mu (m)", title)
 
 
-def _codec(opts, cfg, stem, title, measure) -> None:
-    rows = ["| feature codec | bytes per agent-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc |", "|---|---:|---:|---:|---:|"]
-    results = {}
+def _inputs(opts, cfg, stem, title, measure, boot) -> None:
+    runs = {mode: measure(inputs=mode, desc=f"{mode} inputs")[0] for mode in INPUT_CONTROLS}
+    _compare(opts, f"{stem}_inputs", "Input controls (real, blank and shuffled sensors of every agent)", title, runs, "real", boot)
+
+
+def _codec(opts, cfg, stem, title, measure, boot) -> None:
+    rows = ["| feature codec | bytes per agent-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc | Δ co3sop-code vs float32-dense-none |",
+            "|---|---:|---:|---:|---:|---:|"]
+    results, runs = {}, {}
     for setting in STANDARD_FEATURE_SETTINGS:
-        summary, size = measure(codec=setting, desc=setting.name)
-        results[setting.name] = {"bytes": size, **summary}
+        runs[setting.name], size = measure(codec=setting, desc=setting.name)
+        summary = boot.summary(runs[setting.name])
+        diff = boot.difference(runs[setting.name], runs[STANDARD_FEATURE_SETTINGS[0].name])["co3sop-code"]
+        results[setting.name] = {"bytes": size, **summary, "difference": diff}
         rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
-                    f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} |")
+                    f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} | "
+                    f"{100 * diff['delta']:+.2f} [{100 * diff['ci95'][0]:.2f}, {100 * diff['ci95'][1]:.2f}] |")
     _write(opts.out, f"{stem}_codec", f"### Feature codecs over V2X: {title}\n\n" + "\n".join(rows), {"title": title, **results})
 
 
-ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec}
+ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs}
 
 
 def main(args: list[str] | None = None) -> int:
@@ -160,6 +189,8 @@ def main(args: list[str] | None = None) -> int:
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
         shared: dict = {}
 
+        boot = Bootstrap(dataset.scenarios, seed=opts.seed)
+
         def measure(model=model, dataset=dataset, shared=shared, **kw) -> tuple[dict, float]:
             return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)  # runs of one model share vehicle outputs
 
@@ -167,12 +198,13 @@ def main(args: list[str] | None = None) -> int:
             label = f"{cfg.name} {cfg.range}" + ("" if opts.collaborators is None else f", {opts.collaborators} collaborators")
             if label in table:  # two runs of one preset: tell the columns apart by run folder
                 label += f" ({path.parent.name})"
-            table[label] = measure(collaborators=opts.collaborators, desc=label)[0]
+            table[label] = {**boot.summary(measure(collaborators=opts.collaborators, desc=label)[0]), "model": str(path)}
         for ablation in opts.ablation:
-            ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure)
+            ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure, boot)
     if table:
         splits = "+".join(opts.splits)
-        _write(opts.out, "evaluation", f"### Per-class IoU (%) and mIoU on {splits}\n\n" + markdown_table(table), {"splits": opts.splits, **table})
+        _write(opts.out, "evaluation", f"### Per-class IoU (%) and mIoU on {splits} (95 % intervals over scenarios)\n\n" + markdown_table(table),
+               {"splits": opts.splits, **table})
     return 0
 
 

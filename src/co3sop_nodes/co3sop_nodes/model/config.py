@@ -91,6 +91,9 @@ PRESETS["tiny-single"] = replace(PRESETS["tiny"], name="tiny-single", fusion=Fal
 PRESETS["surroundocc"] = replace(PRESETS["paper"], name="surroundocc", fusion=False)
 PRESETS["tiny-lmscnet"] = replace(PRESETS["tiny"], name="tiny-lmscnet", modality="lidar", fusion=False)
 PRESETS["tiny-sscnet"] = replace(PRESETS["tiny"], name="tiny-sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 32))
+# Collaborative LiDAR Co3SOP-Base: the SSCNet-style LiDAR vehicle half with the same warp, hybrid mask,
+# masked deformable fusion and head, trained in the paper's two stages.
+PRESETS["tiny-lidar"] = replace(PRESETS["tiny-sscnet"], name="tiny-lidar", fusion=True)
 PRESETS["lmscnet"] = replace(PRESETS["paper"], name="lmscnet", modality="lidar", fusion=False, lidar=LidarConfig("lmscnet", 128))
 PRESETS["sscnet"] = replace(PRESETS["paper"], name="sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 128))
 

@@ -33,11 +33,14 @@ def camera_inputs(cameras: list[CameraFrame], world_from_lidar: np.ndarray, imag
 
 
 def lidar_occupancy(points: np.ndarray, grid: GridSpec) -> np.ndarray:
-    """(1, X, Y, Z) float32: 1 where a LiDAR point (LiDAR frame, REP-103) falls in a voxel of `grid`."""
+    """(1, X, Y, Z) uint8: 1 where a LiDAR point (LiDAR frame, REP-103) falls in a voxel of `grid`.
+
+    uint8, not float: a training split holds thousands of scans in memory (1.5 MB each at 51.2 m, not 6).
+    """
     idx = np.floor((points[:, :3] - np.asarray(grid.origin)) / grid.voxel_size).astype(np.int64)
     inside = ((idx >= 0) & (idx < np.asarray(grid.dims))).all(axis=1)
-    occ = np.zeros(grid.dims, np.float32)
-    occ[tuple(idx[inside].T)] = 1.0
+    occ = np.zeros(grid.dims, np.uint8)
+    occ[tuple(idx[inside].T)] = 1
     return occ[None]
 
 

@@ -61,7 +61,7 @@ class VehicleHalf(nn.Module):
         self.confidence = nn.Conv3d(c, 1, 1)
 
     def forward(self, images=None, lidar2img=None, occupancy=None) -> VehicleOutput:
-        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4). LiDAR: occupancy (B, 1, X, Y, Z)."""
+        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4). LiDAR: occupancy (B, 1, X, Y, Z) 0/1."""
         fg = self.cfg.feature_grid
         if self.cfg.modality == "camera":
             b, n = images.shape[:2]
@@ -73,7 +73,7 @@ class VehicleHalf(nn.Module):
                 q = layer(q, uv, visible, feats)
             volume = q.transpose(1, 2).reshape(b, -1, *fg.dims)  # (B, C, X, Y, Z)
         else:
-            volume = self.encoder(occupancy)
+            volume = self.encoder(occupancy.float())
         return VehicleOutput(volume, torch.sigmoid(self.confidence(volume)))
 
 

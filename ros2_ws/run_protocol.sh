@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# The benchmark protocol end to end, resumable (re-run it after an interruption):
+#   1. data:     the dataset of config/benchmark.yaml (train 48 / validate 4 / test 8 scenarios)
+#   2. train:    each model's two stages (ego, then fusion from it) on `train`, for every seed
+#   3. evaluate: every trained model on `test`, with 95 % intervals over test scenarios, the
+#                collaboration, collaborators, pose-noise and input-control ablations
+#   4. report:   src/co3sop_nodes/doc/benchmark.md from the evaluation JSON (no hand-typed figure)
+#
+#   ros2_ws/run_protocol.sh [data|train|evaluate|report ...]      (default: all four, in order)
+#
+# Settings (environment): DATA (data/bench), RUNS (runs/bench), RESULTS (results/bench),
+# PRESETS ("tiny-lidar"), RANGES ("51.2m 76.8m"), SEEDS ("1 2 3"; the first only beyond 51.2 m),
+# EGO_STEPS (1200), FUSION_STEPS (1200). Choices of steps and presets were made on `validate`;
+# `test` is only evaluated here. CPU by default; `--device` follows `DEVICE` (auto).
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+"$ROOT/ros2_ws/bootstrap.sh"
+# shellcheck disable=SC1091
+. "$ROOT/ros2_ws/env.sh"
+cd "$ROOT"
+LIB="$(python -c 'from ament_index_python.packages import get_package_prefix as p; print(p("co3sop_nodes"))')/lib/co3sop_nodes"
+SHARE="$(python -c 'from ament_index_python.packages import get_package_share_directory as p; print(p("co3sop_nodes"))')"
+DATA="${DATA:-data/bench}" RUNS="${RUNS:-runs/bench}" RESULTS="${RESULTS:-results/bench}"
+PRESETS="${PRESETS:-tiny-lidar}" RANGES="${RANGES:-51.2m 76.8m}" SEEDS="${SEEDS:-1 2 3}"
+EGO_STEPS="${EGO_STEPS:-1200}" FUSION_STEPS="${FUSION_STEPS:-1200}" DEVICE="${DEVICE:-auto}"
+STEPS=("$@")
+[ ${#STEPS[@]} -gt 0 ] || STEPS=(data train evaluate report)
+
+say() { echo "[protocol] $*"; }
+
+# the runs: preset, range, seed (every seed at 51.2 m, the first seed at the other ranges)
+runs() {
+  local first
+  first="${SEEDS%% *}"
+  for preset in $PRESETS; do
+    for range in $RANGES; do
+      for seed in $SEEDS; do
+        if [ "$range" = "51.2m" ] || [ "$seed" = "$first" ]; then echo "$preset $range $seed"; fi
+      done
+    done
+  done
+}
+
+# train ARGS... --out DIR: skipped when DIR/model.pt exists, resumed when DIR/state.pt does
+train() {
+  local out="${*: -1}"
+  if [ -f "$out/model.pt" ]; then say "$out: trained"; return; fi
+  if [ -f "$out/state.pt" ]; then "$LIB/train" "$@" --resume; else "$LIB/train" "$@"; fi
+}
+
+for step in "${STEPS[@]}"; do
+  case "$step" in
+    data)
+      "$LIB/generate" --recipe "$SHARE/config/benchmark.yaml" --out "$DATA" ;;
+    train)
+      runs | while read -r preset range seed; do
+        run="$RUNS/$preset-$range-s$seed"
+        train --data "$DATA" --preset "$preset" --range "$range" --stage ego --steps "$EGO_STEPS" --seed "$seed" \
+          --device "$DEVICE" --out "$run-ego"
+        train --data "$DATA" --stage fusion --init "$run-ego/model.pt" --steps "$FUSION_STEPS" --seed "$seed" \
+          --device "$DEVICE" --out "$run"
+      done ;;
+    evaluate)
+      runs | while read -r preset range seed; do
+        run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
+        if [ -f "$out/done" ]; then say "$out: evaluated"; continue; fi
+        ablations=(collaboration inputs)
+        [ "$seed" = "${SEEDS%% *}" ] && ablations+=(collaborators pose-noise)
+        "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation "${ablations[@]}"
+        touch "$out/done"
+      done ;;
+    report)
+      "$LIB/report" "$RESULTS" --out src/co3sop_nodes/doc/benchmark.md ;;
+    *) echo "run_protocol: unknown step '$step' (data, train, evaluate, report)" >&2; exit 2 ;;
+  esac
+done
