@@ -175,6 +175,8 @@ def test_score_and_recover_explain_bad_files(tmp_path):
     (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=lidar"], "pick a checkpoint trained for it"),
     (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
     (["ego"], "ego: error: no ego id"),
+    (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
+    (["demo", "--model", "no-such-model"], "no installed checkpoint 'no-such-model.pt'"),
 ])
 def test_nodes_explain_bad_parameters(argv, message):
     done = subprocess.run([executable(argv[0]), *argv[1:]], capture_output=True, text=True, timeout=120)

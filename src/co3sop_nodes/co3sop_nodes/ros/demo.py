@@ -1,6 +1,6 @@
 """`demo`: the whole graph on a small scenario, scored: player + vehicles + ego + recorder, then `score`.
 
-    ros2 run co3sop_nodes demo [--bag BAG] [--out results/demo] [--frames 10] [--rate 0.04]
+    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny|tiny-lidar|CKPT] [--out results/demo] [--rate 0.04]
 
 Without --bag it generates one scenario with three CAVs (once; kept in
 data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
@@ -35,6 +35,7 @@ DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed"
 
 
 LOSSLESS = ["codec.dtype:=float32", "codec.selection:=dense", "codec.compression:=none"]
+DEFAULT_MODEL = "tiny"
 
 
 def say(text: str) -> None:
@@ -100,10 +101,14 @@ def bag_contents(bag: Path) -> tuple[list[int], int]:
     return cavs, max(poses.values())
 
 
-def modality(params: list[str]) -> str:
-    """The vehicles' sensor modality: their checkpoint's."""
-    chosen = [p.split(":=", 1)[1] for p in params if p.startswith("checkpoint:=")]
-    return read_checkpoint(Path(chosen[-1]) if chosen else shipped_checkpoint())["config"]["modality"]
+def model_path(model: str) -> Path:
+    """A checkpoint path, or the name of a shipped checkpoint (tiny, tiny-lidar)."""
+    path = Path(model)
+    if path.suffix == ".pt" or path.exists():
+        if not path.is_file():
+            raise Co3sopError(f"--model {model}: no such checkpoint")
+        return path
+    return shipped_checkpoint(f"{model}.pt")
 
 
 def played_topics(cavs: list[int], sensors: str) -> list[str]:
@@ -139,11 +144,16 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
     parser.add_argument("--rate", type=float, default=0.04, help="playback rate (0.04: a 10 Hz frame every 2.5 s, what 2 cores keep up with)")
     parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
+    parser.add_argument("--model", default=DEFAULT_MODEL,
+                        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera) or a path "
+                             f"(default: {DEFAULT_MODEL})")
     parser.add_argument("--params", nargs="*", default=[],
                         help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
     opts = parser.parse_args(args)
     t0 = time.monotonic()
+    checkpoint = model_path(opts.model)
+    sensors = read_checkpoint(checkpoint)["config"]["modality"]
     bag = ensure_scenario(opts)
     cavs, frames = bag_contents(bag)
     cavs = cavs[: opts.vehicles]
@@ -151,13 +161,15 @@ def main(args: list[str] | None = None) -> int:
     opts.out.mkdir(parents=True, exist_ok=True)
     mcap = opts.out / "demo.mcap"
     say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego cav {ego}; recording to {mcap}")
+    say(f"model {checkpoint} ({sensors})")
+    model = ["-p", f"checkpoint:={checkpoint}"]
     ros_params = [x for p in opts.params for x in ("-p", p)]
     echo = not opts.quiet
     recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
-    nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}"], echo)]
+    nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model], echo)]
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
-    nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *(lossless if c == ego else ros_params)], echo)
+    nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)], echo)
               for c in cavs]
     player = None
     try:
@@ -168,7 +180,7 @@ def main(args: list[str] | None = None) -> int:
             recorder.wait_for(rf"recording {re.escape(topic)} ", timeout=60)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable("player"), str(bag), "--rate", str(opts.rate), "--wait-subscribers", "30",
-                                    "--topics", *played_topics(cavs, modality(opts.params))], echo)
+                                    "--topics", *played_topics(cavs, sensors)], echo)
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say("bag played; waiting for the ego to fuse the last frames")
