@@ -4,7 +4,10 @@ Full resolution holds 64x the voxels of 1/4, so it gets only a stride-2
 transposed convolution (each fine voxel reads one coarse voxel) and pointwise
 layers, without batch norm: a fine voxel's logits then depend on its parent
 voxel alone, and `forward_at` evaluates them for chosen voxels only, exactly
-as the dense pass would (training samples voxels there; tests check equality).
+as the dense pass would (training samples voxels there; tests check equality),
+and `labels` computes inference's labels and confidence per parent voxel in
+cache-sized chunks, never holding the dense full-resolution logits nor
+computing the 1/4 and 1/2 logits (the dense pass is its reference).
 """
 
 from __future__ import annotations
@@ -37,6 +40,38 @@ class OccupancyHead(nn.Module):
         f0, f1 = self.coarse(x)
         f2 = F.relu(self.point2(F.relu(self.up2(f1))))
         return [cls(f) for cls, f in zip(self.classify, (f0, f1, f2))]  # logits (B, K, X/s, Y/s, Z/s), s = 4, 2, 1
+
+    @torch.no_grad()
+    def labels(self, x, chunk: int = 8192) -> tuple[torch.Tensor, torch.Tensor]:
+        """x: (B, C, X/4, Y/4, Z/4) -> full-resolution labels and round(255 * p(label)), both (B, X, Y, Z) uint8.
+
+        Per chunk of parent voxels at 1/2: the 8 octants' features (the transposed convolution's 8 kernel
+        slices), the pointwise layers, the classifier, then argmax and the label's softmax probability.
+        """
+        _, f1 = self.coarse(x)  # (B, C1, X/2, Y/2, Z/2)
+        b, c1, x1, y1, z1 = f1.shape
+        c2 = self.up2.out_channels
+        up_w = self.up2.weight.flatten(2).permute(0, 2, 1).reshape(c1, 8 * c2)  # (C1, 8*C2): octant-major
+        up_b = self.up2.bias.repeat(8)  # (8*C2,)
+        point_w, point_b = self.point2.weight[:, :, 0, 0, 0].t(), self.point2.bias  # (C2, C2), (C2,)
+        cls_w, cls_b = self.classify[2].weight[:, :, 0, 0, 0].t(), self.classify[2].bias  # (C2, K), (K,)
+        parents = f1.flatten(2).transpose(1, 2).contiguous()  # (B, P, C1)
+        n = parents.shape[1]
+        labels = torch.empty(b, n, 8, dtype=torch.uint8, device=x.device)
+        confidence = torch.empty(b, n, 8, dtype=torch.uint8, device=x.device)
+        for start in range(0, n, chunk):
+            h = F.relu(parents[:, start : start + chunk] @ up_w + up_b)  # (B, n, 8*C2)
+            h = F.relu(h.unflatten(-1, (8, c2)) @ point_w + point_b)  # (B, n, 8, C2)
+            logits = h @ cls_w + cls_b  # (B, n, 8, K)
+            top, label = logits.max(-1)  # (B, n, 8)
+            prob = 1.0 / torch.exp(logits - top[..., None]).sum(-1)  # softmax at the label
+            labels[:, start : start + chunk] = label.to(torch.uint8)
+            confidence[:, start : start + chunk] = torch.round(prob * 255).to(torch.uint8)
+
+        def fine(t):  # (B, P, 8) octants of parents -> (B, X, Y, Z)
+            return t.view(b, x1, y1, z1, 2, 2, 2).permute(0, 1, 4, 2, 5, 3, 6).reshape(b, 2 * x1, 2 * y1, 2 * z1)
+
+        return fine(labels), fine(confidence)
 
     def forward_at(self, x, index: torch.Tensor):
         """Logits at 1/4 and 1/2 (dense) and at full resolution for flat voxel indices (B, N) -> (B, K, N)."""

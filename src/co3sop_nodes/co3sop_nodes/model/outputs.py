@@ -33,7 +33,10 @@ def through_codec(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -
 
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Full-resolution logits (1, K, X, Y, Z) -> labels (X, Y, Z) uint8 and round(255 * their probability) uint8."""
+    """Full-resolution logits (1, K, X, Y, Z) -> labels (X, Y, Z) uint8 and round(255 * their probability) uint8.
+
+    The reference of OccupancyHead.labels, which inference uses (tests hold them equal).
+    """
     logits = logits.cpu()
     labels = logits[0].argmax(0)  # (X, Y, Z)
     prob = torch.softmax(logits[0], 0).gather(0, labels[None])[0]  # (X, Y, Z)

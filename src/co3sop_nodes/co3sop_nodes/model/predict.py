@@ -15,7 +15,6 @@ import torch
 
 from ..collaboration import COMM_RANGE, nearest_collaborators, noisy_relative
 from .model import Co3SOP, VehicleOutput
-from .outputs import labels_from_logits
 
 
 @dataclass
@@ -42,5 +41,5 @@ def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
     fused = model.ego.fuse(ego, [candidates[a][0].to(device) for a in chosen],
                            torch.from_numpy(np.stack(rel)).float()[None].to(device) if rel else None)
     t1 = time.perf_counter()
-    labels, confidence = labels_from_logits(model.ego.head(fused)[-1])
+    labels, confidence = (t[0].cpu().numpy() for t in model.ego.head.labels(fused))  # exact fast path of labels_from_logits
     return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)
