@@ -67,6 +67,7 @@ for step in "${STEPS[@]}"; do
         ablations=(collaboration inputs)
         [ "$seed" = "${SEEDS%% *}" ] && ablations+=(collaborators pose-noise)
         "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation "${ablations[@]}"
+        "$LIB/evaluate" --model "$run-ego/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/ego-stage"
         touch "$out/done"
       done ;;
     report)

@@ -5,7 +5,9 @@
 Run with the workspace environment (`. ros2_ws/env.sh`). For the preset at each
 benchmark range (untrained weights: timing does not depend on them), with
 random camera images and 2 collaborators: seconds for the vehicle half per
-agent, the warp per neighbour, the fusion, the head; then the fusion computed
+agent, the warp per neighbour, the fusion, the head; the head's dense
+reference (logits at every scale, softmax, argmax) against its exact fast path
+(`OccupancyHead.labels`), measured in the same run; then the fusion computed
 only where the hybrid mask selects against the dense reference, on the same
 inputs (outputs compared on the selected voxels), for several mask densities;
 and the process's peak resident memory. The accuracy cost of each feature
@@ -25,6 +27,7 @@ from co3sop_nodes.model.config import preset
 from co3sop_nodes.frames import CameraFrame
 from co3sop_nodes.model.inputs import camera_inputs, to_batch
 from co3sop_nodes.model.model import VehicleOutput, build_model
+from co3sop_nodes.model.outputs import labels_from_logits
 from co3sop_nodes.model.warp import warp_with_mask
 from co3sop_nodes.sim import rig
 from timing import timed
@@ -62,6 +65,23 @@ def stage_table(name: str, repeats: int) -> str:
 
 
 @torch.no_grad()
+def head_table(name: str, repeats: int) -> str:
+    """Fused features -> labels + confidence: the dense reference against the exact fast path, same inputs, same run."""
+    rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | fast s (`head.labels`) | reference / fast | labels identical |",
+            "|---|---|---:|---:|---:|---|"]
+    for range_name in ("25.6m", "51.2m", "76.8m"):
+        cfg = preset(name, range=range_name)
+        head = build_model(cfg).ego.head.eval()
+        fused = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims, generator=torch.Generator().manual_seed(0))
+        t_ref, (ref_labels, _) = timed(lambda: labels_from_logits(head(fused)[-1]), repeats)
+        t_fast, (labels, _) = timed(lambda: head.labels(fused), repeats)
+        same = bool((labels[0].numpy() == ref_labels).all())
+        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_fast:.3f} | {t_ref / t_fast:.1f}x | {'yes' if same else 'NO'} |")
+        print(f"  head {range_name}: reference {t_ref:.3f} s, fast {t_fast:.3f} s", flush=True)
+    return "\n".join(rows)
+
+
+@torch.no_grad()
 def masked_table(name: str, repeats: int) -> str:
     cfg = preset(name)
     model = build_model(cfg).eval()
@@ -91,6 +111,7 @@ def main() -> None:
     torch.set_num_threads(opts.threads)
     text = "\n\n".join([
         f"### CPU time per stage, preset `{opts.preset}` ({opts.threads} threads, median of {opts.repeats})", stage_table(opts.preset, opts.repeats),
+        f"### Head to labels: dense reference vs exact fast path (`{opts.preset}`)", head_table(opts.preset, opts.repeats),
         f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats),
         f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB.",
     ])

@@ -99,12 +99,16 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert result.returncode == 0, result.stderr
     report = json.loads((bench / "tiny_51.2m_collaboration.json").read_text())
     assert report["on"]["scenarios"] == 2 and set(report["differences"]) == {"on"}
+    result = tool("evaluate", "--model", str(out / "ego" / "model.pt"), "--collaborators", "0", "--data", data, "--splits", "train", "validate",
+                  "--out", str(bench / "ego-stage"))
+    assert result.returncode == 0, result.stderr
     page = out / "benchmark.md"
     result = tool("report", str(out / "bench"), "--out", str(page))
     assert result.returncode == 0, result.stderr
     text = page.read_text()
     gain = report["differences"]["on"]["co3sop-code"]
-    assert f"| tiny | 51.2m | 1 | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
+    alone = json.loads((bench / "ego-stage" / "evaluation.json").read_text())["tiny 51.2m, 0 collaborators"]
+    assert f"| tiny | 51.2m | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
     assert f"{100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}]" in text
     assert "Input controls" in text and "| blank |" in text
     bad = tool("report", str(out / "ego"), "--out", str(page))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from co3sop_nodes.classes import IGNORE, LABEL_BY_NAME as L
-from co3sop_nodes.metrics import SCORES, Bootstrap, Confusion, difference_table, markdown_table, point, pooled, scores
+from co3sop_nodes.metrics import SCORES, Bootstrap, Confusion, confusions_of, difference_table, markdown_table, point, pooled, scores
 
 
 def grids():
@@ -76,7 +76,7 @@ def scenario_confusions(seed: int, scenarios: int = 6, hit_rate: float = 0.7) ->
         pred = np.where(rng.random(truth.shape) < hit_rate, truth, noise)
         c = Confusion()
         c.add(pred, truth)
-        out[("test", f"s{s}")] = c
+        out[f"test/s{s}"] = c
     return out
 
 
@@ -103,8 +103,8 @@ def test_bootstrap_interval_holds_the_pooled_estimate_and_each_draw_resamples_ev
 
 
 def test_identical_scenarios_give_a_zero_width_interval():
-    one = scenario_confusions(2, scenarios=1)[("test", "s0")]
-    runs = {("test", f"s{i}"): one for i in range(5)}
+    one = scenario_confusions(2, scenarios=1)["test/s0"]
+    runs = {f"test/s{i}": one for i in range(5)}
     low, high = Bootstrap(list(runs), draws=200).interval(runs)["co3sop-readme"]
     assert low == pytest.approx(high)
 
@@ -124,7 +124,7 @@ def test_paired_difference_is_zero_against_itself_and_positive_for_a_better_run(
 
 def test_bootstrap_refuses_a_run_without_every_scenario():
     runs = scenario_confusions(4)
-    boot = Bootstrap(list(runs) + [("test", "missing")], draws=10)
+    boot = Bootstrap(list(runs) + ["test/missing"], draws=10)
     with pytest.raises(ValueError, match="missing"):
         boot.interval(runs)
 
@@ -136,3 +136,14 @@ def test_tables_show_intervals_and_differences():
     assert "| 95 % interval co3sop-code | [" in text and "| scenarios | 6 |" in text
     diff = difference_table({"b": boot.difference(runs, runs)}, "a")
     assert "| b | +0.00 [0.00, 0.00] |" in diff
+
+
+def test_per_scenario_counts_round_trip_through_json():
+    import json
+
+    runs = scenario_confusions(6)
+    boot = Bootstrap(list(runs), draws=50)
+    summary = json.loads(json.dumps(boot.summary(runs)))
+    back = confusions_of(summary)
+    assert boot.difference(back, runs)["co3sop-code"] == {"delta": 0.0, "ci95": [0.0, 0.0]}
+    assert boot.summary(back)["ci95"] == summary["ci95"]

@@ -76,6 +76,18 @@ class Confusion:
         self.frames += other.frames
         return self
 
+    def counts(self) -> dict:
+        """The counts as JSON-ready lists (from_counts inverts it)."""
+        return {"tp": self.tp.tolist(), "gt": self.gt.tolist(), "pred": self.pred.tolist(), "geo": self.geo.tolist(), "frames": self.frames}
+
+    @classmethod
+    def from_counts(cls, counts: dict) -> "Confusion":
+        c = cls(len(counts["tp"]))
+        for name in ("tp", "gt", "pred", "geo"):
+            getattr(c, name)[:] = counts[name]
+        c.frames = counts["frames"]
+        return c
+
     def iou(self) -> np.ndarray:
         """(K,) IoU per class; NaN where the class is in neither ground truth nor prediction."""
         return scores(self.tp, self.gt, self.pred, self.geo)["iou"]
@@ -125,14 +137,21 @@ class Bootstrap:
         return {name: _percentiles(draws[name]) for name in SCORES}
 
     def summary(self, confusions: dict) -> dict:
-        """The pooled summary of per-scenario confusions, with `ci95` and the number of scenarios."""
-        return {**pooled(confusions).summary(), "scenarios": len(self.scenarios), "ci95": self.interval(confusions)}
+        """The pooled summary of per-scenario confusions, with `ci95`, the number of scenarios and their counts
+        (`per_scenario`, so later comparisons across runs can be paired: see confusions_of)."""
+        return {**pooled(confusions).summary(), "scenarios": len(self.scenarios), "ci95": self.interval(confusions),
+                "per_scenario": {k: confusions[k].counts() for k in self.scenarios}}
 
     def difference(self, run: dict, reference: dict) -> dict[str, dict]:
         """{score: {"delta": run - reference, "ci95": [low, high]}}, paired over the same resampled scenarios."""
         a, b = self._resampled(run), self._resampled(reference)
         sa, sb = pooled(run).summary(), pooled(reference).summary()
         return {name: {"delta": point(sa, name) - point(sb, name), "ci95": _percentiles(a[name] - b[name])} for name in SCORES}
+
+
+def confusions_of(summary: dict) -> dict[str, Confusion]:
+    """Per-scenario confusions back from a Bootstrap.summary() (e.g. read from evaluate's JSON)."""
+    return {k: Confusion.from_counts(v) for k, v in summary["per_scenario"].items()}
 
 
 def _percentiles(values: np.ndarray) -> list[float]:

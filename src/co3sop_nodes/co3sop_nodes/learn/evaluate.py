@@ -46,7 +46,7 @@ from .device import add_device_argument, select_device
 def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
              codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
              cache: dict | None = None, inputs: str = "real") -> tuple[dict, float]:
-    """({(split, scenario): Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
+    """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
     `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
     `inputs` is one of learn.controls.INPUT_CONTROLS.
@@ -77,7 +77,7 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
         pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
-        confusions.setdefault(sample.key[:2], Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
+        confusions.setdefault("/".join(sample.key[:2]), Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
         bar.update(1)
     bar.close()
     return confusions, float(np.mean(sent)) if sent else 0.0
@@ -189,7 +189,7 @@ def main(args: list[str] | None = None) -> int:
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
         shared: dict = {}
 
-        boot = Bootstrap(dataset.scenarios, seed=opts.seed)
+        boot = Bootstrap(["/".join(k) for k in dataset.scenarios], seed=opts.seed)
 
         def measure(model=model, dataset=dataset, shared=shared, **kw) -> tuple[dict, float]:
             return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)  # runs of one model share vehicle outputs

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..cli.common import run
 from ..errors import Co3sopError
-from ..metrics import SCORES, difference_table, markdown_table, point
+from ..metrics import SCORES, Bootstrap, confusions_of, markdown_table, point
 
 RUN_NAME = re.compile(r"(?P<preset>.+)-(?P<range>\d+\.\dm)-s(?P<seed>\d+)")
 SCORE_NAMES = {"co3sop-code": "mIoU 1..23 (Co3SOP code)", "co3sop-readme": "mIoU 24 classes (Co3SOP README)",
@@ -53,31 +53,40 @@ def collect(results: Path) -> dict[tuple[str, str], dict[int, Path]]:
     return runs
 
 
+def ego_stage(folder: Path) -> dict | None:
+    """The run's ego stage scored alone (`evaluate` of the ego-stage checkpoint with 0 collaborators), if evaluated."""
+    path = folder / "ego-stage" / "evaluation.json"
+    if not path.is_file():
+        return None
+    return next(v for v in json.loads(path.read_text()).values() if isinstance(v, dict) and "per_scenario" in v)
+
+
+def mean_sd(x: np.ndarray) -> str:
+    return pct(x.mean()) + (f" ± {100 * x.std(ddof=1):.2f}" if len(x) > 1 else "")
+
+
 def headline(runs: dict[tuple[str, str], dict[int, Path]]) -> list[str]:
-    lines = ["| model | range | seeds | alone (off) | with collaborators (on) | gain | gain's 95 % interval, per seed | geometry IoU off / on |",
-             "|---|---|---:|---:|---:|---:|---|---:|"]
+    lines = ["| model | range | seeds | ego stage alone | off (fusion model, no collaborator) | on | gain on - off | "
+             "gain on - off, per seed [95 % interval] | gain on - ego stage, per seed [95 % interval] | geometry IoU off / on |",
+             "|---|---|---:|---:|---:|---:|---:|---|---|---:|"]
     for (preset, rng), seeds in runs.items():
         reports = [_load(f, "collaboration") for f in seeds.values()]
         off = np.array([point(r["off"], "co3sop-code") for r in reports])
         on = np.array([point(r["on"], "co3sop-code") for r in reports])
         gains = [r["differences"]["on"]["co3sop-code"] for r in reports]
         geo = [(point(r["off"], "geometry"), point(r["on"], "geometry")) for r in reports]
-
-        def mean_sd(x: np.ndarray) -> str:
-            return pct(x.mean()) + (f" ± {100 * x.std(ddof=1):.2f}" if len(x) > 1 else "")
-
-        lines.append(f"| {preset} | {rng} | {len(seeds)} | {mean_sd(off)} | {mean_sd(on)} | **{mean_sd(on - off)}** | "
-                     + ", ".join(f"{pct(g['delta'])} {span(g['ci95'])}" for g in gains)
+        alone, over_alone = [], []
+        for folder, r in zip(seeds.values(), reports):
+            single = ego_stage(folder)
+            if single is not None:
+                alone.append(point(single, "co3sop-code"))
+                boot = Bootstrap(list(r["on"]["per_scenario"]))
+                over_alone.append(boot.difference(confusions_of(r["on"]), confusions_of(single))["co3sop-code"])
+        lines.append(f"| {preset} | {rng} | {len(seeds)} | {mean_sd(np.array(alone)) if alone else '-'} | {mean_sd(off)} | {mean_sd(on)} | "
+                     f"**{mean_sd(on - off)}** | " + ", ".join(f"{pct(g['delta'])} {span(g['ci95'])}" for g in gains)
+                     + " | " + (", ".join(f"{pct(g['delta'])} {span(g['ci95'])}" for g in over_alone) or "-")
                      + f" | {pct(np.mean([g[0] for g in geo]))} / {pct(np.mean([g[1] for g in geo]))} |")
     return lines
-
-
-def section(title: str, report: dict | None, reference_note: str = "") -> list[str]:
-    if report is None:
-        return []
-    runs = {k: v for k, v in report.items() if isinstance(v, dict) and "ci95" in v}
-    return [f"#### {title}", "", report["title"] + reference_note, "", markdown_table(runs), "",
-            difference_table(report["differences"], report["reference"]), ""]
 
 
 def compact(report: dict | None, title: str) -> list[str]:
@@ -103,7 +112,10 @@ def render(results: Path, command: str) -> str:
            "this page on `test` only) and the commands that made every run: `ros2_ws/run_protocol.sh`.",
            "Intervals: 95 % percentile bootstrap over test scenarios (2000 resamples); gains are paired",
            "(both sides on the same resampled scenarios). Mean ± standard deviation over training seeds.", "",
-           "## Collaboration gain (mIoU over classes 1..23, %)", "", *headline(runs), ""]
+           "## Collaboration gain (mIoU over classes 1..23, %)", "",
+           "`off` is the fusion model with no collaborator; `ego stage alone` is the single-agent model its fusion",
+           "stage started from (vehicle half and head before fusion training), the fairer reference.", "",
+           *headline(runs), ""]
     for (preset, rng), seeds in runs.items():
         first = seeds[min(seeds)]
         out += [f"## {preset}, {rng}", ""]
