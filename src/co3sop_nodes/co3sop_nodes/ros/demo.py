@@ -35,7 +35,7 @@ DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed"
 
 
 LOSSLESS = ["codec.dtype:=float32", "codec.selection:=dense", "codec.compression:=none"]
-DEFAULT_MODEL = "tiny"
+DEFAULT_MODEL = "tiny-lidar"  # the best collaborative model shipped (checkpoints/tiny-lidar.md); "tiny": the camera model
 
 
 def say(text: str) -> None:
