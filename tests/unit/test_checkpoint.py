@@ -1,5 +1,6 @@
 """Checkpoints round-trip: the loaded model computes what the saved one did."""
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -76,3 +77,40 @@ def test_the_shipped_checkpoints_card_lists_the_commands_that_made_it():
     _, data = load_model(shipped_checkpoint())
     for step in data["meta"]["history"]:
         assert f"$L/{step['command']}" in card, step["command"]
+
+
+class _Payload:
+    """What a crafted checkpoint carries: unpickling it would create a marker file."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_crafted_pickle_is_refused_without_running(tmp_path):
+    marker = tmp_path / "ran"
+    torch.save({"config": {}, "model": {}, "meta": _Payload(marker)}, tmp_path / "evil.pt")
+    with pytest.raises(Co3sopError, match=r"evil\.pt: refused: holds Python objects"):
+        load_model(tmp_path / "evil.pt")
+    assert not marker.exists()
+
+
+def test_checkpoints_without_weights_or_config_or_that_do_not_fit_are_explained(tmp_path):
+    model = build_model(preset("tiny", **SMALL))
+    export_model(tmp_path / "m.pt", model, {})
+    data = torch.load(tmp_path / "m.pt", weights_only=True)
+    cases = {
+        "no-weights": ({"config": data["config"]}, r"no config/model"),
+        "no-config": ({"model": data["model"]}, r"no config/model"),
+        "weights-not-tensors": ({"config": data["config"], "model": {"a": 1}}, r"not a dict of named tensors"),
+        "unknown-config": ({"config": {**data["config"], "wings": 2}, "model": data["model"]}, r"config is not one this version knows"),
+        "other-model": ({"config": dataclasses.asdict(preset("tiny-lidar")), "model": data["model"]}, r"weights do not fit its config"),
+    }
+    for name, (content, message) in cases.items():
+        torch.save(content, tmp_path / f"{name}.pt")
+        with pytest.raises(Co3sopError, match=rf"{name}\.pt: .*{message}"):
+            load_model(tmp_path / f"{name}.pt")
+    with pytest.raises(Co3sopError, match="a directory"):
+        load_model(tmp_path)

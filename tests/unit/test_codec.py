@@ -42,6 +42,7 @@ from co3sop_nodes.errors import (
     CodecError,
     Co3sopError,
     CorruptPayloadError,
+    NonFiniteError,
     PayloadTooLargeError,
     SizeMismatchError,
     UnknownCodecError,
@@ -676,6 +677,47 @@ def test_confidence_payload_without_has_confidence(small, codec_name):
     dec = decode_features(dataclasses.replace(enc, has_confidence=False, confidence=b"", confidence_raw_size=0))
     assert dec.confidence is None
     np.testing.assert_array_equal(dec.features, decode_features(enc).features)
+
+
+def _forge(enc: EncodedFeatures, field: str, fill) -> EncodedFeatures:
+    """`enc` with the decompressed array of `field` rewritten by `fill` (what a faulty sender would encode)."""
+    n, dtype = enc.num_voxels, FEATURE_DTYPES[enc.dtype]
+    if field in ("quant_scale", "quant_offset"):
+        return dataclasses.replace(enc, **{field: tuple(fill(np.asarray(getattr(enc, field), np.float32)))})
+    cdtype = codec._confidence_dtype(enc.dtype) if field == "confidence" else dtype
+    raw = zstandard.ZstdDecompressor().decompress(getattr(enc, field))
+    array = fill(np.frombuffer(raw, cdtype).copy())
+    payload = zstandard.ZstdCompressor(write_checksum=True, write_content_size=True).compress(array.tobytes())
+    return dataclasses.replace(enc, **{field: payload})
+
+
+def _poison(a: np.ndarray, value: float) -> np.ndarray:
+    a[len(a) // 2] = value
+    return a
+
+
+NON_FINITE_CASES = [("values", "float32"), ("values", "float16"), ("confidence", "float32"), ("confidence", "float16"),
+                    ("quant_scale", "int8"), ("quant_offset", "int8")]
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")], ids=["nan", "inf", "-inf"])
+@pytest.mark.parametrize("field,dtype", NON_FINITE_CASES, ids=[f"{f}-{d}" for f, d in NON_FINITE_CASES])
+def test_non_finite_payloads_are_refused(small, field, dtype, value):
+    """A sender's NaN or inf in any field would spread through fusion to the whole map: the message is refused."""
+    grid, features, confidence, _, _ = small
+    enc = encode_features(features, confidence, grid, FeatureCodecConfig(dtype=dtype))
+    with pytest.raises(NonFiniteError) as info:
+        decode_features(_forge(enc, field, lambda a: _poison(a, value)))
+    _assert_error(info, NonFiniteError, field, "NaN or infinite")
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float16"])
+def test_float_confidence_outside_unit_interval_is_refused(small, dtype):
+    grid, features, confidence, _, _ = small
+    enc = encode_features(features, confidence, grid, FeatureCodecConfig(dtype=dtype))
+    with pytest.raises(CodecError) as info:
+        decode_features(_forge(enc, "confidence", lambda a: _poison(a, 1.5)))
+    _assert_error(info, CodecError, "confidence", "[0, 1]")
 
 
 @pytest.mark.parametrize("codec_name", CODECS)

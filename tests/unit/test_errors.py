@@ -15,6 +15,7 @@ SUBCLASSES = {
     "CorruptPayloadError": errors.CodecError,
     "SizeMismatchError": errors.CodecError,
     "PayloadTooLargeError": errors.CodecError,
+    "NonFiniteError": errors.CodecError,
     "DatasetError": errors.Co3sopError,
 }
 

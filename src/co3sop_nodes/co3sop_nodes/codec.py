@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import zstandard
 
-from .errors import CodecError, CorruptPayloadError, PayloadTooLargeError, SizeMismatchError, UnknownCodecError
+from .errors import CodecError, CorruptPayloadError, NonFiniteError, PayloadTooLargeError, SizeMismatchError, UnknownCodecError
 from .grid import GridSpec
 
 CODECS = ("zstd", "none")
@@ -282,6 +282,13 @@ def encode_features(
     )
 
 
+def _check_finite(field: str, values: np.ndarray) -> None:
+    """One faulty sender must not poison a fused map: NaN or inf anywhere drops the whole message."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise NonFiniteError(f"{field}: {int(bad.sum())} NaN or infinite value(s) of {values.size}")
+
+
 def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> DecodedFeatures:
     """Inverse of encode_features; raises a CodecError subclass naming the bad field."""
     _check_choice("feature dtype", enc.dtype, FEATURE_DTYPES)
@@ -311,9 +318,13 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
             )
         scale = np.asarray(enc.quant_scale, np.float32).astype(np.float64)[:, None]
         offset = np.asarray(enc.quant_offset, np.float32).astype(np.float64)[:, None]
+        _check_finite("quant_scale", scale)
+        _check_finite("quant_offset", offset)
         # float64 then clip: q * scale + offset may round past float32's range
         f32max = np.finfo(np.float32).max
         values = np.clip(values * scale + offset, -f32max, f32max).astype(np.float32)
+    else:
+        _check_finite("values", values)
 
     conf = None  # (N,) float32
     if enc.has_confidence:
@@ -322,6 +333,10 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         conf = np.frombuffer(craw, cdtype).astype(np.float32)
         if enc.dtype == "int8":
             conf = conf / np.float32(255)
+        else:
+            _check_finite("confidence", conf)
+            if conf.size and not (conf.min() >= 0 and conf.max() <= 1):
+                raise CodecError(f"confidence: values must lie in [0, 1], got [{conf.min():g}, {conf.max():g}]")
     elif enc.confidence or enc.confidence_raw_size:
         raise SizeMismatchError("confidence: payload present but has_confidence is false")
     if bits is None:

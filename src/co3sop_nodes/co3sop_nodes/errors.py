@@ -34,5 +34,14 @@ class PayloadTooLargeError(CodecError):
     """A payload declares more uncompressed bytes than the receiver accepts."""
 
 
+class NonFiniteError(CodecError):
+    """A payload carries NaN or infinite values (features, confidence, quantisation scale/offset)."""
+
+
 class DatasetError(Co3sopError):
     """A dataset file (OPV2V yaml/PCD/PNG, Co3SOP npz, bag) is missing, malformed or inconsistent."""
+
+
+def exception_line(exc: BaseException) -> str:
+    """The first line of an error's message, bounded: C libraries put whole dumps in theirs."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]

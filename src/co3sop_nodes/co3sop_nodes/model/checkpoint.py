@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import pickle
 from pathlib import Path
 
 import torch
 
-from ..errors import Co3sopError
+from ..errors import Co3sopError, exception_line
 from .config import ModelConfig, config_from_dict
 from .model import Co3SOP, build_model
 
@@ -45,22 +46,42 @@ def export_model(path: Path, model: Co3SOP, meta: dict, half: bool = True) -> No
 
 
 def read_checkpoint(path: Path) -> dict:
+    """The dict a checkpoint holds, loaded without running code: tensors, numbers, strings and containers
+    only (`weights_only`), so a crafted pickle is refused instead of executed."""
     try:
-        data = torch.load(path, map_location="cpu", weights_only=False)
+        data = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise Co3sopError(f"{path}: no such checkpoint") from None
-    except Exception as exc:  # torch raises many types for a damaged file
-        raise Co3sopError(f"{path}: not a readable checkpoint ({exc})") from None
-    if not isinstance(data, dict) or "config" not in data or "model" not in data:
+    except IsADirectoryError:
+        raise Co3sopError(f"{path}: a directory, not a checkpoint") from None
+    except pickle.UnpicklingError as exc:
+        if "Unsupported global" in str(exc):  # a pickled object (class, function) rather than weights
+            raise Co3sopError(f"{path}: refused: holds Python objects other than weights (loading it could run code); "
+                              "not a Co3SOP checkpoint") from None
+        raise Co3sopError(f"{path}: not a readable checkpoint (damaged, or not a PyTorch file)") from None
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
+        raise Co3sopError(f"{path}: not a readable checkpoint ({exception_line(exc)})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("config"), dict) or not isinstance(data.get("model"), dict):
         raise Co3sopError(f"{path}: not a Co3SOP checkpoint (no config/model)")
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in data["model"].items()):
+        raise Co3sopError(f"{path}: not a Co3SOP checkpoint (its model entry is not a dict of named tensors)")
     return data
 
 
 def load_model(path: Path) -> tuple[Co3SOP, dict]:
     """A model in eval mode from a training state or an exported checkpoint, and the checkpoint's dict."""
     data = read_checkpoint(path)
-    cfg: ModelConfig = config_from_dict(data["config"])
+    try:
+        cfg: ModelConfig = config_from_dict(data["config"])
+    except Co3sopError as exc:
+        raise Co3sopError(f"{path}: {exc}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise Co3sopError(f"{path}: its config is not one this version knows ({exc})") from None
     model = build_model(cfg)
     state = {k: v.float() if v.is_floating_point() else v for k, v in data["model"].items()}
-    model.load_state_dict(state)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:  # missing, unexpected or mis-shaped weights
+        raise Co3sopError(f"{path}: its weights do not fit its config ({exception_line(exc)})") from None
     return model.eval(), data
+
