@@ -165,3 +165,84 @@ def test_voxelize_reproduces_the_benchmark_labels(generated):
     for path in written:
         again = out / "data" / "additional_check" / path.relative_to(out / "data" / "additional_50m")
         np.testing.assert_array_equal(np.load(again)["voxels"], np.load(path)["voxels"])
+
+
+# --- damaged files: one line naming the file and what is wrong (exit 2), never a traceback ---------------------------
+
+def _first_chunk_data(mcap: bytes) -> int:
+    """Offset of the first chunk's compressed records (MCAP: opcode, u64 length, start, end, size, crc, compression)."""
+    pos = 8
+    while mcap[pos] != 0x06:
+        pos += 9 + int.from_bytes(mcap[pos + 1: pos + 9], "little")
+    compression = pos + 9 + 28
+    return compression + 4 + int.from_bytes(mcap[compression: compression + 4], "little") + 8
+
+
+DAMAGES = {
+    "truncated": lambda mcap, meta: (mcap[: len(mcap) // 2], meta),
+    "corrupt-chunk": lambda mcap, meta: (mcap[: (at := _first_chunk_data(mcap))] + bytes(b ^ 0xFF for b in mcap[at: at + 8]) + mcap[at + 8:], meta),
+    "random-bytes": lambda mcap, meta: (np.random.default_rng(0).bytes(len(mcap)), meta),
+    "bad-metadata": lambda mcap, meta: (mcap, "rosbag2_bagfile_information: [unclosed\n  : {"),
+}
+
+
+@pytest.fixture(scope="module")
+def damaged_bags(generated, tmp_path_factory):
+    out, _, _ = generated
+    source = next((out / "bags").glob("*/*/metadata.yaml")).parent
+    mcap, meta = next(source.glob("*.mcap")).read_bytes(), (source / "metadata.yaml").read_text()
+    root = tmp_path_factory.mktemp("damaged")
+    for name, damage in DAMAGES.items():
+        bag = root / name
+        bag.mkdir()
+        data, text = damage(mcap, meta)
+        (bag / f"{bag.name}.mcap").write_bytes(data)
+        (bag / "metadata.yaml").write_text(text.replace(source.name, bag.name))
+    return root
+
+
+@pytest.mark.parametrize("command", ["info", "player"])
+@pytest.mark.parametrize("damage", list(DAMAGES))
+def test_damaged_bags_are_explained(damaged_bags, command, damage):
+    done = tool(command, str(damaged_bags / damage), timeout=120)
+    lines = [line for line in done.stderr.splitlines() if line.startswith(f"{command}: error:")]
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert len(lines) == 1 and f"{damage}: damaged or not a rosbag2 bag: " in lines[0], done.stderr
+
+
+def _recording(path: Path, malformed_at: int | None) -> Path:
+    """A recording of 3 predictions and their ground truth; the prediction at `malformed_at` is not valid CDR."""
+    from co3sop_nodes.codec import encode_labels
+    from co3sop_nodes.grid import BENCHMARK_RANGES
+    from co3sop_nodes.recording import McapRecorder
+
+    grid, store = BENCHMARK_RANGES["51.2m"], bags.typestore()
+    with McapRecorder(path) as rec:
+        for i in range(3):
+            stamp = (i + 1) * 10**8
+            header = store.types["std_msgs/msg/Header"](store.types["builtin_interfaces/msg/Time"](0, stamp), "cav_1/lidar")
+            labels = np.zeros(grid.dims, np.uint8)
+            labels[:50] = 7
+            msg = bags.occupancy_message(store.types, header, 1, encode_labels(labels, grid, 24))
+            raw = store.serialize_cdr(msg, "co3sop_msgs/msg/SemanticOccupancy")
+            rec.write("/cav_1/ground_truth/occupancy_50m", "co3sop_msgs/msg/SemanticOccupancy", raw, stamp)
+            rec.write("/ego/occupancy", "co3sop_msgs/msg/SemanticOccupancy", raw[: len(raw) // 2] if i == malformed_at else raw, stamp)
+    return path
+
+
+def test_score_explains_a_malformed_message_and_damaged_recordings(tmp_path):
+    good = tool("score", str(_recording(tmp_path / "good.mcap", None)), "--pictures", "0")
+    assert good.returncode == 0 and "3 predicted" in good.stdout, good.stderr
+    bad = tool("score", str(_recording(tmp_path / "bad.mcap", 1)), "--pictures", "0")
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr
+    assert "bad.mcap: /ego/occupancy at 200000000 ns: not a valid co3sop_msgs/msg/SemanticOccupancy" in bad.stderr
+    data = (tmp_path / "good.mcap").read_bytes()
+    for name, content in (("random.mcap", np.random.default_rng(1).bytes(len(data))), ("corrupt.mcap",
+                          data[: (at := _first_chunk_data(data))] + bytes(b ^ 0xFF for b in data[at: at + 8]) + data[at + 8:])):
+        (tmp_path / name).write_bytes(content)
+        done = tool("score", str(tmp_path / name), "--pictures", "0")
+        assert done.returncode == 2 and f"{name}: damaged or not a MCAP recording" in done.stderr, done.stderr
+        assert "Traceback" not in done.stderr
+        failed = tool("recover", str(tmp_path / name))
+        assert failed.returncode in (0, 2) and "Traceback" not in failed.stderr, failed.stderr
+        assert not list(tmp_path.glob(".*.recovering")), "recover left its temporary file behind"

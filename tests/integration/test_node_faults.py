@@ -1,10 +1,11 @@
-"""Bad input to the ego and a stopped or crashed recorder, over real DDS (the test process is a DDS peer)."""
+"""Bad and hostile input to the nodes and a stopped or crashed recorder, over real DDS (the test process is a DDS peer)."""
 
 from __future__ import annotations
 
 import os
 import re
 import signal
+import struct
 import subprocess
 import time
 from pathlib import Path
@@ -15,14 +16,21 @@ import rclpy
 from ament_index_python.packages import get_package_share_directory
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from conftest import executable
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TransformStamped
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from tf2_msgs.msg import TFMessage
 from rosbags.highlevel import AnyReader
 
+from co3sop_nodes import topics
+from co3sop_nodes.cloud import occupancy_cloud
 from co3sop_nodes.codec import FeatureCodecConfig, encode_features, encode_labels
 from co3sop_nodes.geometry import Pose
 from co3sop_nodes.grid import BENCHMARK_RANGES
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.ros.convert import features_to_msg, labels_to_msg
+from co3sop_nodes.ros.convert import cloud_to_msg, features_to_msg, labels_to_msg, ns_to_stamp
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 EGO, OTHER = 1, 7
@@ -193,3 +201,202 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path):
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(30) == 0
+
+
+# --- hostile input: malformed CDR, non-finite payloads, silent publishers, crafted checkpoints -------------------
+
+STATIC = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CAMERA_CAV, LIDAR_CAV = 3, 4
+
+
+def malformed(msg_type) -> dict[str, bytes]:
+    """Raw CDR no node may die of: a valid message cut in half, one whose string length claims 2 GB, random bytes."""
+    msg = msg_type()
+    if msg_type is TFMessage:
+        msg.transforms = [TransformStamped()]
+    header = msg.transforms[0].header if msg_type is TFMessage else msg.header
+    header.frame_id = "x" * 999  # CDR: uint32 length 1000 (with the terminating NUL), then the characters
+    valid = serialize_message(msg)
+    at = valid.index(struct.pack("<I", 1000))
+    return {"truncated": valid[: len(valid) // 2], "lying-length": valid[:at] + struct.pack("<I", 0x7FFFFFF0) + valid[at + 4:],
+            "random": np.random.default_rng(len(valid)).bytes(len(valid))}
+
+
+def diagnostics_of(peer, seen: list) -> object:
+    """Collects /diagnostics statuses (raw: the test publishes malformed ones there too)."""
+    def on_raw(raw: bytes) -> None:
+        try:
+            seen.extend(deserialize_message(raw, DiagnosticArray).status)
+        except Exception:  # noqa: BLE001 - our own malformed messages
+            pass
+    return peer.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_raw, QOS, raw=True)
+
+
+def status_values(seen: list, name: str, peer, timeout: float = 60) -> dict[str, str]:
+    deadline = time.monotonic() + timeout
+    while not any(s.name == name for s in seen):
+        assert time.monotonic() < deadline, f"no diagnostics from {name}"
+        rclpy.spin_once(peer, timeout_sec=0.1)
+    return {kv.key: kv.value for kv in [s for s in seen if s.name == name][-1].values}
+
+
+def lidar_frame(stamp: int) -> tuple[PoseStamped, PointCloud2]:
+    grid = BENCHMARK_RANGES["51.2m"]
+    labels = np.zeros(grid.dims, np.uint8)
+    labels[100:140, 100:140, 4:8] = 11  # a wall in front of the sensor
+    pose = PoseStamped()
+    pose.header.stamp = ns_to_stamp(stamp)
+    pose.header.frame_id = "map"
+    pose.pose.orientation.w = 1.0
+    return pose, cloud_to_msg(occupancy_cloud(labels, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(LIDAR_CAV))
+
+
+def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, peer):
+    """Raw malformed CDR on each topic of the ego, a camera and a LiDAR vehicle, and the recorder: every node keeps
+    running, names the topic and the reason, counts the drops in /diagnostics and still does its job."""
+    lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
+    procs = {
+        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=0.5",
+                     "-p", "publish_points:=false"),
+        "camera": start(tmp_path, "camera", executable("vehicle"), "--id", str(CAMERA_CAV)),
+        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+        "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap")),
+    }
+    try:
+        for proc, log in procs.values():
+            wait_for(log, "ready:|recording to", proc)
+        targets = {  # topic -> (type, QoS, the node that must name it)
+            topics.voxel_features(EGO): (VoxelFeatures, QOS, "ego"), topics.voxel_features(OTHER): (VoxelFeatures, QOS, "ego"),
+            topics.TF_STATIC: (TFMessage, STATIC, "camera"),
+            topics.lidar_pose(CAMERA_CAV): (PoseStamped, QOS, "camera"),
+            **{t: (m, QOS, "camera") for cam in ("camera0", "camera3") for t, m in
+               ((topics.camera_image(CAMERA_CAV, cam), Image), (topics.camera_info(CAMERA_CAV, cam), CameraInfo))},
+            topics.lidar_pose(LIDAR_CAV): (PoseStamped, QOS, "lidar"), topics.lidar_points(LIDAR_CAV): (PointCloud2, QOS, "lidar"),
+            topics.EGO_OCCUPANCY: (SemanticOccupancy, QOS, "recorder"), topics.ground_truth(EGO, "51.2m"): (SemanticOccupancy, QOS, "recorder"),
+            topics.DIAGNOSTICS: (DiagnosticArray, QOS, "recorder"),
+        }
+        pubs = {t: peer.create_publisher(m, t, q) for t, (m, q, _) in targets.items()}
+        seen: list = []
+        diagnostics_of(peer, seen)
+        wait_subscribed(peer, list(pubs.values()))
+        for topic, pub in pubs.items():
+            for raw in malformed(targets[topic][0]).values():
+                pub.publish(raw)
+            acked(pub)
+        for topic, (_, _, node) in targets.items():
+            if node != "recorder":  # the recorder stores bytes as they came, never deserialising
+                wait_for(procs[node][1], rf"{re.escape(topic)}: dropped \(malformed\)", procs[node][0])
+        text = procs["camera"][1].read_text()
+        assert "not a valid Image" in text and "not a valid CameraInfo" in text and "not a valid TFMessage" in text, text
+
+        # still working, and the drops are counted where operators look
+        pubs[topics.voxel_features(OTHER)].publish(features(OTHER, T0))
+        acked(pubs[topics.voxel_features(OTHER)])
+        pubs[topics.voxel_features(EGO)].publish(features(EGO, T0))
+        wait_for(procs["ego"][1], r"published #1, 1 neighbours used", procs["ego"][0])
+        assert status_values(seen, "ego", peer)["dropped_malformed"] == "6"
+        for msg, topic in zip(lidar_frame(T0), (topics.lidar_pose(LIDAR_CAV), topics.lidar_points(LIDAR_CAV))):
+            pubs[topic].publish(msg)
+        values = status_values(seen, f"vehicle cav_{LIDAR_CAV}", peer)
+        assert values["frames_published"] == "1" and values["dropped_malformed"] == "9", values  # /tf_static, pose, points
+        pubs[topics.EGO_OCCUPANCY].publish(occupancy(T0))
+        acked(pubs[topics.EGO_OCCUPANCY])
+        for name, (proc, log) in procs.items():
+            assert proc.poll() is None and "Traceback" not in log.read_text(), f"{name}:\n{log.read_text()}"
+    finally:
+        for proc, _ in procs.values():
+            proc.send_signal(signal.SIGINT)
+        for name, (proc, log) in procs.items():
+            assert proc.wait(30) == 0, f"{name}:\n{log.read_text()}"
+    assert count(tmp_path / "rec.mcap") >= 1 + 3 * 3  # the malformed bytes are recorded as they came
+
+
+NON_FINITE = {  # field -> how a faulty sender spoils it (after encoding, so the codec's own checks are bypassed)
+    "values": ("float32", lambda m: setattr(m, "values", _spoil(m.values, np.float32))),
+    "confidence": ("float16", lambda m: setattr(m, "confidence", _spoil(m.confidence, np.float16))),
+    "quant_scale": ("int8", lambda m: setattr(m, "quant_scale", [float("nan"), *list(m.quant_scale)[1:]])),
+    "quant_offset": ("int8", lambda m: setattr(m, "quant_offset", [*list(m.quant_offset)[:-1], float("inf")])),
+}
+
+
+def _spoil(payload, dtype) -> bytes:
+    import zstandard
+
+    array = np.frombuffer(zstandard.ZstdDecompressor().decompress(bytes(payload)), dtype).copy()
+    array[len(array) // 3] = np.nan
+    return zstandard.ZstdCompressor(write_checksum=True, write_content_size=True).compress(array.tobytes())
+
+
+def spoiled(field: str, stamp: int) -> VoxelFeatures:
+    dtype, spoil = NON_FINITE[field]
+    grid = preset("tiny").feature_grid
+    volume = np.random.default_rng(OTHER).normal(size=(32, *grid.dims)).astype(np.float32)
+    enc = encode_features(volume, np.full(grid.dims, 0.5, np.float32), grid, FeatureCodecConfig(dtype))
+    msg = features_to_msg(enc, stamp_ns=stamp, frame_id=f"cav_{OTHER}/lidar", agent_id=OTHER, pose=Pose((10.0, 5.0, 1.8)))
+    spoil(msg)
+    return msg
+
+
+def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(tmp_path, peer):
+    """NaN or inf in any payload field is dropped with the field named; a neighbour whose publisher exists but has not
+    sent within neighbour_timeout is not waited for (it would cost every frame max_wait)."""
+    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=6.0",
+                     "-p", "neighbour_timeout:=1.0", "-p", "publish_points:=false")
+    try:
+        wait_for(log, "ready:", ego)
+        own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
+        other = peer.create_publisher(VoxelFeatures, topics.voxel_features(OTHER), QOS)
+        silent = peer.create_publisher(VoxelFeatures, topics.voxel_features(9), QOS)  # exists, never sends
+        wait_subscribed(peer, [own, other, silent])
+        for field in NON_FINITE:
+            other.publish(spoiled(field, T0))
+        text = wait_for(log, r"dropped \(non_finite\)", ego, n=len(NON_FINITE))
+        for field in NON_FINITE:
+            assert re.search(rf"/cav_{OTHER}/voxel_features: dropped \(non_finite\): {field}: 1 NaN or infinite", text), text
+
+        time.sleep(1.5)  # past neighbour_timeout: neither cav 7 (only bad messages) nor the silent cav 9 is live
+        t0 = time.monotonic()
+        own.publish(features(EGO, T0))
+        wait_for(log, r"published #1, 0 neighbours used", ego)
+        assert time.monotonic() - t0 < 3.0, "the ego waited for a neighbour that never sent (max_wait is 6 s)"
+
+        other.publish(features(OTHER, T0 + 100_000_000))  # speaks again: live, waited for, fused
+        acked(other)
+        own.publish(features(EGO, T0 + 100_000_000))
+        wait_for(log, r"published #2, 1 neighbours used", ego)
+        assert ego.poll() is None and "Traceback" not in log.read_text()
+    finally:
+        ego.send_signal(signal.SIGINT)
+        ego.wait(30)
+
+
+@pytest.fixture
+def crafted(tmp_path) -> tuple[Path, Path]:
+    """A checkpoint whose unpickling would create a marker file."""
+    import torch
+
+    marker = tmp_path / "code-ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (marker,))
+
+    path = tmp_path / "crafted.pt"
+    torch.save({"config": {}, "model": {}, "meta": Payload()}, path)
+    return path, marker
+
+
+@pytest.mark.parametrize("argv", [
+    ["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:={model}"],
+    ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:={model}"],
+    ["evaluate", "--model", "{model}", "--data", "{data}"],
+    ["train", "--data", "{data}", "--stage", "fusion", "--init", "{model}", "--out", "{out}"],
+    ["demo", "--model", "{model}", "--out", "{out}"],
+], ids=lambda argv: argv[0])
+def test_no_entry_point_runs_code_from_a_checkpoint(crafted, tmp_path, argv):
+    model, marker = crafted
+    args = [a.format(model=model, data=tmp_path, out=tmp_path / "out") for a in argv]
+    done = subprocess.run([executable(args[0]), *args[1:]], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "crafted.pt: refused" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not marker.exists()

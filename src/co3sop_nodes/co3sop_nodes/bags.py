@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import shutil
 from collections import defaultdict
+from contextlib import contextmanager
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from . import topics
 from .classes import NUM_CLASSES
 from .codec import decode_labels, encode_labels, EncodedLabels
-from .errors import DatasetError
+from .errors import Co3sopError, DatasetError, exception_line
 from .frames import CameraFrame, CavFrame
 from .geometry import OPTICAL_FROM_BODY, Pose
 from .grid import BENCHMARK_RANGES, GridSpec
@@ -227,11 +228,97 @@ def occupancy_labels(msg) -> tuple[np.ndarray, GridSpec]:
 # --- reading ---------------------------------------------------------------------------------------
 
 
-def open_reader(path: Path) -> AnyReader:
+class BagReader:
+    """A rosbag2 bag folder or an MCAP recording read with rosbags, damage reported as DatasetError.
+
+    rosbags raises many types for a damaged file (bad magic, a truncated or
+    corrupt zstd chunk, metadata.yaml that is not YAML, a message that does not
+    deserialise): every one becomes one DatasetError naming the file and, for a
+    message, its topic and time. Use as a context manager.
+    """
+
+    def __init__(self, path: Path, what: str = "bag", hint: str = "", store=None):
+        self.path, self._what, self._hint = Path(path), what, hint
+        try:
+            self._reader = AnyReader([self.path], default_typestore=store or get_typestore(Stores.ROS2_JAZZY))
+        except Exception as exc:  # noqa: BLE001 - see the class docstring
+            raise self._damaged(exc) from None
+
+    def _damaged(self, exc: BaseException) -> DatasetError:
+        return DatasetError(f"{self.path}: damaged or not a {self._what}: {exception_line(exc)}{self._hint}")
+
+    def open(self) -> None:
+        try:
+            self._reader.open()
+        except Exception as exc:  # noqa: BLE001
+            raise self._damaged(exc) from None
+
+    def close(self) -> None:
+        self._reader.close()
+
+    def __enter__(self) -> BagReader:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def connections(self) -> list:
+        return self._reader.connections
+
+    @property
+    def message_count(self) -> int:
+        return self._reader.message_count
+
+    @property
+    def start_time(self) -> int:
+        return self._reader.start_time
+
+    @property
+    def end_time(self) -> int:
+        return self._reader.end_time
+
+    def messages(self, connections: Sequence | None = None, start: int | None = None) -> Iterator[tuple]:
+        """(connection, log time ns, raw CDR) in log-time order; of every connection when `connections` is None
+        (an empty list gives none, where rosbags would give all)."""
+        if connections is not None and not connections:
+            return
+        it = self._reader.messages(connections=connections or (), start=start)
+        while True:
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+            except Exception as exc:  # noqa: BLE001 - a chunk that does not decompress, a truncated record...
+                raise self._damaged(exc) from None
+            yield item
+
+    def deserialize(self, raw, conn, stamp: int):
+        """The message, or a DatasetError naming its topic and log time."""
+        try:
+            return self._reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # noqa: BLE001
+            raise DatasetError(f"{self.path}: {conn.topic} at {stamp} ns: not a valid {conn.msgtype} ({exception_line(exc)})") from None
+
+
+    @contextmanager
+    def about(self, conn, stamp: int):
+        """Errors reading one message's content (a bad payload, a point layout that does not fit) name the file,
+        the topic and the time."""
+        try:
+            yield
+        except DatasetError:
+            raise
+        except (Co3sopError, ValueError, TypeError, IndexError, KeyError) as exc:
+            raise DatasetError(f"{self.path}: {conn.topic} at {stamp} ns: {exception_line(exc)}") from None
+
+
+def open_reader(path: Path) -> BagReader:
     path = Path(path)
     if not (path / "metadata.yaml").is_file():
         raise DatasetError(f"{path}: not a rosbag2 bag (no metadata.yaml)")
-    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+    return BagReader(path, "rosbag2 bag")
 
 
 def header_stamp_ns(header) -> int:
@@ -243,8 +330,8 @@ def read_static_transforms(path: Path) -> StaticTransforms:
     """Every /tf_static transform of a bag (the sensor mounts)."""
     tree = StaticTransforms()
     with open_reader(path) as reader:
-        for conn, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topics.TF_STATIC]):
-            for t in reader.deserialize(raw, conn.msgtype).transforms:
+        for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topics.TF_STATIC]):
+            for t in reader.deserialize(raw, conn, stamp).transforms:
                 tr, q = t.transform.translation, t.transform.rotation
                 tree.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
     return tree
@@ -257,26 +344,31 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
     """
     by_stamp: dict[int, dict[int, dict]] = defaultdict(lambda: defaultdict(lambda: {"cameras": {}, "labels": {}}))
     with open_reader(path) as reader:
-        for conn, _, raw in reader.messages():
+        for conn, log_stamp, raw in reader.messages():
             parts = conn.topic.strip("/").split("/")
             if not parts[0].startswith("cav_"):
                 continue
-            msg = reader.deserialize(raw, conn.msgtype)
-            entry = by_stamp[header_stamp_ns(msg.header)][int(parts[0][4:])]
-            if parts[1:] == ["lidar", "pose"]:
-                p, o = msg.pose.position, msg.pose.orientation
-                entry["pose"] = Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w)).matrix()
-            elif parts[1:] == ["lidar", "points"]:
-                cloud = msg.data.view(np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4"] * 4 + ["u1"],
-                                                "offsets": [0, 4, 8, 12, 16], "itemsize": msg.point_step}))
-                entry["points"] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
-                entry["intensity"] = cloud["intensity"].copy()
-            elif parts[1] == "ground_truth":
-                entry["labels"][_RANGE_OF_SUFFIX[parts[2].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
-            elif parts[-1] == "image_raw":
-                entry["cameras"][parts[1]] = msg.data.reshape(msg.height, msg.width, 3)
-                entry.setdefault("optical_frames", {})[parts[1]] = msg.header.frame_id
-            elif parts[-1] == "camera_info":
-                entry.setdefault("intrinsics", {})[parts[1]] = msg.k.reshape(3, 3)
+            msg = reader.deserialize(raw, conn, log_stamp)
+            with reader.about(conn, log_stamp):
+                _read_part(by_stamp[header_stamp_ns(msg.header)][int(parts[0][4:])], parts, msg)
     for stamp in sorted(by_stamp):
         yield stamp, {cav: dict(v) for cav, v in by_stamp[stamp].items()}
+
+
+def _read_part(entry: dict, parts: list[str], msg) -> None:
+    """One CAV message into its frame's entry (read_frames)."""
+    if parts[1:] == ["lidar", "pose"]:
+        p, o = msg.pose.position, msg.pose.orientation
+        entry["pose"] = Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w)).matrix()
+    elif parts[1:] == ["lidar", "points"]:
+        cloud = msg.data.view(np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4"] * 4 + ["u1"],
+                                        "offsets": [0, 4, 8, 12, 16], "itemsize": msg.point_step}))
+        entry["points"] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
+        entry["intensity"] = cloud["intensity"].copy()
+    elif parts[1] == "ground_truth":
+        entry["labels"][_RANGE_OF_SUFFIX[parts[2].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
+    elif parts[-1] == "image_raw":
+        entry["cameras"][parts[1]] = msg.data.reshape(msg.height, msg.width, 3)
+        entry.setdefault("optical_frames", {})[parts[1]] = msg.header.frame_id
+    elif parts[-1] == "camera_info":
+        entry.setdefault("intrinsics", {})[parts[1]] = msg.k.reshape(3, 3)

@@ -95,22 +95,26 @@ def recover(source: Path, target: Path | None = None) -> Recovered:
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     problem, complete = "", False
-    with open(source, "rb") as stream, McapRecorder(tmp) as out:
-        try:
-            for record in StreamReader(stream, validate_crcs=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    channel = channels[record.channel_id]
-                    schema = schemas[channel.schema_id]
-                    out.write(channel.topic, schema.name, record.data, record.log_time, record.publish_time, schema.data)
-            complete = True
-        except Exception as exc:  # noqa: BLE001 - a damaged record fails in many ways; the scan stops at the first
-            problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        if not out.counts and not schemas:
-            raise DatasetError(f"{source}: not an MCAP file or nothing recoverable ({problem})")
-        counts = dict(out.counts)
+    try:
+        with open(source, "rb") as stream, McapRecorder(tmp) as out:
+            try:
+                for record in StreamReader(stream, validate_crcs=True).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record
+                    elif isinstance(record, Message) and record.channel_id in channels:
+                        channel = channels[record.channel_id]
+                        schema = schemas[channel.schema_id]
+                        out.write(channel.topic, schema.name, record.data, record.log_time, record.publish_time, schema.data)
+                complete = True
+            except Exception as exc:  # noqa: BLE001 - a damaged record fails in many ways; the scan stops at the first
+                problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            if not out.counts and not schemas:
+                raise DatasetError(f"{source}: not an MCAP file or nothing recoverable ({problem})")
+            counts = dict(out.counts)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a failed recovery leaves nothing behind and the source untouched
+        raise
     os.replace(tmp, target)
     return Recovered(sum(counts.values()), counts, complete, problem)

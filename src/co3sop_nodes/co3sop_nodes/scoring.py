@@ -12,10 +12,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader
 
 from . import topics
-from .bags import header_stamp_ns, occupancy_labels, typestore
+from .bags import BagReader, header_stamp_ns, occupancy_labels, typestore
 from .errors import DatasetError
 from .grid import BENCHMARK_RANGES, GridSpec
 from .metrics import Confusion
@@ -36,23 +35,19 @@ class Recording:
     diagnostics: dict[str, list[dict[str, str]]] = field(default_factory=dict)  # status name ("ego", "vehicle cav_3") -> per-frame key/values
 
 
-def _open(path: Path) -> AnyReader:
+def _open(path: Path) -> BagReader:
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such recording")
-    try:
-        reader = AnyReader([path], default_typestore=typestore())
-        reader.open()
-    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for a damaged file
-        raise DatasetError(f"{path}: not a readable MCAP recording ({exc}); if the recorder crashed, run `recover {path}` first") from None
+    reader = BagReader(path, "MCAP recording", f"; if the recorder crashed, run `recover {path}` first", typestore())
+    reader.open()
     return reader
 
 
-def _messages(reader: AnyReader, connections: list):
-    """Deserialized messages of these connections (none for an empty list, where rosbags would give all)."""
-    if connections:
-        for conn, _, raw in reader.messages(connections=connections):
-            yield reader.deserialize(raw, conn.msgtype)
+def _messages(reader: BagReader, connections: list):
+    """Deserialized messages of these connections, with their log time."""
+    for conn, stamp, raw in reader.messages(connections=connections):
+        yield conn, stamp, reader.deserialize(raw, conn, stamp)
 
 
 def read_recording(path: Path, range_name: str | None = None) -> Recording:
@@ -62,8 +57,9 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         preds: dict[tuple[int, int], np.ndarray] = {}
         ranges = set()
         pred_conns = [c for c in reader.connections if c.topic == topics.EGO_OCCUPANCY]
-        for msg in _messages(reader, pred_conns):
-            labels, grid = occupancy_labels(msg)
+        for conn, stamp, msg in _messages(reader, pred_conns):
+            with reader.about(conn, stamp):
+                labels, grid = occupancy_labels(msg)
             ranges.add(range_of(grid))
             preds[(msg.agent_id, header_stamp_ns(msg.header))] = labels
         if not preds and range_name is None:
@@ -78,10 +74,11 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         suffix = topics.ground_truth(0, range_name).removeprefix(topics.namespace(0))
         gt_conns = [c for c in reader.connections if c.topic in wanted or (not egos and c.topic.endswith(suffix))]
         truths = {}
-        for msg in _messages(reader, gt_conns):
-            truths[(msg.agent_id, header_stamp_ns(msg.header))] = occupancy_labels(msg)[0]
+        for conn, stamp, msg in _messages(reader, gt_conns):
+            with reader.about(conn, stamp):
+                truths[(msg.agent_id, header_stamp_ns(msg.header))] = occupancy_labels(msg)[0]
         diagnostics: dict[str, list[dict[str, str]]] = {}
-        for msg in _messages(reader, [c for c in reader.connections if c.topic == topics.DIAGNOSTICS]):
+        for _, _, msg in _messages(reader, [c for c in reader.connections if c.topic == topics.DIAGNOSTICS]):
             for status in msg.status:
                 diagnostics.setdefault(status.name, []).append({kv.key: kv.value for kv in status.values})
     finally:

@@ -54,8 +54,10 @@ def bag_info(path: Path, counts: bool) -> str:
             stamps.add(stamp)
         if counts:
             gt = [c for c in reader.connections if "/ground_truth/" in c.topic]
-            for conn, _, raw in reader.messages(connections=gt):
-                labels, grid = occupancy_labels(reader.deserialize(raw, conn.msgtype))
+            for conn, stamp, raw in reader.messages(connections=gt):
+                msg = reader.deserialize(raw, conn, stamp)
+                with reader.about(conn, stamp):
+                    labels, grid = occupancy_labels(msg)
                 class_counts[f"{grid.extent[0]:.1f}m"] += _count(labels)
     out = [f"# {path}", f"bag: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}; {len(stamps)} frames", "",
            "| topic | type | messages |", "|---|---|---:|", *topics]

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 
 import rclpy
@@ -13,8 +15,9 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 
-from ..errors import Co3sopError
+from ..errors import Co3sopError, exception_line
 
 PACKAGE = "co3sop_nodes"
 
@@ -34,6 +37,59 @@ OCCUPANCY_QOS = QoSProfile(
 )
 # /diagnostics: one status per node per frame; reliable so the recorder and benchmarks see every one
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class DropLog:
+    """Counts dropped messages by kind and warns once per burst.
+
+    The first drop of a kind of reason on a topic is logged; repeats within
+    `quiet` s of the previous one are only counted (a flood must not flood the
+    log), and their number is appended to the next warning of that kind.
+    """
+
+    def __init__(self, logger, quiet: float = 2.0, max_keys: int = 1024):
+        self.counts: Counter[str] = Counter()
+        self._logger, self._quiet, self._max_keys = logger, quiet, max_keys
+        self._bursts: dict[tuple[str, str, str], list] = {}  # key -> [monotonic of the last drop, drops not logged]
+
+    def __call__(self, topic: str, kind: str, reason: str) -> None:
+        self.counts[kind] += 1
+        key = (topic, kind, re.sub(r"\d+", "#", reason))  # "the same reason" whatever the numbers in it
+        now = time.monotonic()
+        burst = self._bursts.get(key)
+        if burst is not None and now - burst[0] < self._quiet:
+            burst[0], burst[1] = now, burst[1] + 1
+            return
+        more = f" ({burst[1]} more like it not logged)" if burst is not None and burst[1] else ""
+        if len(self._bursts) >= self._max_keys:  # many distinct reasons: forget the quiet ones
+            self._bursts = {k: b for k, b in self._bursts.items() if now - b[0] < self._quiet}
+        self._bursts[key] = [now, 0]
+        self._logger.warning(f"{topic}: dropped ({kind}): {reason}{more}")
+
+    def values(self) -> dict[str, int]:
+        """Diagnostic values: the total and one count per kind."""
+        return {"dropped": sum(self.counts.values()), **{f"dropped_{k}": v for k, v in sorted(self.counts.items())}}
+
+
+def subscribe_foreign(node: Node, msg_type, topic: str, callback: Callable, qos, drops: DropLog, raw: bool = False):
+    """A subscription to data another process sends, robust to malformed CDR.
+
+    A typed subscription deserialises inside the executor, where a truncated
+    message or a lying length field raises out of spin() and kills the node.
+    This one takes the raw bytes and deserialises them here: a message that
+    does not deserialise is dropped as "malformed" and counted in `drops`.
+    `callback(msg)` gets the message, or `callback(msg, raw)` when `raw`.
+    """
+
+    def on_raw(data: bytes) -> None:
+        try:
+            msg = deserialize_message(data, msg_type)
+        except Exception as exc:  # noqa: BLE001 - RMWError, UnicodeDecodeError...: any failure is the sender's
+            return drops(topic, "malformed", f"{len(data)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})")
+        return callback(msg, data) if raw else callback(msg)
+
+    return node.create_subscription(msg_type, topic, on_raw, qos, raw=True)
+
 
 
 def flush_publishers(node: Node, publishers, timeout: float = 5.0) -> None:

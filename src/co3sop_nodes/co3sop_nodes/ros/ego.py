@@ -3,11 +3,12 @@
     ros2 run co3sop_nodes ego --ros-args -p ego_id:=1 [--params-file ego.yaml]
 
 Subscribes to /cav_<ego_id>/voxel_features and to every other
-/cav_<N>/voxel_features as it appears. Each message is checked (agent id,
-pose, grid, payload, size limit, age) and decoded on arrival; a bad one is
-dropped with a warning naming the topic and the reason, and counted. For each
-of its own frames the ego waits (at most max_wait s) for every live neighbour's
-frame within `tolerance` s of its stamp, keeps the nearest max_collaborators
+/cav_<N>/voxel_features as it appears. Each message is checked (valid CDR,
+agent id, pose, grid, payload, finite values, size limit, age) and decoded on
+arrival; a bad one is dropped and counted by reason, with a warning naming the
+topic and the reason once per burst. For each of its own frames the ego waits
+(at most max_wait s) for every live neighbour (one heard from, or discovered,
+within neighbour_timeout s) for its frame within `tolerance` s of its stamp, keeps the nearest max_collaborators
 within comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
 runs the model's ego half and publishes /ego/occupancy
 (co3sop_msgs/SemanticOccupancy), /ego/occupancy/points (PointCloud2: x, y, z,
@@ -20,7 +21,7 @@ from __future__ import annotations
 import re
 import sys
 import time
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,20 +31,19 @@ from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 
 from .. import topics
 from ..cloud import occupancy_cloud
 from ..codec import decode_features, encode_labels
 from ..collaboration import COMM_RANGE
-from ..errors import Co3sopError, PayloadTooLargeError
+from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import predict_frame
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
-from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, spin_node
+from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_foreign
 
 FEATURES_TOPIC = re.compile(r"^/cav_(\d+)/voxel_features$")
 FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
@@ -83,12 +83,12 @@ class Ego(Node):
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
         self._received: dict[int, deque[Received]] = {}
-        self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last accepted message
+        self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last accepted message (or of its discovery)
         self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
         self._last_stamp = -1
         self._subs: dict[str, object] = {}
         self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
-        self.dropped: Counter[str] = Counter()
+        self.drops = DropLog(self.get_logger())
         self.published = 0
         self._occupancy = self.create_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
         self._points = self.create_publisher(PointCloud2, topics.EGO_POINTS, OCCUPANCY_QOS)
@@ -103,8 +103,12 @@ class Ego(Node):
 
     def _subscribe(self, topic: str, agent: int) -> None:
         self._agents[topic] = agent
-        self._subs[topic] = self.create_subscription(
-            VoxelFeatures, topic, lambda raw, t=topic, a=agent: self._on_features(t, a, raw), self._qos, raw=True)
+        # a neighbour is waited for from its discovery on, and no longer once silent for neighbour_timeout:
+        # a publisher that never sends must not cost every frame max_wait
+        self._last_heard.setdefault(agent, time.time_ns())
+        self._subs[topic] = subscribe_foreign(
+            self, VoxelFeatures, topic, lambda msg, raw, t=topic, a=agent: self._on_features(t, a, msg, raw), self._qos, self.drops,
+            raw=True)
 
     def _discover(self) -> None:
         for name, types in self.get_topic_names_and_types():
@@ -113,13 +117,8 @@ class Ego(Node):
                 self._subscribe(name, int(m.group(1)))
                 self.get_logger().info(f"neighbour discovered: {name}")
 
-    def _drop(self, topic: str, kind: str, reason: str) -> None:
-        self.dropped[kind] += 1
-        self.get_logger().warning(f"{topic}: dropped ({kind}): {reason}")
-
-    def _on_features(self, topic: str, agent: int, raw: bytes) -> None:
+    def _on_features(self, topic: str, agent: int, msg: VoxelFeatures, raw: bytes) -> None:
         wall = time.time_ns()
-        msg = deserialize_message(raw, VoxelFeatures)
         stamp = stamp_to_ns(msg.header.stamp)
         try:
             if msg.agent_id != agent:
@@ -127,9 +126,9 @@ class Ego(Node):
             pose = pose_from_msg(msg.lidar_pose)
             pose.check("lidar_pose")
         except Co3sopError as exc:
-            return self._drop(topic, "header", str(exc))
+            return self.drops(topic, "header", str(exc))
         if stamp < self._last_stamp - self.tolerance_ns:
-            return self._drop(topic, "stale", f"stamp {stamp} is {(self._last_stamp - stamp) / 1e6:.0f} ms older than the last "
+            return self.drops(topic, "stale", f"stamp {stamp} is {(self._last_stamp - stamp) / 1e6:.0f} ms older than the last "
                                               f"fused frame, more than the tolerance {self.tolerance_ns / 1e6:.0f} ms")
         t0 = time.perf_counter()
         try:
@@ -140,9 +139,11 @@ class Ego(Node):
                                   f"{self.cfg.feature_grid.voxel_size:g} m x {self.cfg.embed_dims}")
             out = decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes))
         except PayloadTooLargeError as exc:
-            return self._drop(topic, "size", str(exc))
+            return self.drops(topic, "size", str(exc))
+        except NonFiniteError as exc:
+            return self.drops(topic, "non_finite", str(exc))
         except Co3sopError as exc:  # GridError, CodecError: a bad grid or a corrupt / truncated payload
-            return self._drop(topic, "payload", str(exc))
+            return self.drops(topic, "payload", str(exc))
         record = Received(stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
         self._received.setdefault(agent, deque(maxlen=8)).append(record)
         self._last_heard[agent] = wall
@@ -158,9 +159,9 @@ class Ego(Node):
         return best if best is not None and abs(best.stamp - stamp) <= self.tolerance_ns else None
 
     def _live_neighbours(self) -> list[int]:
-        """Discovered neighbours with a publisher, not silent for longer than neighbour_timeout."""
+        """Discovered neighbours with a publisher, heard from (or discovered) within neighbour_timeout."""
         now = time.time_ns()
-        return [a for a in self._agents.values() if a != self.ego_id and now - self._last_heard.get(a, now) < self.neighbour_timeout_ns
+        return [a for a in self._agents.values() if a != self.ego_id and now - self._last_heard[a] < self.neighbour_timeout_ns
                 and self.count_publishers(topics.voxel_features(a)) > 0]
 
     def _fuse_ready(self) -> None:
@@ -208,7 +209,7 @@ class Ego(Node):
             "decode_ms": f"{sum(r.decode_ms for r in used):.1f}", "fuse_ms": f"{1e3 * pred.fuse_s:.1f}", "head_ms": f"{1e3 * pred.head_s:.1f}",
             "publish_ms": f"{1e3 * (t3 - t2):.1f}", "total_ms": f"{1e3 * (t3 - t0):.1f}", "published_wall_ns": published_wall,
             "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
-            "dropped": sum(self.dropped.values()), **{f"dropped_{k}": v for k, v in sorted(self.dropped.items())},
+            **self.drops.values(),
         }
         level = DiagnosticStatus.WARN if missing else DiagnosticStatus.OK
         text = f"{len(others)} neighbours used" + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")

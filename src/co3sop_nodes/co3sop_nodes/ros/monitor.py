@@ -26,7 +26,7 @@ from rclpy.utilities import remove_ros_args
 
 from ..classes import CLASS_NAMES
 from ..codec import decode_features, decode_labels
-from ..errors import Co3sopError
+from ..errors import Co3sopError, exception_line
 from .convert import features_from_msg, labels_from_msg, stamp_to_ns
 from .dds import OCCUPANCY_QOS, spin_node
 
@@ -135,12 +135,13 @@ class Monitor(Node):
         now = time.monotonic()
         t0 = time.perf_counter()
         try:
-            text, raw_size, payload = SUMMARIZERS[msg_type](deserialize_message(raw, msg_type))
+            msg = deserialize_message(raw, msg_type)
+        except Exception as exc:  # noqa: BLE001 - malformed CDR: the sender's fault, never the monitor's end
+            return self._error(topic, stats, f"{len(raw)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})")
+        try:
+            text, raw_size, payload = SUMMARIZERS[msg_type](msg)
         except Co3sopError as exc:
-            stats.errors += 1
-            stats.last_error = str(exc)
-            self.get_logger().warning(f"{topic}: dropped a message that does not decode: {exc}")
-            return
+            return self._error(topic, stats, str(exc))
         stats.decode_s += time.perf_counter() - t0
         if not stats.count:
             stats.first_t = now
@@ -153,6 +154,11 @@ class Monitor(Node):
         if self._count and sum(s.count for s in self._stats.values()) >= self._count:
             self._report()
             raise SystemExit(0)
+
+    def _error(self, topic: str, stats: TopicStats, reason: str) -> None:
+        stats.errors += 1
+        stats.last_error = reason
+        self.get_logger().warning(f"{topic}: dropped a message that does not decode: {reason}")
 
     def _report(self) -> None:
         if self._deadline is not None and time.monotonic() > self._deadline:

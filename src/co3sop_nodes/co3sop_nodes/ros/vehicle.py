@@ -38,7 +38,7 @@ from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, pose_from_msg, stamp_to_ns
-from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, spin_node
+from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, spin_node, subscribe_foreign
 
 SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
@@ -83,19 +83,19 @@ class Vehicle(Node):
         self._tf = StaticTransforms()
         self._pending: dict[int, dict] = {}  # stamp -> {part: message, "first_wall_ns": int}
         self._last_stamp = -1
-        self.published = self.dropped = 0
-        self.create_subscription(TFMessage, topics.TF_STATIC, self._on_static, STATIC_QOS)
+        self.published = 0
+        self.drops = DropLog(self.get_logger())
+        subscribe_foreign(self, TFMessage, topics.TF_STATIC, self._on_static, STATIC_QOS, self.drops)
         self._parts = {"pose": topics.lidar_pose(a)}
-        self.create_subscription(PoseStamped, topics.lidar_pose(a), self._part("pose"), SENSOR_QOS)
+        types = {"pose": PoseStamped}
         if cfg.modality == "camera":
             for cam in self.cameras:
-                self._parts[f"image:{cam}"] = topics.camera_image(a, cam)
-                self._parts[f"info:{cam}"] = topics.camera_info(a, cam)
-                self.create_subscription(Image, topics.camera_image(a, cam), self._part(f"image:{cam}"), SENSOR_QOS)
-                self.create_subscription(CameraInfo, topics.camera_info(a, cam), self._part(f"info:{cam}"), SENSOR_QOS)
+                self._parts[f"image:{cam}"], types[f"image:{cam}"] = topics.camera_image(a, cam), Image
+                self._parts[f"info:{cam}"], types[f"info:{cam}"] = topics.camera_info(a, cam), CameraInfo
         else:
-            self._parts["points"] = topics.lidar_points(a)
-            self.create_subscription(PointCloud2, topics.lidar_points(a), self._part("points"), SENSOR_QOS)
+            self._parts["points"], types["points"] = topics.lidar_points(a), PointCloud2
+        for key, topic in self._parts.items():
+            subscribe_foreign(self, types[key], topic, self._part(key), SENSOR_QOS, self.drops)
         self._pub = self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
         self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
@@ -122,20 +122,16 @@ class Vehicle(Node):
         def callback(msg) -> None:
             stamp = stamp_to_ns(msg.header.stamp)
             if stamp <= self._last_stamp:
-                return self._drop(self._parts[key], f"stamp {stamp} is not newer than the last encoded frame {self._last_stamp}")
+                return self.drops(self._parts[key], "stale", f"stamp {stamp} is not newer than the last encoded frame {self._last_stamp}")
             entry = self._pending.setdefault(stamp, {"first_wall_ns": time.time_ns()})
             entry[key] = msg
             self._encode_ready()
             while len(self._pending) > self.max_pending:  # a frame that never completes must not pile up
                 old = min(self._pending)
                 lacking = [self._parts[k] for k in self._parts if k not in self._pending.pop(old)]
-                self._drop(lacking[0] if lacking else topics.TF_STATIC,
+                self.drops(lacking[0] if lacking else topics.TF_STATIC, "incomplete",
                            f"frame {old} incomplete (no {', '.join(lacking) or 'camera mounts'}) after {self.max_pending} newer frames")
         return callback
-
-    def _drop(self, topic: str, reason: str) -> None:
-        self.dropped += 1
-        self.get_logger().warning(f"{topic}: dropped: {reason}")
 
     def _encode(self, stamp: int, entry: dict) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
@@ -153,7 +149,7 @@ class Vehicle(Node):
                 points = cloud_points(entry["points"])
             inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
         except Co3sopError as exc:
-            return self._drop(topics.namespace(self.agent_id), f"frame {stamp}: {exc}")
+            return self.drops(topics.namespace(self.agent_id), "input", f"frame {stamp}: {exc}")
         t1 = time.perf_counter()
         with torch.no_grad():
             out = self.model.vehicle(**to_batch(inputs))
@@ -168,7 +164,7 @@ class Vehicle(Node):
         values = {"stamp": stamp, "first_input_wall_ns": entry["first_wall_ns"], "published_wall_ns": published_wall,
                   "inputs_ms": f"{1e3 * (t1 - t0):.1f}", "encoder_ms": f"{1e3 * (t2 - t1):.1f}", "codec_ms": f"{1e3 * (t3 - t2):.1f}",
                   "payload_bytes": enc.payload_bytes, "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
-                  "frames_published": self.published, "dropped": self.dropped}
+                  "frames_published": self.published, **self.drops.values()}
         self._diag.publish(diagnostics_msg(stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
                                            f"frame {self.published} encoded", values))
 
