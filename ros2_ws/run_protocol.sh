@@ -4,13 +4,15 @@
 #   2. train:    each model's two stages (ego, then fusion from it) on `train`, for every seed
 #   3. evaluate: every trained model on `test`, with 95 % intervals over test scenarios, the
 #                collaboration, collaborators, pose-noise and input-control ablations
-#   4. report:   src/co3sop_nodes/doc/benchmark.md from the evaluation JSON (no hand-typed figure)
+#   4. report:   src/co3sop_nodes/doc/results.md from the evaluation JSON (no hand-typed figure)
 #
 #   ros2_ws/run_protocol.sh [data|train|evaluate|report ...]      (default: all four, in order)
 #
-# Settings (environment): DATA (data/bench), RUNS (runs/bench), RESULTS (results/bench),
-# PRESETS ("tiny-lidar"), RANGES ("51.2m 76.8m"), SEEDS ("1 2 3"; the first only beyond 51.2 m),
-# EGO_STEPS (1200), FUSION_STEPS (1200). Choices of steps and presets were made on `validate`;
+# Settings (environment): DATA (data/bench), RUNS (runs/bench), RESULTS (src/co3sop_nodes/doc/
+# evaluation: the JSON behind results.md is committed), PRESETS ("tiny-lidar"), RANGES ("51.2m 76.8m"),
+# SEEDS ("1 2 3"; the first only beyond 51.2 m), EGO_STEPS (1200), FUSION_STEPS (1200),
+# FIRST_SEED_ABLATIONS ("collaborators pose-noise": only for the first seed; every seed gets
+# collaboration and inputs). Choices of steps and presets were made on `validate`;
 # `test` is only evaluated here. CPU by default; `--device` follows `DEVICE` (auto).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -20,7 +22,8 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 LIB="$(python -c 'from ament_index_python.packages import get_package_prefix as p; print(p("co3sop_nodes"))')/lib/co3sop_nodes"
 SHARE="$(python -c 'from ament_index_python.packages import get_package_share_directory as p; print(p("co3sop_nodes"))')"
-DATA="${DATA:-data/bench}" RUNS="${RUNS:-runs/bench}" RESULTS="${RESULTS:-results/bench}"
+DATA="${DATA:-data/bench}" RUNS="${RUNS:-runs/bench}" RESULTS="${RESULTS:-src/co3sop_nodes/doc/evaluation}"
+FIRST_SEED_ABLATIONS="${FIRST_SEED_ABLATIONS-collaborators pose-noise}"
 PRESETS="${PRESETS:-tiny-lidar}" RANGES="${RANGES:-51.2m 76.8m}" SEEDS="${SEEDS:-1 2 3}"
 EGO_STEPS="${EGO_STEPS:-1200}" FUSION_STEPS="${FUSION_STEPS:-1200}" DEVICE="${DEVICE:-auto}"
 STEPS=("$@")
@@ -61,17 +64,24 @@ for step in "${STEPS[@]}"; do
           --device "$DEVICE" --out "$run"
       done ;;
     evaluate)
+      # one marker per evaluation, so an interrupted step resumes where it stopped
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
-        if [ -f "$out/done" ]; then say "$out: evaluated"; continue; fi
         ablations=(collaboration inputs)
-        [ "$seed" = "${SEEDS%% *}" ] && ablations+=(collaborators pose-noise)
-        "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation "${ablations[@]}"
-        "$LIB/evaluate" --model "$run-ego/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/ego-stage"
-        touch "$out/done"
+        # shellcheck disable=SC2206
+        [ "$seed" = "${SEEDS%% *}" ] && ablations+=($FIRST_SEED_ABLATIONS)
+        for ablation in "${ablations[@]}"; do
+          if [ -f "$out/.done-$ablation" ]; then say "$out: $ablation evaluated"; continue; fi
+          "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation "$ablation"
+          touch "$out/.done-$ablation"
+        done
+        if [ ! -f "$out/.done-ego-stage" ]; then
+          "$LIB/evaluate" --model "$run-ego/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/ego-stage"
+          touch "$out/.done-ego-stage"
+        fi
       done ;;
     report)
-      "$LIB/report" "$RESULTS" --out src/co3sop_nodes/doc/benchmark.md ;;
+      "$LIB/report" "$RESULTS" --out src/co3sop_nodes/doc/results.md ;;
     *) echo "run_protocol: unknown step '$step' (data, train, evaluate, report)" >&2; exit 2 ;;
   esac
 done

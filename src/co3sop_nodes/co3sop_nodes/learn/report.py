@@ -1,6 +1,6 @@
 """`report`: the benchmark page (markdown) from `evaluate`'s JSON, so no figure is ever typed by hand.
 
-    ros2 run co3sop_nodes report results/bench --out src/co3sop_nodes/doc/benchmark.md
+    ros2 run co3sop_nodes report src/co3sop_nodes/doc/evaluation --out src/co3sop_nodes/doc/results.md
 
 RESULTS holds one folder per trained run, named <preset>-<range>-s<seed> (as
 ros2_ws/run_protocol.sh writes them), each with the ablation JSON files of
@@ -22,6 +22,7 @@ import numpy as np
 from ..cli.common import run
 from ..errors import Co3sopError
 from ..metrics import SCORES, Bootstrap, confusions_of, markdown_table, point
+from .observed import observed_table
 
 RUN_NAME = re.compile(r"(?P<preset>.+)-(?P<range>\d+\.\dm)-s(?P<seed>\d+)")
 SCORE_NAMES = {"co3sop-code": "mIoU 1..23 (Co3SOP code)", "co3sop-readme": "mIoU 24 classes (Co3SOP README)",
@@ -104,6 +105,22 @@ def compact(report: dict | None, title: str) -> list[str]:
     return lines + [""]
 
 
+def observed_section(results: Path) -> list[str]:
+    """The tables of ros2_ws/benchmarks/observed.py (its --out JSON, observed-<range>.json beside the runs)."""
+    found = sorted(results.glob("observed-*.json"))
+    if not found:
+        return []
+    out = ["## What the neighbours can see", "",
+           "Share of occupied ground-truth voxels (classes 1..23) that a LiDAR return falls in: the ego's alone,",
+           "and the ego's with its collaborators' (`ros2_ws/benchmarks/observed.py --data data/bench --splits test",
+           "--range R --out .../observed-R.json`). Fusion can only add what the neighbours see and the ego does not,",
+           "and what a model infers around it; building interiors are occupied but seen by no one.", ""]
+    for path in found:
+        data = json.loads(path.read_text())
+        out += [observed_table(data, f"{'+'.join(data['splits'])}, {data['range']}"), ""]
+    return out
+
+
 def render(results: Path, command: str) -> str:
     runs = collect(results)
     out = ["# Benchmark results (test split)", "",
@@ -113,9 +130,10 @@ def render(results: Path, command: str) -> str:
            "Intervals: 95 % percentile bootstrap over test scenarios (2000 resamples); gains are paired",
            "(both sides on the same resampled scenarios). Mean ± standard deviation over training seeds.", "",
            "## Collaboration gain (mIoU over classes 1..23, %)", "",
-           "`off` is the fusion model with no collaborator; `ego stage alone` is the single-agent model its fusion",
-           "stage started from (vehicle half and head before fusion training), the fairer reference.", "",
-           *headline(runs), ""]
+           "`off` is the fusion model with no collaborator: the same weights and training, the reference of the gain.",
+           "`ego stage alone` is the single-agent model the fusion stage started from; its head had fewer training",
+           "steps (the fusion stage trains it further), so the gain over it overstates what collaboration adds.", "",
+           *headline(runs), "", *observed_section(results)]
     for (preset, rng), seeds in runs.items():
         first = seeds[min(seeds)]
         out += [f"## {preset}, {rng}", ""]
