@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -136,13 +139,71 @@ def test_generate_writes_folders_labels_bags_and_pictures(generated):
 def test_generate_resumes_and_skips_complete_scenarios(generated):
     out, args, _ = generated
     split, name = opv2v.find_scenarios(out / "data")[0]
-    # an interrupted scenario leaves only a partial folder: it is redone, the complete one skipped
+    # an interrupted scenario leaves only its staging folder: it is redone, the complete one skipped
     shutil.rmtree(out / "data" / split / name)
-    (out / "data" / split / f".{name}.partial").mkdir()
+    (out / "data" / ".partial" / split / name / split / name).mkdir(parents=True)
     result = tool(*args)
     assert result.returncode == 0, result.stderr
     assert "1 scenario(s) to simulate, 1 already complete" in result.stdout
-    assert (out / "data" / split / name).is_dir() and not (out / "data" / split / f".{name}.partial").exists()
+    assert (out / "data" / split / name).is_dir() and not (out / "data" / ".partial").exists()
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below `pid` (from /proc: no psutil here)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.add(child)
+            todo.append(child)
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("how", ["SIGINT to the group (Ctrl-C)", "SIGTERM to generate"])
+def test_generate_stops_every_worker_and_leaves_no_debris_in_the_splits(tmp_path, how):
+    """Interrupted mid-scenario: no process left, nothing in a split or label folder (unfinished scenarios are
+    in OUT/.partial, where OPV2V loaders do not look), and a re-run completes the dataset."""
+    args = ("generate", "--out", str(tmp_path / "data"), "--splits", "train=2", "--frames", "8", "--cavs", "2",
+            "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "10", "--workers", "2")
+    proc = subprocess.Popen([executable(args[0]), *args[1:]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    staging = tmp_path / "data" / ".partial" / "train"
+    deadline = time.monotonic() + 240
+    while len({p.relative_to(staging).parts[0] for p in staging.glob("*/train/*/*/*.yaml")}) < 2:  # both workers writing frames
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read() if proc.poll() is not None else "no frame written"
+        time.sleep(0.2)
+    workers = descendants(proc.pid)
+    assert len(workers) >= 3  # the pool's two workers and the manager
+    if how.startswith("SIGINT"):
+        os.killpg(proc.pid, signal.SIGINT)
+    else:
+        proc.send_signal(signal.SIGTERM)
+    output = proc.communicate(timeout=60)[0]
+    assert proc.returncode == 130 and "interrupted" in output and "Traceback" not in output, output
+    time.sleep(0.5)
+    assert not [pid for pid in workers if alive(pid)], "workers still running after generate stopped"
+    folders = [tmp_path / "data" / "train", *(tmp_path / "data" / f / "train" for f in opv2v.LABEL_FOLDERS.values())]
+    assert not [p for f in folders if f.exists() for p in f.iterdir()], "an unfinished scenario in a split folder"
+    assert staging.is_dir()
+    if how.startswith("SIGINT"):
+        return  # resuming is the same after either signal: checked once
+
+    again = tool(*args)
+    assert again.returncode == 0 and "2 scenario(s) to simulate, 0 already complete" in again.stdout, again.stderr
+    assert len(opv2v.find_scenarios(tmp_path / "data")) == 2 and not (tmp_path / "data" / ".partial").exists()
 
 
 def test_info_summarises_folders_and_bags(generated):

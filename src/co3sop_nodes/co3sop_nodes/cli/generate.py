@@ -6,9 +6,11 @@
 Each scenario is a procedural town with 2..7 CAVs (four cameras and a LiDAR each)
 and traffic, written in the OPV2V folder layout with Co3SOP voxel labels for
 the three benchmark ranges, and optionally as a rosbag2 bag. Scenarios run in
-parallel worker processes; a scenario is written under a temporary name and
-renamed when complete, so an interrupted run resumes where it stopped
-(completed scenarios are skipped).
+parallel worker processes. A scenario is written in OUT/.partial/<split>/<name>/
+(its own small OPV2V root, outside every split folder, where no OPV2V or
+Co3SOP loader looks) and moved into place when complete; SIGINT or SIGTERM
+stops every worker, and a re-run resumes where it stopped (completed
+scenarios are skipped, unfinished ones redone).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import dataclasses
 import multiprocessing as mp
 import queue
 import shutil
+import signal
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -69,22 +72,34 @@ def picture(frame: CavFrame, range_name: str) -> np.ndarray:
     return np.concatenate([bev, mosaic], axis=1)
 
 
-def _partial_dirs(out: Path, split: str, name: str) -> list[Path]:
-    return [out / split / f".{name}.partial"] + [out / folder / split / f".{name}.partial" for folder in opv2v.LABEL_FOLDERS.values()]
+STAGING = ".partial"  # OUT/.partial/<split>/<name>/: an unfinished scenario, outside every split folder
+
+
+def staging(out: Path, split: str, name: str) -> Path:
+    """Where a scenario is written until complete: an OPV2V root of its own (<split>/<name>/, label folders)."""
+    return out / STAGING / split / name
+
+
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the main process, which stops them all (a terminal sends it to the whole group)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt  # SIGTERM unwinds like Ctrl-C: the pool's exit terminates every worker
 
 
 def generate_scenario(job: dict, events) -> str:
-    """Worker: one scenario, written under temporary names and renamed when complete."""
+    """Worker: one scenario, written in its staging folder and moved into place when complete."""
     out, split, name, seed, cfg = Path(job["out"]), job["split"], job["name"], job["seed"], job["config"]
-    partial = f".{name}.partial"
-    for d in _partial_dirs(out, split, name):  # leftovers of an interrupted run
-        shutil.rmtree(d, ignore_errors=True)
-    (out / split / partial).mkdir(parents=True)
-    with open(out / split / partial / "data_protocol.yaml", "w") as f:
+    stage = staging(out, split, name)
+    shutil.rmtree(stage, ignore_errors=True)  # leftovers of an interrupted run
+    (stage / split / name).mkdir(parents=True)
+    with open(stage / split / name / "data_protocol.yaml", "w") as f:
         yaml.safe_dump(data_protocol(cfg, seed), f)
     for frames in simulate(cfg, seed, name):
         for frame in frames:
-            opv2v.write_frame(out, split, frame, scenario_dir=partial)
+            opv2v.write_frame(stage, split, frame)
             if job["pictures"]:
                 from PIL import Image
 
@@ -96,13 +111,18 @@ def generate_scenario(job: dict, events) -> str:
         except (BrokenPipeError, EOFError):  # the main process is gone (interrupted): stop quietly
             return name
     # labels first, the scenario folder last: its presence marks the scenario complete
-    for folder in opv2v.LABEL_FOLDERS.values():
-        src, dst = out / folder / split / partial, out / folder / split / name
+    for folder in [*opv2v.LABEL_FOLDERS.values(), ""]:
+        src, dst = stage / folder / split / name, out / folder / split / name
         if src.exists():
-            shutil.rmtree(dst, ignore_errors=True)  # labels of an earlier, incomplete run
+            shutil.rmtree(dst, ignore_errors=True)  # an earlier, incomplete run of this scenario
+            dst.parent.mkdir(parents=True, exist_ok=True)
             src.rename(dst)
-    shutil.rmtree(out / split / name, ignore_errors=True)  # an earlier, incomplete run of this scenario
-    (out / split / partial).rename(out / split / name)
+    shutil.rmtree(stage)
+    for empty in (stage.parent, stage.parent.parent):  # .partial/<split>, .partial: gone once nothing is unfinished
+        try:
+            empty.rmdir()
+        except OSError:  # another scenario is still being written
+            break
     if job["bags"]:
         from ..bags import BagWriter
 
@@ -200,21 +220,25 @@ def main(args: list[str] | None = None) -> int:
         return 0
     opts.out.mkdir(parents=True, exist_ok=True)
     ctx = mp.get_context("spawn")
-    with ctx.Manager() as manager, ctx.Pool(max(1, min(opts.workers, len(jobs)))) as pool:
-        events = manager.Queue()
-        pending = [pool.apply_async(generate_scenario, (job, events)) for job in jobs]
-        bar = progress(sum(j["config"].frames for j in jobs), "frames", "frame")
-        while pending:
-            try:
-                bar.update(events.get(timeout=0.5))
-            except queue.Empty:
-                pass
-            for result in [r for r in pending if r.ready()]:
-                pending.remove(result)
-                bar.write(f"generate: scenario {result.get()} complete")  # get() re-raises a worker's error
-        while not events.empty():
-            bar.update(events.get())
-        bar.close()
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        with ctx.Manager() as manager, ctx.Pool(max(1, min(opts.workers, len(jobs))), initializer=_ignore_sigint) as pool:
+            events = manager.Queue()
+            pending = [pool.apply_async(generate_scenario, (job, events)) for job in jobs]
+            bar = progress(sum(j["config"].frames for j in jobs), "frames", "frame")
+            while pending:
+                try:
+                    bar.update(events.get(timeout=0.5))
+                except queue.Empty:
+                    pass
+                for result in [r for r in pending if r.ready()]:
+                    pending.remove(result)
+                    bar.write(f"generate: scenario {result.get()} complete")  # get() re-raises a worker's error
+            while not events.empty():
+                bar.update(events.get())
+            bar.close()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     print(f"generate: {len(jobs)} scenario(s) written to {opts.out}" + (f", bags in {opts.bags}" if opts.bags else ""))
     return 0
 
