@@ -16,6 +16,8 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -413,3 +415,25 @@ def test_max_collaborators_caps_the_number_used():
         second_changed2 = two.ego(outs[0], [first, other_second], t)
     for a, c in zip(base2, second_changed2):
         assert (a - c).abs().max() > 1e-4
+
+
+@pytest.mark.parametrize("fault", ["nan-intrinsics", "inf-mount", "singular-mount", "zero-intrinsics", "empty-image"])
+def test_sensor_inputs_refuse_degenerate_cameras(fault):
+    """What a vehicle receives may be anything: a camera that cannot project is an input error, never NaN features."""
+    from co3sop_nodes.model.inputs import sensor_inputs
+
+    cfg = preset("tiny")
+    rgb, k, mount = np.zeros((48, 64, 3), np.uint8), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), np.eye(4)
+    if fault == "nan-intrinsics":
+        k[0, 0] = np.nan
+    elif fault == "inf-mount":
+        mount[0, 3] = np.inf
+    elif fault == "singular-mount":
+        mount[:3, :3] = 0.0
+    elif fault == "zero-intrinsics":
+        k[:] = 0.0
+    else:
+        rgb = np.zeros((0, 64, 3), np.uint8)
+    sensor_inputs(cfg, np.eye(4), [("camera0", np.zeros((48, 64, 3), np.uint8), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), np.eye(4))])
+    with pytest.raises(Co3sopError, match="camera0|mount|projections"):
+        sensor_inputs(cfg, np.eye(4), [("camera0", rgb, k, mount)])

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from ..errors import Co3sopError
 from ..frames import CameraFrame
 from ..geometry import OPTICAL_FROM_BODY
 from ..grid import GridSpec
@@ -57,7 +58,18 @@ def sensor_inputs(cfg: ModelConfig, world_from_lidar: np.ndarray, cameras=(), po
     if cfg.modality == "lidar":
         return {"occupancy": lidar_occupancy(points, cfg.grid)}
     body_from_optical = np.linalg.inv(OPTICAL_FROM_BODY)
-    frames = [CameraFrame(name, world_from_lidar @ lidar_from_optical @ body_from_optical, np.asarray(k, np.float64), rgb)
-              for name, rgb, k, lidar_from_optical in cameras]
-    images, lidar2img = camera_inputs(frames, world_from_lidar, cfg.image_size)
+    frames = []
+    for name, rgb, k, lidar_from_optical in cameras:
+        k = np.asarray(k, np.float64)
+        if not (np.isfinite(k).all() and np.isfinite(lidar_from_optical).all()) or min(rgb.shape[:2]) == 0:
+            raise Co3sopError(f"{name}: NaN or infinite intrinsics or mount, or an empty image")
+        if not (k[0, 0] > 0 and k[1, 1] > 0 and np.array_equal(k[2], [0.0, 0.0, 1.0])):
+            raise Co3sopError(f"{name}: intrinsics are not a pinhole camera's (fx, fy > 0, last row 0 0 1)")
+        frames.append(CameraFrame(name, world_from_lidar @ lidar_from_optical @ body_from_optical, k, rgb))
+    try:
+        images, lidar2img = camera_inputs(frames, world_from_lidar, cfg.image_size)
+    except np.linalg.LinAlgError:
+        raise Co3sopError("a camera mount is singular (not a rigid transform)") from None
+    if not np.isfinite(lidar2img).all():  # a singular mount can still invert to huge values
+        raise Co3sopError("camera projections are not finite (degenerate intrinsics or mounts)")
     return {"images": images, "lidar2img": lidar2img}

@@ -154,7 +154,10 @@ class Vehicle(Node):
         with torch.no_grad():
             out = self.model.vehicle(**to_batch(inputs))
         t2 = time.perf_counter()
-        enc = encode_output(out, self.cfg.feature_grid, self.codec)
+        try:
+            enc = encode_output(out, self.cfg.feature_grid, self.codec)
+        except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
+            return self.drops(topics.namespace(self.agent_id), "encode", f"frame {stamp}: {exc}")
         msg = features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose)
         t3 = time.perf_counter()
         self._pub.publish(msg)
