@@ -11,8 +11,8 @@
 # Settings (environment): DATA (data/bench), RUNS (runs/bench), RESULTS (src/co3sop_nodes/doc/
 # evaluation: the JSON behind results.md is committed), PRESETS ("tiny-lidar"), RANGES ("51.2m 76.8m"),
 # SEEDS ("1 2 3"; the first only beyond 51.2 m), EGO_STEPS (1200), FUSION_STEPS (1200),
-# FIRST_SEED_ABLATIONS ("collaborators pose-noise": only for the first seed; every seed gets
-# collaboration and inputs). Choices of steps and presets were made on `validate`;
+# FIRST_SEED_ABLATIONS ("inputs collaborators pose-noise": only for the first seed; every seed gets
+# collaboration and its ego stage alone). Choices of steps and presets were made on `validate`;
 # `test` is only evaluated here. CPU by default; `--device` follows `DEVICE` (auto).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -23,7 +23,7 @@ cd "$ROOT"
 LIB="$(python -c 'from ament_index_python.packages import get_package_prefix as p; print(p("co3sop_nodes"))')/lib/co3sop_nodes"
 SHARE="$(python -c 'from ament_index_python.packages import get_package_share_directory as p; print(p("co3sop_nodes"))')"
 DATA="${DATA:-data/bench}" RUNS="${RUNS:-runs/bench}" RESULTS="${RESULTS:-src/co3sop_nodes/doc/evaluation}"
-FIRST_SEED_ABLATIONS="${FIRST_SEED_ABLATIONS-collaborators pose-noise}"
+FIRST_SEED_ABLATIONS="${FIRST_SEED_ABLATIONS-inputs collaborators pose-noise}"
 PRESETS="${PRESETS:-tiny-lidar}" RANGES="${RANGES:-51.2m 76.8m}" SEEDS="${SEEDS:-1 2 3}"
 EGO_STEPS="${EGO_STEPS:-1200}" FUSION_STEPS="${FUSION_STEPS:-1200}" DEVICE="${DEVICE:-auto}"
 STEPS=("$@")
@@ -67,7 +67,7 @@ for step in "${STEPS[@]}"; do
       # one marker per evaluation, so an interrupted step resumes where it stopped
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
-        ablations=(collaboration inputs)
+        ablations=(collaboration)
         # shellcheck disable=SC2206
         [ "$seed" = "${SEEDS%% *}" ] && ablations+=($FIRST_SEED_ABLATIONS)
         for ablation in "${ablations[@]}"; do
