@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +118,7 @@ def _compare(opts, stem: str, heading: str, title: str, runs: dict[str, dict], r
     text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
             + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
             + difference_table(differences, reference))
-    _write(opts.out, stem, text, {"title": title, "reference": reference, **summaries, "differences": differences})
+    _write(opts.out, stem, text, {"title": title, "command": opts.command, "reference": reference, **summaries, "differences": differences})
     return summaries
 
 
@@ -176,6 +178,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     add_device_argument(parser)
     opts = parser.parse_args(args)
+    opts.command = shlex.join(["evaluate", *(sys.argv[1:] if args is None else args)])  # recorded beside every table
     if opts.collaborators is not None and opts.collaborators < 0:
         parser.error("--collaborators must be 0 or more")
     torch.set_num_threads(opts.threads)
@@ -204,7 +207,7 @@ def main(args: list[str] | None = None) -> int:
     if table:
         splits = "+".join(opts.splits)
         _write(opts.out, "evaluation", f"### Per-class IoU (%) and mIoU on {splits} (95 % intervals over scenarios)\n\n" + markdown_table(table),
-               {"splits": opts.splits, **table})
+               {"splits": opts.splits, "command": opts.command, **table})
     return 0
 
 

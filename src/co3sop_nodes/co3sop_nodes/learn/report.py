@@ -95,7 +95,8 @@ def compact(report: dict | None, title: str) -> list[str]:
     if report is None:
         return []
     runs = {k: v for k, v in report.items() if isinstance(v, dict) and "ci95" in v}
-    lines = [f"#### {title}", "", report["title"], "",
+    made = [f"Made by `{report['command']}`.", ""] if "command" in report else []
+    lines = [f"#### {title}", "", report["title"], "", *made,
              "| run | " + " | ".join(SCORE_NAMES[s] for s in SCORES) + f" | Δ mIoU 1..23 vs {report['reference']} |",
              "|---|" + "---:|" * (len(SCORES) + 1)]
     for name, r in runs.items():
