@@ -15,12 +15,12 @@ def test_hits_move_with_the_transform_and_leave_the_grid_when_outside():
     occupancy[3, 5, 1] = occupancy[15, 0, 0] = 1
     ego_from_neighbour = np.eye(4)
     ego_from_neighbour[:3, 3] = (1.0, -0.5, 0.0)  # the neighbour 2 voxels ahead, 1 to the right of the ego
-    hits = hits_in_ego_grid(occupancy, ego_from_neighbour, GRID)
+    hits = np.argwhere(hits_in_ego_grid(occupancy, ego_from_neighbour, GRID))
     assert hits.tolist() == [[5, 4, 1]]  # (15, 0, 0) moves to (17, -1, 0): outside the ego's grid
     turned = np.eye(4)
     turned[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # 90 degrees to the left about the shared origin
-    np.testing.assert_array_equal(hits_in_ego_grid(occupancy, turned, GRID), [[10, 3, 1], [15, 15, 0]])
-    assert hits_in_ego_grid(occupancy, np.eye(4), GRID).tolist() == np.argwhere(occupancy).tolist()
+    np.testing.assert_array_equal(np.argwhere(hits_in_ego_grid(occupancy, turned, GRID)), [[10, 3, 1], [15, 15, 0]])
+    np.testing.assert_array_equal(hits_in_ego_grid(occupancy, np.eye(4), GRID), occupancy.astype(bool))
 
 
 def test_table_lists_the_share_each_adds():
