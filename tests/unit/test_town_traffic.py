@@ -298,3 +298,24 @@ def test_dead_end_terminates():
         for _ in range(400):  # 40 s: well past the lane's end
             traffic.step()
     assert traffic.cavs[0].parked and traffic.cavs[0].speed == 0.0  # it stopped at the dead end
+
+
+def test_demo_scene_is_the_first_seed_whose_cavs_stay_within_30_m_of_the_ego():
+    """The rule demo.DEMO_SEED was chosen by (before any scoring): CAVs that can see each other's surroundings."""
+    from co3sop_nodes.cli.generate import scenario_seed
+    from co3sop_nodes.ros.demo import DEMO_SCENARIO, DEMO_SEED
+    from co3sop_nodes.sim.scenario import ScenarioConfig, world_states
+
+    frames = int(DEMO_SCENARIO[DEMO_SCENARIO.index("--frames") + 1])
+    cavs = int(DEMO_SCENARIO[DEMO_SCENARIO.index("--cavs") + 1])
+
+    def farthest(base: int) -> float:
+        worst = 0.0
+        cfg = ScenarioConfig(traffic=TrafficConfig(cavs=cavs), frames=frames)
+        for _, _, traffic, _ in world_states(cfg, scenario_seed("test", 0, base)):
+            ego, *others = sorted(traffic.cavs, key=lambda v: v.id)  # the demo's ego: the lowest id
+            worst = max([worst] + [float(np.hypot(v.x - ego.x, v.y - ego.y)) for v in others])
+        return worst
+
+    assert farthest(DEMO_SEED) < 30.0
+    assert all(farthest(base) >= 30.0 for base in range(1, DEMO_SEED))

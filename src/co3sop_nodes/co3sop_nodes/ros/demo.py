@@ -30,7 +30,12 @@ from ..cli.common import run
 from ..errors import Co3sopError
 from ..model.checkpoint import read_checkpoint, shipped_checkpoint
 
-DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed", "7", "--image-size", "320x240",
+# A scene whose CAVs can help each other: seed 11 is the first base seed (counting from 1) whose three CAVs all
+# stay within 30 m of the ego over the 10 frames (most seeds spread them 50-100 m apart, where a 51.2 m grid
+# shares little or nothing; the seed-7 scene used before had its neighbours 57 and 73 m away). Chosen by that
+# rule alone, before scoring; no training or validation split uses seed 11.
+DEMO_SEED = 11
+DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed", str(DEMO_SEED), "--image-size", "320x240",
                  "--lidar-steps", "512", "--workers", "1"]
 
 
@@ -127,13 +132,11 @@ def played_topics(cavs: list[int], sensors: str) -> list[str]:
 def ensure_scenario(opts) -> Path:
     if opts.bag:
         return opts.bag
-    bags = opts.bags
-    found = sorted(bags.glob("test/*/metadata.yaml"))
-    if not found:
-        say(f"no demo scenario yet: generating one (3 CAVs, 10 frames) into {opts.data} and {bags} (about a minute)")
-        generate.main(["--out", str(opts.data), "--bags", str(bags), *DEMO_SCENARIO])
-        found = sorted(bags.glob("test/*/metadata.yaml"))
-    return found[0].parent
+    bag = opts.bags / "test" / generate.scenario_name("test", 0, DEMO_SEED)
+    if not (bag / "metadata.yaml").exists():
+        say(f"no demo scenario yet: generating one (3 CAVs, 10 frames) into {opts.data} and {opts.bags} (about a minute)")
+        generate.main(["--out", str(opts.data), "--bags", str(opts.bags), *DEMO_SCENARIO])
+    return bag
 
 
 def main(args: list[str] | None = None) -> int:
