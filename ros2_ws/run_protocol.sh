@@ -10,8 +10,8 @@
 #
 # Settings (environment): DATA (data/bench), RUNS (runs/bench), RESULTS (src/co3sop_nodes/doc/
 # evaluation: the JSON behind results.md is committed), PRESETS ("tiny-lidar"), RANGES ("51.2m 76.8m"),
-# SEEDS ("1 2 3"; the first only beyond 51.2 m), EGO_STEPS (1200), FUSION_STEPS (1200),
-# FIRST_SEED_ABLATIONS ("inputs collaborators pose-noise": only for the first seed; every seed gets
+# SEEDS ("1 2 3"; the first only beyond 51.2 m), EGO_STEPS (1200), FUSION_STEPS (2400), SCHEDULE (constant),
+# FIRST_SEED_ABLATIONS ("inputs collaborators pose-noise distance": only for the first seed; every seed gets
 # collaboration and its ego stage alone). Choices of steps and presets were made on `validate`;
 # `test` is only evaluated here. CPU by default; `--device` follows `DEVICE` (auto).
 set -euo pipefail
@@ -23,9 +23,9 @@ cd "$ROOT"
 LIB="$(python -c 'from ament_index_python.packages import get_package_prefix as p; print(p("co3sop_nodes"))')/lib/co3sop_nodes"
 SHARE="$(python -c 'from ament_index_python.packages import get_package_share_directory as p; print(p("co3sop_nodes"))')"
 DATA="${DATA:-data/bench}" RUNS="${RUNS:-runs/bench}" RESULTS="${RESULTS:-src/co3sop_nodes/doc/evaluation}"
-FIRST_SEED_ABLATIONS="${FIRST_SEED_ABLATIONS-inputs collaborators pose-noise}"
+FIRST_SEED_ABLATIONS="${FIRST_SEED_ABLATIONS-inputs collaborators pose-noise distance}"
 PRESETS="${PRESETS:-tiny-lidar}" RANGES="${RANGES:-51.2m 76.8m}" SEEDS="${SEEDS:-1 2 3}"
-EGO_STEPS="${EGO_STEPS:-1200}" FUSION_STEPS="${FUSION_STEPS:-1200}" DEVICE="${DEVICE:-auto}"
+EGO_STEPS="${EGO_STEPS:-1200}" FUSION_STEPS="${FUSION_STEPS:-2400}" SCHEDULE="${SCHEDULE:-constant}" DEVICE="${DEVICE:-auto}"
 STEPS=("$@")
 [ ${#STEPS[@]} -gt 0 ] || STEPS=(data train evaluate report)
 
@@ -44,11 +44,18 @@ runs() {
   done
 }
 
-# train ARGS... --out DIR: skipped when DIR/model.pt exists, resumed when DIR/state.pt does
+# steps DIR: the steps DIR/state.pt has done (0 without one)
+steps() {
+  python -c 'import sys, torch; print(torch.load(sys.argv[1], weights_only=True)["step"])' "$1/state.pt" 2>/dev/null || echo 0
+}
+
+# train STEPS ARGS... --out DIR: skipped when DIR has done STEPS (or has a model and no state), resumed (or
+# extended: a finished run given more steps continues the same sample order) when DIR/state.pt exists
 train() {
-  local out="${*: -1}"
-  if [ -f "$out/model.pt" ]; then say "$out: trained"; return; fi
-  if [ -f "$out/state.pt" ]; then "$LIB/train" "$@" --resume; else "$LIB/train" "$@"; fi
+  local want="$1" out="${*: -1}"
+  shift
+  if [ -f "$out/model.pt" ] && { [ ! -f "$out/state.pt" ] || [ "$(steps "$out")" -ge "$want" ]; }; then say "$out: trained"; return; fi
+  if [ -f "$out/state.pt" ]; then "$LIB/train" "$@" --steps "$want" --resume; else "$LIB/train" "$@" --steps "$want"; fi
 }
 
 for step in "${STEPS[@]}"; do
@@ -58,24 +65,25 @@ for step in "${STEPS[@]}"; do
     train)
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed"
-        train --data "$DATA" --preset "$preset" --range "$range" --stage ego --steps "$EGO_STEPS" --seed "$seed" \
-          --device "$DEVICE" --out "$run-ego"
-        train --data "$DATA" --stage fusion --init "$run-ego/model.pt" --steps "$FUSION_STEPS" --seed "$seed" \
-          --device "$DEVICE" --out "$run"
+        train "$EGO_STEPS" --data "$DATA" --preset "$preset" --range "$range" --stage ego --seed "$seed" \
+          --schedule "$SCHEDULE" --device "$DEVICE" --out "$run-ego"
+        train "$FUSION_STEPS" --data "$DATA" --stage fusion --init "$run-ego/model.pt" --seed "$seed" \
+          --schedule "$SCHEDULE" --device "$DEVICE" --out "$run"
       done ;;
     evaluate)
-      # one marker per evaluation, so an interrupted step resumes where it stopped
+      # one marker per evaluation, so an interrupted step resumes where it stopped; a model trained (or
+      # extended) after its marker is evaluated again
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
         ablations=(collaboration)
         # shellcheck disable=SC2206
         [ "$seed" = "${SEEDS%% *}" ] && ablations+=($FIRST_SEED_ABLATIONS)
         for ablation in "${ablations[@]}"; do
-          if [ -f "$out/.done-$ablation" ]; then say "$out: $ablation evaluated"; continue; fi
+          if [ "$out/.done-$ablation" -nt "$run/model.pt" ]; then say "$out: $ablation evaluated"; continue; fi
           "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation "$ablation"
           touch "$out/.done-$ablation"
         done
-        if [ ! -f "$out/.done-ego-stage" ]; then
+        if [ ! "$out/.done-ego-stage" -nt "$run-ego/model.pt" ]; then
           "$LIB/evaluate" --model "$run-ego/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/ego-stage"
           touch "$out/.done-ego-stage"
         fi

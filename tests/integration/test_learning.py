@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -76,8 +78,13 @@ def test_train_stages_resume_and_evaluate(small_split):
     more = tool("train", *common, "--stage", "ego", "--steps", "4", "--resume", "--out", str(out / "ego"))
     assert more.returncode == 0, more.stderr
     assert len((out / "ego" / "log.csv").read_text().splitlines()) == 5  # resumed at step 3
-    fusion = tool("train", *common, "--stage", "fusion", "--init", str(out / "ego" / "model.pt"), "--steps", "2", "--out", str(out / "fusion"))
+    ran = torch.load(out / "ego" / "model.pt", weights_only=True)["meta"]["history"]
+    assert [(h["from_step"], h["steps"]) for h in ran] == [(0, 3), (3, 4)]  # both commands that made the weights
+    fusion = tool("train", *common, "--stage", "fusion", "--init", str(out / "ego" / "model.pt"), "--steps", "2", "--schedule", "cosine",
+                  "--out", str(out / "fusion"))
     assert fusion.returncode == 0, fusion.stderr
+    rates = [float(r["lr"]) for r in csv.DictReader((out / "fusion" / "log.csv").open())]
+    assert rates == [2e-3, 1e-3]  # cosine from --lr towards 0 at --steps
     assert (out / "fusion" / "model.pt").stat().st_size < 5 * 2**20
     result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "validate", "--out", str(out / "results"))
     assert result.returncode == 0, result.stderr
@@ -91,26 +98,37 @@ def test_train_stages_resume_and_evaluate(small_split):
     # one preset twice: the run folder tells the columns apart
     assert {"tiny 51.2m, 0 collaborators", "tiny 51.2m, 0 collaborators (ego)"} <= set(columns)
     history = torch.load(out / "fusion" / "model.pt", weights_only=False)["meta"]["history"]
-    assert [h["stage"] for h in history] == ["ego", "fusion"]
+    assert [h["stage"] for h in history] == ["ego", "ego", "fusion"]
     # the protocol's last two steps: ablations with intervals on two scenarios, then the page made from their JSON
     bench = out / "bench" / "tiny-51.2m-s1"
     result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "train", "validate",
-                  "--ablation", "collaboration", "inputs", "--out", str(bench))
+                  "--ablation", "collaboration", "inputs", "distance", "--out", str(bench))
     assert result.returncode == 0, result.stderr
     report = json.loads((bench / "tiny_51.2m_collaboration.json").read_text())
     assert report["on"]["scenarios"] == 2 and set(report["differences"]) == {"on"}
+    bins = json.loads((bench / "tiny_51.2m_distance.json").read_text())["bins"]
+    assert sum(b["samples"] for b in bins.values()) == report["on"]["frames"]  # every sample in exactly one bin
+    for b in bins.values():  # each bin's off / on are the whole run's restricted to its samples
+        assert b["on"]["frames"] == b["off"]["frames"] == b["samples"] and set(b["difference"]) >= {"co3sop-code", "geometry"}
     result = tool("evaluate", "--model", str(out / "ego" / "model.pt"), "--collaborators", "0", "--data", data, "--splits", "train", "validate",
                   "--out", str(bench / "ego-stage"))
     assert result.returncode == 0, result.stderr
+    choice = out / "bench" / "validate" / "an-option"  # a recipe choice's evidence (here: any collaboration JSON)
+    choice.mkdir(parents=True)
+    shutil.copy(bench / "tiny_51.2m_collaboration.json", choice)
     page = out / "benchmark.md"
     result = tool("report", str(out / "bench"), "--out", str(page))
     assert result.returncode == 0, result.stderr
     text = page.read_text()
     gain = report["differences"]["on"]["co3sop-code"]
     alone = json.loads((bench / "ego-stage" / "evaluation.json").read_text())["tiny 51.2m, 0 collaborators"]
-    assert f"| tiny | 51.2m | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
+    assert f"| tiny | 51.2m | ego 4 + fusion 2 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
     assert f"{100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}]" in text
     assert "Input controls" in text and "| blank |" in text
+    verdict = "**met**" if gain["delta"] >= 0.03 and gain["ci95"][0] > 0 else "**not met"
+    assert f"mean gain {100 * gain['delta']:.2f} against the goal of +3.00" in text and verdict in text
+    assert "## Choices made on validate" in text and "| an-option | ego 4 + fusion 2 steps |" in text
+    assert "nearest collaborator's distance" in text and f"| {next(iter(bins))} | {next(iter(bins.values()))['samples']} |" in text
     bad = tool("report", str(out / "ego"), "--out", str(page))
     assert bad.returncode == 2 and "no <preset>-<range>-s<seed> folder" in bad.stderr and page.read_text() == text
 

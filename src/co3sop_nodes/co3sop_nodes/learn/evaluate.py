@@ -6,6 +6,7 @@
     ros2 run co3sop_nodes evaluate ... --ablation collaboration   # off vs on
     ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
     ros2 run co3sop_nodes evaluate ... --ablation inputs          # real vs blank vs shuffled sensors (input controls)
+    ros2 run co3sop_nodes evaluate ... --ablation distance        # off vs on by the nearest collaborator's distance
     ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown
@@ -23,8 +24,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,14 +35,15 @@ import torch
 
 from ..cli.common import progress, run
 from ..codec import STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
-from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table
+from ..collaboration import COMM_RANGE
+from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
 from ..model.outputs import through_codec
 from ..model.predict import predict_frame
 from .controls import INPUT_CONTROLS, ControlledInputs
-from .dataset import OccupancyDataset
+from .dataset import OccupancyDataset, Sample
 from .device import add_device_argument, select_device
 
 
@@ -47,11 +51,13 @@ from .device import add_device_argument, select_device
 @torch.no_grad()
 def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
              codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
-             cache: dict | None = None, inputs: str = "real") -> tuple[dict, float]:
+             cache: dict | None = None, inputs: str = "real",
+             where: Callable[[Sample], bool] | None = None) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
     `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
-    `inputs` is one of learn.controls.INPUT_CONTROLS.
+    `inputs` is one of learn.controls.INPUT_CONTROLS; `where` keeps only the samples it accepts (judged on the
+    sample with every collaborator in range, whatever `collaborators` is).
     """
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
@@ -60,6 +66,9 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
     controlled = ControlledInputs(dataset, inputs)
     bar = progress(len(dataset), desc, "sample")
     for i in range(len(dataset)):
+        if where is not None and not where(dataset.sample(i)):
+            bar.update(1)
+            continue
         sample = dataset.sample(i, collaborators)
         f, _ = dataset.index[i]
         position = {a.cav_id: j for j, a in enumerate(dataset.frames[f][1])}
@@ -118,7 +127,8 @@ def _compare(opts, stem: str, heading: str, title: str, runs: dict[str, dict], r
     text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
             + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
             + difference_table(differences, reference))
-    _write(opts.out, stem, text, {"title": title, "command": opts.command, "reference": reference, **summaries, "differences": differences})
+    _write(opts.out, stem, text, {"title": title, "command": opts.command, "trained": opts.trained, "reference": reference, **summaries,
+                                  "differences": differences})
     return summaries
 
 
@@ -161,7 +171,53 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
     _write(opts.out, f"{stem}_codec", f"### Feature codecs over V2X: {title}\n\n" + "\n".join(rows), {"title": title, **results})
 
 
-ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs}
+def nearest_distance(sample: Sample) -> float:
+    """Ground distance (m) from the ego to its nearest collaborator in communication range; inf without one."""
+    if not sample.others:
+        return math.inf
+    return float(np.hypot(*(sample.others[0].world_from_lidar[:2, 3] - sample.ego.world_from_lidar[:2, 3])))
+
+
+DISTANCE_BINS: dict[str, Callable[[float], bool]] = {
+    "under 20 m": lambda d: d < 20.0,
+    "20-40 m": lambda d: 20.0 <= d < 40.0,
+    f"40-{COMM_RANGE:.0f} m": lambda d: 40.0 <= d <= COMM_RANGE,
+    f"none within {COMM_RANGE:.0f} m": math.isinf,
+}
+
+
+def _distance(opts, cfg, stem, title, measure, boot) -> None:
+    """Off / on per bin of the nearest collaborator's distance, each bin over the test scenarios that have samples in it."""
+    results = {}
+    for name, accept in DISTANCE_BINS.items():
+        def where(sample, accept=accept):
+            return accept(nearest_distance(sample))
+
+        off = measure(collaborators=0, where=where, desc=f"{name}: off")[0]
+        if off:
+            on = measure(where=where, desc=f"{name}: on")[0]
+            binned = Bootstrap(list(off), seed=opts.seed)
+            results[name] = {"samples": sum(c.frames for c in off.values()), "off": binned.summary(off), "on": binned.summary(on),
+                             "difference": binned.difference(on, off)}
+    text = f"### Collaboration gain by the nearest collaborator's distance: {title}\n\n" + "\n".join(distance_table(results))
+    _write(opts.out, f"{stem}_distance", text, {"title": title, "command": opts.command, "trained": opts.trained, "bins": results})
+
+
+def distance_table(bins: dict) -> list[str]:
+    """The rows of the distance ablation from its JSON `bins` (report prints the same table)."""
+    def delta(d: dict) -> str:
+        return f"{100 * d['delta']:+.2f} [{100 * d['ci95'][0]:.2f}, {100 * d['ci95'][1]:.2f}]"
+
+    rows = ["| nearest collaborator | samples | scenarios | off mIoU 1..23 | on mIoU 1..23 | Δ mIoU 1..23 [95 %] | Δ geometry IoU [95 %] |",
+            "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, r in bins.items():
+        rows.append(f"| {name} | {r['samples']} | {r['off']['scenarios']} | {100 * point(r['off'], 'co3sop-code'):.2f} | "
+                    f"{100 * point(r['on'], 'co3sop-code'):.2f} | {delta(r['difference']['co3sop-code'])} | {delta(r['difference']['geometry'])} |")
+    return rows
+
+
+ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs,
+             "distance": _distance}
 
 
 def main(args: list[str] | None = None) -> int:
@@ -185,7 +241,8 @@ def main(args: list[str] | None = None) -> int:
     device = select_device(opts.device)
     table: dict[str, dict] = {}
     for path in opts.model or [shipped_checkpoint()]:
-        model, _ = load_model(path)
+        model, checkpoint = load_model(path)
+        opts.trained = checkpoint.get("meta", checkpoint).get("history", [])  # the train commands behind the weights, in the JSON
         model.to(device)
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg)
@@ -201,7 +258,7 @@ def main(args: list[str] | None = None) -> int:
             label = f"{cfg.name} {cfg.range}" + ("" if opts.collaborators is None else f", {opts.collaborators} collaborators")
             if label in table:  # two runs of one preset: tell the columns apart by run folder
                 label += f" ({path.parent.name})"
-            table[label] = {**boot.summary(measure(collaborators=opts.collaborators, desc=label)[0]), "model": str(path)}
+            table[label] = {**boot.summary(measure(collaborators=opts.collaborators, desc=label)[0]), "model": str(path), "trained": opts.trained}
         for ablation in opts.ablation:
             ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure, boot)
     if table:

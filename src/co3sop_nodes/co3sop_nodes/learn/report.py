@@ -7,7 +7,8 @@ ros2_ws/run_protocol.sh writes them), each with the ablation JSON files of
 `evaluate` on the test split. The page gives, per preset and range: the
 collaboration gain of every seed with its 95 % paired bootstrap interval over
 test scenarios, the mean and spread over seeds, the input controls, and for
-the first seed the per-class table, the number of collaborators and pose noise.
+the first seed the per-class table, the number of collaborators, pose noise and
+the gain by the nearest collaborator's distance.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 from ..cli.common import run
 from ..errors import Co3sopError
 from ..metrics import SCORES, Bootstrap, confusions_of, markdown_table, point
+from .evaluate import distance_table
 from .observed import observed_table
 
 RUN_NAME = re.compile(r"(?P<preset>.+)-(?P<range>\d+\.\dm)-s(?P<seed>\d+)")
@@ -42,13 +44,23 @@ def _load(folder: Path, kind: str) -> dict | None:
     return json.loads(found[0].read_text()) if found else None
 
 
-def collect(results: Path) -> dict[tuple[str, str], dict[int, Path]]:
-    """{(preset, range): {seed: folder}} of every run folder under `results`."""
-    runs: dict[tuple[str, str], dict[int, Path]] = {}
+def recipe(report: dict) -> str:
+    """The training steps per stage behind an evaluation (from the train commands its JSON records)."""
+    steps: dict[str, int] = {}
+    for run in report.get("trained", []):
+        steps[run["stage"]] = run["steps"]  # a resumed or extended run: its last command's total
+    return " + ".join(f"{stage} {n}" for stage, n in steps.items()) + " steps" if steps else "steps not recorded"
+
+
+def collect(results: Path) -> dict[tuple[str, str, str], dict[int, Path]]:
+    """{(preset, range, recipe): {seed: folder}} of every run folder under `results`: seeds trained with
+    different step counts are never pooled."""
+    runs: dict[tuple[str, str, str], dict[int, Path]] = {}
     for folder in sorted(p for p in results.iterdir() if p.is_dir()):
         m = RUN_NAME.fullmatch(folder.name)
-        if m and _load(folder, "collaboration"):
-            runs.setdefault((m["preset"], m["range"]), {})[int(m["seed"])] = folder
+        report = _load(folder, "collaboration")
+        if m and report:
+            runs.setdefault((m["preset"], m["range"], recipe(report)), {})[int(m["seed"])] = folder
     if not runs:
         raise Co3sopError(f"{results}: no <preset>-<range>-s<seed> folder with evaluate's collaboration JSON")
     return runs
@@ -66,11 +78,11 @@ def mean_sd(x: np.ndarray) -> str:
     return pct(x.mean()) + (f" ± {100 * x.std(ddof=1):.2f}" if len(x) > 1 else "")
 
 
-def headline(runs: dict[tuple[str, str], dict[int, Path]]) -> list[str]:
-    lines = ["| model | range | seeds | ego stage alone | off (fusion model, no collaborator) | on | gain on - off | "
+def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
+    lines = ["| model | range | training steps | seeds | ego stage alone | off (fusion model, no collaborator) | on | gain on - off | "
              "gain on - off, per seed [95 % interval] | gain on - ego stage, per seed [95 % interval] | geometry IoU off / on |",
-             "|---|---|---:|---:|---:|---:|---:|---|---|---:|"]
-    for (preset, rng), seeds in runs.items():
+             "|---|---|---|---:|---:|---:|---:|---:|---|---|---:|"]
+    for (preset, rng, steps), seeds in runs.items():
         reports = [_load(f, "collaboration") for f in seeds.values()]
         off = np.array([point(r["off"], "co3sop-code") for r in reports])
         on = np.array([point(r["on"], "co3sop-code") for r in reports])
@@ -83,10 +95,27 @@ def headline(runs: dict[tuple[str, str], dict[int, Path]]) -> list[str]:
                 alone.append(point(single, "co3sop-code"))
                 boot = Bootstrap(list(r["on"]["per_scenario"]))
                 over_alone.append(boot.difference(confusions_of(r["on"]), confusions_of(single))["co3sop-code"])
-        lines.append(f"| {preset} | {rng} | {len(seeds)} | {mean_sd(np.array(alone)) if alone else '-'} | {mean_sd(off)} | {mean_sd(on)} | "
+        lines.append(f"| {preset} | {rng} | {steps} | {len(seeds)} | {mean_sd(np.array(alone)) if alone else '-'} | {mean_sd(off)} | {mean_sd(on)} | "
                      f"**{mean_sd(on - off)}** | " + ", ".join(f"{pct(g['delta'])} {span(g['ci95'])}" for g in gains)
                      + " | " + (", ".join(f"{pct(g['delta'])} {span(g['ci95'])}" for g in over_alone) or "-")
                      + f" | {pct(np.mean([g[0] for g in geo]))} / {pct(np.mean([g[1] for g in geo]))} |")
+    return lines
+
+
+GAIN_GOAL = 0.03  # issue 12: a collaboration gain of at least +3 mIoU points (1..23), every interval above zero
+
+
+def goals(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
+    """Per model and range: the mean gain against the goal, and whether every seed's interval excludes zero."""
+    lines = []
+    for (preset, rng, steps), seeds in runs.items():
+        gains = [_load(f, "collaboration")["differences"]["on"]["co3sop-code"] for f in seeds.values()]
+        mean = float(np.mean([g["delta"] for g in gains]))
+        above = all(g["ci95"][0] > 0 for g in gains)
+        verdict = "met" if mean >= GAIN_GOAL and above else f"not met: short by {pct(GAIN_GOAL - mean)} points" if mean < GAIN_GOAL else \
+            "not met: an interval reaches zero"
+        lines.append(f"- {preset}, {rng}, {steps} ({len(seeds)} seed{'s' * (len(seeds) > 1)}): mean gain {pct(mean)} "
+                     f"against the goal of +{pct(GAIN_GOAL)}; every seed's interval above zero: {'yes' if above else 'no'}; **{verdict}**.")
     return lines
 
 
@@ -122,6 +151,23 @@ def observed_section(results: Path) -> list[str]:
     return out
 
 
+def validate_section(results: Path) -> list[str]:
+    """Choices made on `validate` (RESULTS/validate/<choice>/, evaluate's collaboration JSON per option)."""
+    found = sorted((results / "validate").glob("*/*_collaboration.json"))
+    if not found:
+        return []
+    out = ["## Choices made on validate", "",
+           "Each option of a recipe choice evaluated on the `validate` split (never `test`); the protocol uses the",
+           "option its settings name (`ros2_ws/run_protocol.sh`).", "",
+           "| option | training steps | off | on | gain on - off [95 % interval] | command |", "|---|---|---:|---:|---|---|"]
+    for path in found:
+        r = json.loads(path.read_text())
+        gain = r["differences"]["on"]["co3sop-code"]
+        out.append(f"| {path.parent.name} | {recipe(r)} | {pct(point(r['off'], 'co3sop-code'))} | {pct(point(r['on'], 'co3sop-code'))} | "
+                   f"{pct(gain['delta'])} {span(gain['ci95'])} | `{r.get('command', '')}` |")
+    return out + [""]
+
+
 def render(results: Path, command: str) -> str:
     runs = collect(results)
     out = ["# Benchmark results (test split)", "",
@@ -134,15 +180,22 @@ def render(results: Path, command: str) -> str:
            "`off` is the fusion model with no collaborator: the same weights and training, the reference of the gain.",
            "`ego stage alone` is the single-agent model the fusion stage started from; its head had fewer training",
            "steps (the fusion stage trains it further), so the gain over it overstates what collaboration adds.", "",
-           *headline(runs), "", *observed_section(results)]
-    for (preset, rng), seeds in runs.items():
+           *headline(runs), "", "Against the goal of issue 12 (computed from the table above):", "", *goals(runs), "",
+           *validate_section(results), *observed_section(results)]
+    for (preset, rng, steps), seeds in runs.items():
         first = seeds[min(seeds)]
-        out += [f"## {preset}, {rng}", ""]
+        out += [f"## {preset}, {rng}, {steps}", ""]
         out += compact(_load(first, "inputs"), f"Input controls (seed {min(seeds)})")
         for seed, folder in seeds.items():
             out += compact(_load(folder, "collaboration"), f"Collaboration off / on (seed {seed})")
         out += compact(_load(first, "collaborators"), f"Number of collaborators, nearest first (seed {min(seeds)})")
         out += compact(_load(first, "pose_noise"), f"Pose noise (seed {min(seeds)})")
+        distance = _load(first, "distance")
+        if distance:
+            out += [f"#### Collaboration gain by the nearest collaborator's distance (seed {min(seeds)})", "", distance["title"], "",
+                    f"Made by `{distance['command']}`. Each row: the samples whose nearest collaborator (in the",
+                    "70 m communication range) is that far, 95 % intervals over the test scenarios that have such samples.", "",
+                    *distance_table(distance["bins"]), ""]
         report = _load(first, "collaboration")
         runs_pc = {k: v for k, v in report.items() if isinstance(v, dict) and "ci95" in v}
         out += [f"#### Per-class IoU (%), collaboration off / on (seed {min(seeds)})", "", markdown_table(runs_pc), ""]

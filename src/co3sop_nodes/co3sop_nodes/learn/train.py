@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import random
 import shlex
 import sys
@@ -35,6 +36,38 @@ from ..model.model import VehicleOutput, build_model
 from ..cli.common import progress, run
 from .dataset import OccupancyDataset
 from .device import add_device_argument, select_device
+
+
+def learning_rate(lr: float, schedule: str, step: int, steps: int) -> float:
+    """The rate of step `step` (0-based) of `steps`: constant, or cosine-decayed from lr to 0 (a function of
+    the step alone, so a resumed run follows the same curve)."""
+    if schedule == "constant":
+        return lr
+    return 0.5 * lr * (1 + math.cos(math.pi * step / steps))
+
+
+def sample_order(samples: int, seed: int, steps: int) -> np.ndarray:
+    """The sample of every step: one permutation of the dataset per epoch, epoch e drawn from (seed, e).
+
+    Step k's sample does not depend on `steps`, so a finished run resumed with more --steps continues
+    the order a longer run would have followed (the first epoch is the single permutation runs of at most
+    one epoch have always used).
+    """
+    epochs = -(-steps // samples)
+    perms = [np.random.default_rng(seed if e == 0 else [seed, e]).permutation(samples) for e in range(epochs)]
+    return np.concatenate(perms)[:steps]
+
+
+def previous_history(out: Path, state: dict | None, init: Path | None) -> list[dict]:
+    """The commands that made the starting weights: a resumed run's own, the interrupted or finished one
+    included (kept in its state; for states written before they kept it: its finished model's), or the --init
+    checkpoint's."""
+    if state is not None:
+        if "history" in state:
+            return state["history"]
+        finished = out / "model.pt"
+        return read_checkpoint(finished).get("meta", {}).get("history", []) if finished.is_file() else []
+    return read_checkpoint(init).get("meta", {}).get("history", []) if init else []
 
 
 def seed_everything(seed: int) -> None:
@@ -133,6 +166,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
     parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one sample each)")
     parser.add_argument("--lr", type=float, default=2e-3)
+    parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
+                        help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")
     parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="CPU threads for torch")
@@ -167,17 +202,25 @@ def main(args: list[str] | None = None) -> int:
     if state is not None:
         trainer.optimizer.load_state_dict(state["optimizer"])
     opts.out.mkdir(parents=True, exist_ok=True)
+    # how the weights were made: the commands before this one (the run's own when resumed, else the --init's), then this
+    command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
+    history = previous_history(opts.out, state, opts.init) + [
+        {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
+         "splits": opts.splits}]
     log_path = opts.out / "log.csv"
     fields = None
     rng = np.random.default_rng(opts.seed + start)
-    order = np.random.default_rng(opts.seed).permutation(np.resize(np.arange(len(dataset)), max(opts.steps, len(dataset))))
+    order = sample_order(len(dataset), opts.seed, opts.steps)
     bar = progress(opts.steps, f"train {opts.stage}", "step")
     bar.update(start)
     t0 = time.time()
     with open(log_path, "a", newline="") as log:
         for step in range(start, opts.steps):
-            parts = trainer.step(int(order[step % len(order)]), rng)
-            row = {"step": step + 1, "stage": opts.stage, **parts, "lr": opts.lr, "seconds": round(time.time() - t0, 2)}
+            lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
+            for group in trainer.optimizer.param_groups:
+                group["lr"] = lr
+            parts = trainer.step(int(order[step]), rng)
+            row = {"step": step + 1, "stage": opts.stage, **parts, "lr": lr, "seconds": round(time.time() - t0, 2)}
             if fields is None:
                 fields = list(row)
                 writer = csv.DictWriter(log, fieldnames=fields, extrasaction="ignore")
@@ -188,12 +231,10 @@ def main(args: list[str] | None = None) -> int:
             bar.update(1)
             if (step + 1) % opts.save_every == 0 or step + 1 == opts.steps:
                 log.flush()
-                save_training_state(opts.out / "state.pt", model, trainer.optimizer, step + 1, opts.stage, {"seed": opts.seed})
+                save_training_state(opts.out / "state.pt", model, trainer.optimizer, step + 1, opts.stage,
+                                    {"seed": opts.seed, "history": history})
     bar.close()
-    command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
-    previous = read_checkpoint(opts.init).get("meta", {}).get("history", []) if opts.init else []
-    meta = {"history": previous + [{"command": command, "stage": opts.stage, "steps": opts.steps, "seed": opts.seed,
-                                    "data": str(opts.data), "splits": opts.splits}]}
+    meta = {"history": history}
     export_model(opts.out / "model.pt", model, meta)
     plot_losses(log_path, opts.out / "loss.png")
     print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
