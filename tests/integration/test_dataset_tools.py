@@ -178,8 +178,9 @@ def test_generate_stops_every_worker_and_leaves_no_debris_in_the_splits(tmp_path
     in OUT/.partial, where OPV2V loaders do not look), and a re-run completes the dataset."""
     args = ("generate", "--out", str(tmp_path / "data"), "--splits", "train=2", "--frames", "8", "--cavs", "2",
             "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "10", "--workers", "2")
+    # SIGINT as a terminal delivers it: a test run started in the background (`&`) inherits SIGINT ignored
     proc = subprocess.Popen([executable(args[0]), *args[1:]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     staging = tmp_path / "data" / ".partial" / "train"
     deadline = time.monotonic() + 240
     while len({p.relative_to(staging).parts[0] for p in staging.glob("*/train/*/*/*.yaml")}) < 2:  # both workers writing frames
