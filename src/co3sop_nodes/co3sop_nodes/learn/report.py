@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.common import run
+from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError
 from ..metrics import SCORES, Bootstrap, confusions_of, markdown_table, point
 from .evaluate import distance_table
@@ -205,7 +206,7 @@ def render(results: Path, command: str) -> str:
         if distance:
             out += [f"#### Collaboration gain by the nearest collaborator's distance (seed {min(seeds)})", "", distance["title"], "",
                     f"Made by `{distance['command']}`. Each row: the samples whose nearest collaborator (in the",
-                    "70 m communication range) is that far, 95 % intervals over the test scenarios that have such samples.", "",
+                    f"{COMM_RANGE:g} m communication range) is that far, 95 % intervals over the test scenarios that have such samples.", "",
                     *distance_table(distance["bins"]), "", *distance_reading(distance["bins"], rng), ""]
         report = _load(first, "collaboration")
         runs_pc = {k: v for k, v in report.items() if isinstance(v, dict) and "ci95" in v}
