@@ -8,6 +8,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "tests"]),
+    package_data={PACKAGE: ["native/*.c"]},  # C kernels, compiled on first use (co3sop_nodes.native)
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -15,7 +16,7 @@ setup(
         (f"share/{PACKAGE}/checkpoints", glob("checkpoints/*")),
     ],
     install_requires=["setuptools"],
-    zip_safe=True,
+    zip_safe=False,  # the C sources are read from the installed package
     maintainer="Co3SOP ROS 2 developers",
     maintainer_email="dev@co3sop.local",
     description="Co3SOP collaborative 3D semantic occupancy prediction on ROS 2",

@@ -14,11 +14,14 @@ import torch
 
 from co3sop_nodes import synthetic
 from co3sop_nodes.metrics import Confusion
-from co3sop_nodes.model.checkpoint import shipped_checkpoint
+from co3sop_nodes.learn.dataset import OccupancyDataset
+from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
+from co3sop_nodes.model.inputs import to_batch
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
 from co3sop_nodes.model.model import build_model
 from conftest import executable
+from label_equality import assert_labels_equal, reference
 
 MICRO = dict(custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)), image_size=(64, 48), backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=16,
              embed_dims=16, image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(16, 8, 8))
@@ -170,3 +173,21 @@ def test_shipped_models_use_their_sensors(street_split, tmp_path, model):
     blank = report["differences"]["blank"]["co3sop-readme"]
     assert blank["delta"] < -0.02, blank  # more than 2 points of mIoU lost without sensors
     assert "Paired differences" in result.stdout and "95 % interval" in result.stdout
+
+
+@pytest.mark.parametrize("model", [p.name for p in shipped_models()])
+def test_the_heads_fast_paths_equal_the_dense_reference_on_real_samples(street_split, model):
+    """On generated scenes with the shipped weights: compiled kernel and PyTorch loop against dense logits + argmax."""
+    net, _ = load_model(shipped_checkpoint(model))
+    dataset = OccupancyDataset(street_split, ["test"], net.cfg)
+    for i in (0, len(dataset) - 1):
+        sample = dataset.sample(i)
+        with torch.no_grad():
+            ego, *others = (net.vehicle(**to_batch(a.inputs, torch.device("cpu"))) for a in (sample.ego, *sample.others))
+            fused = net.ego.fuse(ego, others, torch.from_numpy(sample.neighbour_from_ego).float()[None])  # (1, C, X/4, Y/4, Z/4)
+        want_labels, want_conf = reference(net.ego.head, fused)
+        assert len(np.unique(want_labels)) >= 4 and len(others) == 1
+        for compiled in (True, False):
+            labels, conf = net.ego.head.labels(fused, compiled=compiled)
+            assert_labels_equal(labels.numpy(), want_labels, net.ego.head, fused)
+            assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1

@@ -1,4 +1,5 @@
-"""The head's exact inference path (OccupancyHead.labels) against its reference, the dense pass + labels_from_logits."""
+"""The head's exact inference paths (OccupancyHead.labels: compiled kernel and PyTorch loop) against their reference,
+the dense pass + labels_from_logits."""
 
 from __future__ import annotations
 
@@ -6,9 +7,11 @@ import numpy as np
 import pytest
 import torch
 
+from co3sop_nodes import native
+from co3sop_nodes.model import octant_kernel
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.head import OccupancyHead
-from co3sop_nodes.model.outputs import labels_from_logits
+from label_equality import assert_labels_equal, reference
 
 
 def random_head(channels: tuple[int, int, int], dims: int, seed: int) -> OccupancyHead:
@@ -22,32 +25,70 @@ def random_head(channels: tuple[int, int, int], dims: int, seed: int) -> Occupan
     return head.eval()
 
 
-def reference(head: OccupancyHead, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    with torch.no_grad():
-        logits = head(x)[-1]
-    pairs = [labels_from_logits(logits[i : i + 1]) for i in range(len(x))]
-    return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
-
-
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
 @pytest.mark.parametrize("name, range_name", [("tiny", "25.6m"), ("tiny", "51.2m"), ("tiny", "76.8m"), ("tiny-lidar", "51.2m"),
                                               ("paper", "76.8m")])
-def test_fast_labels_equal_the_dense_reference_at_every_range(name, range_name):
+def test_fast_labels_equal_the_dense_reference_at_every_range(name, range_name, compiled):
     cfg = preset(name, range=range_name)
     head = random_head(cfg.head_channels, cfg.embed_dims, 1)
     x = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims)  # (B, C, X/4, Y/4, Z/4)
     want_labels, want_conf = reference(head, x)
-    labels, conf = head.labels(x)
+    labels, conf = head.labels(x, compiled=compiled)
     assert labels.shape == conf.shape == (1, *cfg.grid.dims) and labels.dtype == conf.dtype == torch.uint8
     assert len(np.unique(want_labels)) >= 5  # a real test: many classes win somewhere
-    np.testing.assert_array_equal(labels.numpy(), want_labels)
+    assert_labels_equal(labels.numpy(), want_labels, head, x)
     assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1  # one step of 1/255 (float summation order)
 
 
-@pytest.mark.parametrize("chunk", [1, 7, 100_000])
-def test_chunking_and_batches_do_not_change_the_result(chunk):
+def test_a_label_that_is_not_a_float32_tie_fails_the_comparison():
+    head = random_head((8, 8, 4), 8, 4)
+    x = torch.randn(1, 8, 4, 4, 2)
+    want = reference(head, x)[0]
+    assert_labels_equal(want.copy(), want, head, x)
+    wrong = want.copy()
+    wrong[0, 1, 2, 3] = (wrong[0, 1, 2, 3] + 1) % 24
+    with pytest.raises(AssertionError, match="beyond a float32 tie"):
+        assert_labels_equal(wrong, want, head, x)
+
+
+@pytest.mark.parametrize("chunk, compiled, threads", [(1, False, 1), (7, False, 1), (100_000, False, 1), (0, True, 1), (0, True, 3)])
+def test_chunking_threads_and_batches_do_not_change_the_result(chunk, compiled, threads):
     head = random_head((8, 8, 4), 8, 2)
     x = torch.randn(2, 8, 4, 6, 2)
     want_labels, want_conf = reference(head, x)
-    labels, conf = head.labels(x, chunk=chunk)
-    np.testing.assert_array_equal(labels.numpy(), want_labels)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        labels, conf = head.labels(x, chunk=chunk, compiled=compiled)
+    finally:
+        torch.set_num_threads(before)
+    assert_labels_equal(labels.numpy(), want_labels, head, x)
     assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1
+
+
+def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("CO3SOP_CACHE", str(tmp_path))
+    native.load.cache_clear()
+    octant_kernel._kernel.cache_clear()
+    try:
+        assert octant_kernel.available(16, 8, 24)  # CI machines have a C compiler, as every ROS 2 install
+        assert len(list((tmp_path / "native").glob("octant_labels-*.so"))) == 1
+    finally:
+        native.load.cache_clear()
+        octant_kernel._kernel.cache_clear()
+
+
+def test_without_a_compiler_the_head_takes_its_pytorch_path(tmp_path, monkeypatch):
+    monkeypatch.setenv("CO3SOP_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    native.load.cache_clear()
+    octant_kernel._kernel.cache_clear()
+    try:
+        head = random_head((8, 8, 4), 8, 3)
+        x = torch.randn(1, 8, 4, 4, 2)
+        assert not octant_kernel.available(8, 4, 24)
+        labels, _ = head.labels(x)
+        assert_labels_equal(labels.numpy(), reference(head, x)[0], head, x)
+    finally:
+        native.load.cache_clear()
+        octant_kernel._kernel.cache_clear()

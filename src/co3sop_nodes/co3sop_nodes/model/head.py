@@ -7,7 +7,9 @@ voxel alone, and `forward_at` evaluates them for chosen voxels only, exactly
 as the dense pass would (training samples voxels there; tests check equality),
 and `labels` computes inference's labels and confidence per parent voxel in
 cache-sized chunks, never holding the dense full-resolution logits nor
-computing the 1/4 and 1/2 logits (the dense pass is its reference).
+computing the 1/4 and 1/2 logits (the dense pass is its reference). On the
+CPU that last stage runs as a compiled kernel (`octant_kernel`) where a C
+compiler is available, about 10x faster than its PyTorch loop, tested equal.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from . import octant_kernel
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
@@ -42,20 +46,30 @@ class OccupancyHead(nn.Module):
         return [cls(f) for cls, f in zip(self.classify, (f0, f1, f2))]  # logits (B, K, X/s, Y/s, Z/s), s = 4, 2, 1
 
     @torch.no_grad()
-    def labels(self, x, chunk: int = 8192) -> tuple[torch.Tensor, torch.Tensor]:
+    def labels(self, x, chunk: int = 8192, compiled: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """x: (B, C, X/4, Y/4, Z/4) -> full-resolution labels and round(255 * p(label)), both (B, X, Y, Z) uint8.
 
         Per chunk of parent voxels at 1/2: the 8 octants' features (the transposed convolution's 8 kernel
         slices), the pointwise layers, the classifier, then argmax and the label's softmax probability.
+        compiled: the compiled kernel (default: on the CPU where it compiles) or the PyTorch loop.
         """
         _, f1 = self.coarse(x)  # (B, C1, X/2, Y/2, Z/2)
         b, c1, x1, y1, z1 = f1.shape
         c2 = self.up2.out_channels
+        parents = f1.flatten(2).transpose(1, 2).contiguous()  # (B, P, C1)
+
+        def fine(t):  # (B, P, 8) octants of parents -> (B, X, Y, Z)
+            return t.view(b, x1, y1, z1, 2, 2, 2).permute(0, 1, 4, 2, 5, 3, 6).reshape(b, 2 * x1, 2 * y1, 2 * z1)
+
+        if compiled is None:
+            compiled = x.device.type == "cpu" and octant_kernel.available(c1, c2, self.classify[2].out_channels)
+        if compiled:
+            pairs = [octant_kernel.octant_labels(p, self.up2, self.point2, self.classify[2], torch.get_num_threads()) for p in parents]
+            return fine(torch.stack([p[0] for p in pairs])), fine(torch.stack([p[1] for p in pairs]))
         up_w = self.up2.weight.flatten(2).permute(0, 2, 1).reshape(c1, 8 * c2)  # (C1, 8*C2): octant-major
         up_b = self.up2.bias.repeat(8)  # (8*C2,)
         point_w, point_b = self.point2.weight[:, :, 0, 0, 0].t(), self.point2.bias  # (C2, C2), (C2,)
         cls_w, cls_b = self.classify[2].weight[:, :, 0, 0, 0].t(), self.classify[2].bias  # (C2, K), (K,)
-        parents = f1.flatten(2).transpose(1, 2).contiguous()  # (B, P, C1)
         n = parents.shape[1]
         labels = torch.empty(b, n, 8, dtype=torch.uint8, device=x.device)
         confidence = torch.empty(b, n, 8, dtype=torch.uint8, device=x.device)
@@ -67,10 +81,6 @@ class OccupancyHead(nn.Module):
             prob = 1.0 / torch.exp(logits - top[..., None]).sum(-1)  # softmax at the label
             labels[:, start : start + chunk] = label.to(torch.uint8)
             confidence[:, start : start + chunk] = torch.round(prob * 255).to(torch.uint8)
-
-        def fine(t):  # (B, P, 8) octants of parents -> (B, X, Y, Z)
-            return t.view(b, x1, y1, z1, 2, 2, 2).permute(0, 1, 4, 2, 5, 3, 6).reshape(b, 2 * x1, 2 * y1, 2 * z1)
-
         return fine(labels), fine(confidence)
 
     def forward_at(self, x, index: torch.Tensor):

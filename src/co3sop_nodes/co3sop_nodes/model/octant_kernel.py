@@ -1,0 +1,65 @@
+"""The head's full-resolution stage on the CPU as a compiled kernel (native/octant_labels.c).
+
+Parent features at 1/2 -> labels and confidence of their 8 octants, one
+parent at a time with the octants in one 8-lane vector: the transposed
+convolution, the pointwise layer, the classifier, the argmax and the label's
+softmax probability, never materialising the (N, 8, C) and (N, 8, K)
+intermediates that `OccupancyHead.labels`' PyTorch loop spends its time
+writing and reading. Threads split the parents (ctypes releases the GIL).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache
+
+import numpy as np
+import torch
+
+from .. import native
+
+_POINTER = ctypes.c_void_p
+_ARGS = [_POINTER, ctypes.c_int64, ctypes.c_int64, *[_POINTER] * 8]
+
+
+@cache
+def _kernel(c1: int, c2: int, classes: int):
+    lib = native.load("octant_labels", C1=c1, C2=c2, K=classes)
+    if lib is None:
+        return None
+    fn = lib.octant_labels
+    fn.argtypes, fn.restype = _ARGS, None
+    return fn
+
+
+@cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads, thread_name_prefix="octant")
+
+
+def available(c1: int, c2: int, classes: int) -> bool:
+    """Whether the kernel for this head shape compiles here (compiling it on first call)."""
+    return _kernel(c1, c2, classes) is not None
+
+
+def octant_labels(parents: torch.Tensor, up: torch.nn.ConvTranspose3d, point: torch.nn.Conv3d, classify: torch.nn.Conv3d,
+                  threads: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """parents (P, C1) on the CPU -> labels, confidence (P, 8) uint8, on `threads` threads (the kernel must be `available`)."""
+    c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
+    fn = _kernel(c1, c2, k)
+    f32 = lambda t: np.ascontiguousarray(t.detach().float().cpu().numpy())  # noqa: E731
+    x = f32(parents)  # (P, C1)
+    up_w = f32(up.weight.flatten(2))  # (C1, C2, 8): octant (kernel offset i, j, k) last
+    up_b = f32(up.bias[:, None].expand(c2, 8))  # (C2, 8)
+    point_w, point_b = f32(point.weight[:, :, 0, 0, 0].t()), f32(point.bias)  # (C2 in, C2 out), (C2,)
+    cls_w, cls_b = f32(classify.weight[:, :, 0, 0, 0].t()), f32(classify.bias)  # (C2, K), (K,)
+    n = x.shape[0]
+    labels, confidence = np.empty((n, 8), np.uint8), np.empty((n, 8), np.uint8)
+    ptrs = [a.ctypes.data for a in (up_w, up_b, point_w, point_b, cls_w, cls_b, labels, confidence)]
+    bounds = np.linspace(0, n, max(1, threads) + 1).astype(np.int64)
+    if threads <= 1:
+        fn(x.ctypes.data, 0, n, *ptrs)
+    else:  # arrays stay referenced here until every part is done
+        list(_pool(threads).map(lambda i: fn(x.ctypes.data, int(bounds[i]), int(bounds[i + 1]), *ptrs), range(threads)))
+    return torch.from_numpy(labels), torch.from_numpy(confidence)

@@ -1,0 +1,64 @@
+"""Small C kernels shipped as source, compiled on first use for the machine at hand, loaded with ctypes.
+
+Why not a Python extension built by colcon: the kernels are specialised per
+shape (compile-time constants let the compiler keep everything in registers)
+and per CPU (`-march=native`), which a package built once cannot be. The
+compiler is the system's C compiler (`$CC`, else `cc`), which every ROS 2
+install has. The library is cached under `$CO3SOP_CACHE` (default
+`~/.cache/co3sop/native`), keyed by source, defines, flags and CPU; written
+atomically, so concurrent nodes never load a half-written file. Without a
+compiler, `load` returns None and callers take their PyTorch path (tested equal).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from functools import cache
+from pathlib import Path
+
+FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
+log = logging.getLogger(__name__)
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("CO3SOP_CACHE") or Path.home() / ".cache" / "co3sop") / "native"
+
+
+def _cpu() -> str:
+    """What `-march=native` depends on: the machine and its CPU's feature flags."""
+    try:
+        flags = next((line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags")), "")
+    except OSError:
+        flags = ""
+    return f"{platform.machine()} {flags}"
+
+
+@cache
+def load(name: str, **defines: int) -> ctypes.CDLL | None:
+    """The compiled `native/<name>.c` with `-D NAME=value` for each define; None (logged once) without a C compiler."""
+    source = Path(__file__).with_name(f"{name}.c").read_bytes()
+    compiler = os.environ.get("CC", "cc")
+    args = [*FLAGS, *(f"-D{k}={int(v)}" for k, v in sorted(defines.items()))]
+    key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(args).encode(), _cpu().encode()])).hexdigest()[:20]
+    path = cache_dir() / f"{name}-{key}.so"
+    if not path.exists():
+        if shutil.which(compiler) is None:
+            log.warning("no C compiler (%s): %s runs on its PyTorch path", compiler, name)
+            return None
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+            src, out = Path(tmp) / f"{name}.c", Path(tmp) / path.name
+            src.write_bytes(source)
+            done = subprocess.run([compiler, *args, str(src), "-o", str(out)], capture_output=True, text=True)
+            if done.returncode != 0:
+                log.warning("%s failed to compile %s (%s): it runs on its PyTorch path", compiler, name, done.stderr.strip()[-500:])
+                return None
+            os.replace(out, path)  # atomic: a concurrent loader sees the old state or the whole file
+    return ctypes.CDLL(str(path))

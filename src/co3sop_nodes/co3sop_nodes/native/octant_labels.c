@@ -1,0 +1,67 @@
+/* The head's full-resolution stage for parent voxels [start, end): see co3sop_nodes/model/octant_kernel.py.
+ *
+ * One 8-lane vector per channel holds a parent's 8 octants (its fine voxels), so every layer is a short
+ * sequence of vector multiply-adds kept in registers, fused with the argmax and the label's softmax
+ * probability. Compiled per head shape: C1 (channels at 1/2), C2 (at full resolution) and K (classes) are
+ * defined on the command line. GCC/Clang vector extensions, no intrinsics: any target compiles it.
+ * Sums run in the reference's order per voxel (over input channels), so logits match it to float rounding.
+ */
+#include <stdint.h>
+
+typedef float f8 __attribute__((vector_size(32)));
+typedef int32_t i8 __attribute__((vector_size(32)));
+typedef f8 f8u __attribute__((aligned(4)));  /* for loads from arrays numpy aligned to less than 32 bytes */
+
+static inline f8 select(i8 m, f8 a, f8 b) { return (f8)(((i8)a & m) | ((i8)b & ~m)); }
+static inline f8 relu(f8 v) { return (f8)((i8)v & (v > 0.0f)); }
+
+/* exp(d) for d <= 0 within ~2e-5 relative (the confidence needs 1/255): 2^(d log2 e) = 2^i 2^f with
+ * i = floor, 2^f by its Taylor series to degree 6; below 2^-126 it is clamped (negligible in the sum) */
+static inline f8 exp_nonpositive(f8 d) {
+  f8 x = d * 1.44269504f;
+  x = select(x > -126.0f, x, (f8){0} - 126.0f);
+  i8 t = __builtin_convertvector(x, i8);            /* toward zero */
+  i8 i = t + (__builtin_convertvector(t, f8) > x);  /* floor: a true comparison is -1 */
+  f8 f = (x - __builtin_convertvector(i, f8)) * 0.69314718f;
+  f8 p = 1.0f + f * (1.0f + f * (0.5f + f * (1.0f / 6 + f * (1.0f / 24 + f * (1.0f / 120 + f * (1.0f / 720))))));
+  return p * (f8)((i + 127) << 23);
+}
+
+/* parents (N, C1); up_w (C1, C2, 8) and up_b (C2, 8): the transposed convolution, octant last;
+ * point_w (C2 in, C2 out); cls_w (C2, K) -> labels and round(255 p(label)), (N, 8) uint8 */
+void octant_labels(const float *restrict parents, int64_t start, int64_t end, const f8u *restrict up_w,
+                   const f8u *restrict up_b, const float *restrict point_w, const float *restrict point_b,
+                   const float *restrict cls_w, const float *restrict cls_b, uint8_t *restrict labels,
+                   uint8_t *restrict confidence) {
+  for (int64_t p = start; p < end; ++p) {
+    const float *x = parents + p * C1;
+    f8 h[C2], g[C2], logits[K];
+    for (int j = 0; j < C2; ++j) h[j] = up_b[j];
+    for (int c = 0; c < C1; ++c)
+      for (int j = 0; j < C2; ++j) h[j] += x[c] * up_w[c * C2 + j];
+    for (int d = 0; d < C2; ++d) g[d] = (f8){0} + point_b[d];
+    for (int c = 0; c < C2; ++c) {
+      f8 r = relu(h[c]);
+      for (int d = 0; d < C2; ++d) g[d] += r * point_w[c * C2 + d];
+    }
+    for (int q = 0; q < K; ++q) logits[q] = (f8){0} + cls_b[q];
+    for (int d = 0; d < C2; ++d) {
+      f8 r = relu(g[d]);
+      for (int q = 0; q < K; ++q) logits[q] += r * cls_w[d * K + q];
+    }
+    f8 best = logits[0];
+    i8 label = {0};
+    for (int q = 1; q < K; ++q) {
+      i8 better = logits[q] > best;  /* strictly: the first maximum wins, as in torch's argmax */
+      label = (better & q) | (~better & label);
+      best = select(better, logits[q], best);
+    }
+    f8 total = {0};
+    for (int q = 0; q < K; ++q) total += exp_nonpositive(logits[q] - best);
+    f8 conf = 255.0f / total + 0.5f;  /* total >= 1, so conf in [0.5, 255.5] */
+    for (int o = 0; o < 8; ++o) {
+      labels[p * 8 + o] = (uint8_t)label[o];
+      confidence[p * 8 + o] = (uint8_t)(int)conf[o];
+    }
+  }
+}
