@@ -13,18 +13,15 @@ import pytest
 import torch
 
 from co3sop_nodes import synthetic
-from co3sop_nodes.metrics import Confusion
 from co3sop_nodes.learn.dataset import OccupancyDataset
+from co3sop_nodes.metrics import Confusion
 from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
-from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
+from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.inputs import to_batch
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
 from co3sop_nodes.model.model import build_model
 from conftest import executable
-from label_equality import assert_labels_equal, reference
-
-MICRO = dict(custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)), image_size=(64, 48), backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=16,
-             embed_dims=16, image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(16, 8, 8))
+from model_checks import MICRO, assert_labels_equal, reference
 
 
 def test_overfits_one_sample():

@@ -11,7 +11,7 @@ from co3sop_nodes import native
 from co3sop_nodes.model import octant_kernel
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.head import OccupancyHead
-from label_equality import assert_labels_equal, reference
+from model_checks import assert_labels_equal, reference
 
 
 def random_head(channels: tuple[int, int, int], dims: int, seed: int) -> OccupancyHead:

@@ -1,11 +1,12 @@
 """`demo`: the whole graph on a small scenario, scored: player + vehicles + ego + recorder, then `score`.
 
-    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny|tiny-lidar|CKPT] [--out results/demo] [--rate 0.04]
+    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny|tiny-lidar|CKPT] [--out results/demo] [--rate R]
 
 Without --bag it generates one scenario with three CAVs (once; kept in
 data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
-(at most --vehicles) as separate processes, plays the bag once at --rate,
-waits until the ego has fused every frame, stops everything with SIGINT,
+(at most --vehicles) as separate processes, plays the bag once at --rate
+(default: the rate this machine keeps up with, from the model's CPU time per
+frame measured before the nodes start, model.pace), waits until the ego has fused every frame, stops everything with SIGINT,
 scores the MCAP (table printed, pictures beside it) and checks the recording
 holds every /ego/occupancy message the ego published.
 """
@@ -13,6 +14,7 @@ holds every /ego/occupancy message the ego published.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import signal
@@ -28,7 +30,8 @@ from ..bags import open_reader
 from ..cli import generate, score
 from ..cli.common import run
 from ..errors import Co3sopError
-from ..model.checkpoint import read_checkpoint, shipped_checkpoint
+from ..model import pace
+from ..model.checkpoint import load_model, read_checkpoint, shipped_checkpoint
 
 # A scene whose CAVs can help each other: seed 11 is the first base seed (counting from 1) whose three CAVs all
 # stay within 30 m of the ego over the 10 frames (most seeds spread them 50-100 m apart, where a 51.2 m grid
@@ -106,6 +109,24 @@ def bag_contents(bag: Path) -> tuple[list[int], int]:
     return cavs, max(poses.values())
 
 
+def bag_period(bag: Path, frames: int) -> float:
+    """Seconds between a bag's frames (0.1 for a 10 Hz bag)."""
+    reader = open_reader(bag)
+    with reader:
+        return (reader.end_time - reader.start_time) / 1e9 / max(1, frames - 1) if frames > 1 else 0.1
+
+
+def measured_rate(checkpoint: Path, vehicles: int, period: float) -> float:
+    """The playback rate this machine keeps up with for `vehicles` vehicles and the ego (model.pace), to 2 digits."""
+    model, _ = load_model(checkpoint)
+    cost = pace.frame_cost(model)
+    n = pace.cores()
+    rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n)) / 100
+    say(f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms; "
+        f"{vehicles} vehicles + ego on {n} cores keep up with rate {rate:g} (a frame every {period / max(rate, 0.01):.2f} s)")
+    return max(rate, 0.01)
+
+
 def model_path(model: str) -> Path:
     """A checkpoint path, or the name of a shipped checkpoint (tiny, tiny-lidar)."""
     path = Path(model)
@@ -145,7 +166,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
     parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
     parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
-    parser.add_argument("--rate", type=float, default=0.04, help="playback rate (0.04: a 10 Hz frame every 2.5 s, what 2 cores keep up with)")
+    parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
     parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
     parser.add_argument("--model", default=DEFAULT_MODEL,
                         help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera) or a path "
@@ -165,6 +186,8 @@ def main(args: list[str] | None = None) -> int:
     mcap = opts.out / "demo.mcap"
     say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego cav {ego}; recording to {mcap}")
     say(f"model {checkpoint} ({sensors})")
+    if opts.rate is None:
+        opts.rate = measured_rate(checkpoint, len(cavs), bag_period(bag, frames))
     model = ["-p", f"checkpoint:={checkpoint}"]
     ros_params = [x for p in opts.params for x in ("-p", p)]
     echo = not opts.quiet

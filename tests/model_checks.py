@@ -1,12 +1,17 @@
-"""Comparing the head's inference paths with their dense reference (shared by unit and integration tests)."""
+"""What model tests share (unit and integration): a micro configuration, the head's paths against their dense reference."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
+from co3sop_nodes.model.config import AttentionConfig, BackboneConfig
 from co3sop_nodes.model.head import OccupancyHead
 from co3sop_nodes.model.outputs import labels_from_logits
+
+# a model small enough to train for a few steps or time a frame in seconds on CPU, of any preset's structure
+MICRO = dict(custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)), image_size=(64, 48), backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=16,
+             embed_dims=16, image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(16, 8, 8))
 
 
 def assert_labels_equal(labels: np.ndarray, want: np.ndarray, head: OccupancyHead, x: torch.Tensor) -> None:
@@ -25,6 +30,7 @@ def assert_labels_equal(labels: np.ndarray, want: np.ndarray, head: OccupancyHea
 
 
 def reference(head: OccupancyHead, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Labels and confidence from the dense logits (the definition), per batch item."""
     with torch.no_grad():
         logits = head(x)[-1]
     pairs = [labels_from_logits(logits[i : i + 1]) for i in range(len(x))]

@@ -1,0 +1,29 @@
+"""The demo's playback rate from a frame's measured cost (model.pace)."""
+
+from __future__ import annotations
+
+import pytest
+
+from co3sop_nodes.model import pace
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.model import build_model
+from model_checks import MICRO
+
+
+def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
+    cost = pace.FrameCost(vehicle_s=0.05, ego_s=0.1)
+    # 3 vehicles + ego = 0.25 s of CPU per frame on 2 cores: 0.125 s per frame, x1.5 headroom -> 0.1875 s for a 0.1 s frame
+    assert pace.sustainable_rate(cost, 3, 0.1, 2) == pytest.approx(0.1 / 0.1875)
+    # on many cores the ego, one process that handles every frame in turn, is the bound
+    assert pace.sustainable_rate(cost, 3, 0.1, 64) == pytest.approx(0.1 / 0.15)
+    assert pace.sustainable_rate(cost, 6, 0.1, 2) < pace.sustainable_rate(cost, 3, 0.1, 2)  # more vehicles, slower
+    assert pace.sustainable_rate(pace.FrameCost(0.001, 0.001), 3, 0.1, 2) == 1.0  # never faster than real time
+
+
+@pytest.mark.parametrize("name", ["tiny", "tiny-lidar"])
+def test_a_frame_is_measured_for_both_modalities(name):
+    model = build_model(preset(name, **MICRO)).eval()
+    cost = pace.frame_cost(model, repeats=1)
+    assert 0 < cost.vehicle_s < 10 and 0 < cost.ego_s < 10
+    inputs = pace.shaped_inputs(model)
+    assert set(inputs) == ({"occupancy"} if name == "tiny-lidar" else {"images", "lidar2img"})
