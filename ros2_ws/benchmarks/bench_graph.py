@@ -1,6 +1,8 @@
 """Benchmark of the node graph: bytes on the wire and mIoU per feature codec, latency, CPU per node, DDS share.
 
-    ros2_ws/benchmarks/bench_graph.py [--bag BAG] [--out results/bench_graph]
+    ros2_ws/benchmarks/bench_graph.py [--bag BAG] [--out results/bench_graph] [--settings ...]
+    ros2_ws/benchmarks/bench_graph.py --rates 0.25 0.5 1      (rate sweep: frames fused and latency per rate)
+    ros2_ws/benchmarks/bench_graph.py --paths                 (the ego's reference paths vs its fast paths)
 
 Runs the demo graph (player + 3 vehicles + ego + recorder, separate processes
 over DDS, at the demo's rate) once per V2X codec setting of the neighbours
@@ -11,13 +13,20 @@ per agent-frame, stage times and CPU time per frame (time.process_time of the
 frame's work) and wall-clock marks on this host's clock; `score` gives mIoU.
 Latency = ego's /ego/occupancy publication - the first sensor message of that
 frame reaching a vehicle; DDS share = (features received by the ego - published
-by the vehicle) / latency.
+by the vehicle) / latency. With --rates, the demo graph (default codec) runs
+once per playback rate instead, and the table gives the frames the ego fused
+and the recorder recorded of the bag's, latency and CPU per node: the highest
+rate with every frame fused is what the machine keeps up with (the demo's own
+default rate is measured before it starts, `model.pace`). With --paths, the
+graph runs twice at rate 0.04, the ego on its reference paths (dense head,
+reference point cloud) and on its fast paths: each ego stage's ratio, same run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +44,8 @@ SETTINGS = {  # name -> `demo` arguments (--params: the neighbours' vehicle para
     "int8-topk1024-zstd": ["--params", "codec.dtype:=int8", "codec.selection:=topk", "codec.topk:=1024"],
     "ego-alone-no-v2x": ["--vehicles", "1"],  # what collaboration adds: only the ego's own vehicle runs
 }
+# the ego's fast paths against its reference paths (dense head, reference cloud), same codec, same slow rate: stage ratios
+PATHS = {"ego-fast-paths": ["--rate", "0.04"], "ego-reference-paths": ["--rate", "0.04", "--ego-params", "reference_paths:=true"]}
 CPU_SETTING = "int8-topk1024-zstd"  # per-node CPU is reported for the setting that meets the size goal
 
 
@@ -64,22 +75,70 @@ def measure(mcap: Path) -> dict:
             "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()}, "ego_stage_ms": stages, "frames": len(ego)}
 
 
+def run_demo(demo: Path, opts, name: str, args: list[str], complete: bool = True) -> tuple[subprocess.CompletedProcess, Path]:
+    """The demo graph with `args` into opts.out/name; its completed process and output folder. complete: the demo must
+    succeed (every frame fused and recorded); else a recording is enough (a rate sweep counts what was fused)."""
+    out = opts.out / name
+    argv = [str(demo), "--out", str(out), "--quiet", *args] + (["--bag", str(opts.bag)] if opts.bag else [])
+    print(f"[bench_graph] {name}: running the demo graph", flush=True)
+    done = subprocess.run(argv, capture_output=True, text=True)
+    if not (out / "demo.mcap").exists() or (complete and done.returncode != 0):
+        print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
+        raise SystemExit(1)
+    return done, out
+
+
+def sweep(demo: Path, opts) -> int:
+    """The demo graph at each rate: frames fused of the bag's, latency, CPU per node."""
+    rows = ["| rate | frame every (s) | frames fused / in the bag | recorded | latency p50 / p95 (ms) | CPU per frame p50 (ms): ego; vehicles |",
+            "|---:|---:|---:|---:|---:|---|"]
+    kept_up = []
+    for rate in opts.rates:
+        done, out = run_demo(demo, opts, f"rate-{rate:g}", ["--rate", f"{rate:g}"], complete=False)
+        frames = int(re.search(r": (\d+) frames;", done.stdout).group(1))
+        recorded = re.search(r"the recording holds (?:all )?(\d+)", done.stdout + done.stderr)
+        r = measure(out / "demo.mcap")
+        cpu = r["cpu_ms_per_frame"]
+        if r["frames"] == frames and done.returncode == 0:
+            kept_up.append(rate)
+        rows.append(f"| {rate:g} | {0.1 / rate:.2f} | {r['frames']} / {frames} | {recorded.group(1) if recorded else '?'} | "
+                    f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {cpu.pop('ego'):.0f}; {', '.join(f'{v:.0f}' for v in cpu.values())} |")
+    print("\n".join(rows))
+    print(f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}" if kept_up else "\nNo rate kept up with every frame.")
+    return 0
+
+
+def paths(demo: Path, opts) -> int:
+    """The ego's reference paths against its fast paths, same graph, same rate: stage times and their ratio."""
+    results = {name: measure(run_demo(demo, opts, name, args)[1] / "demo.mcap") for name, args in PATHS.items()}
+    ref, fast = results["ego-reference-paths"], results["ego-fast-paths"]
+    rows = ["| ego (ms per frame, p50) | reference paths | fast paths | reference / fast |", "|---|---:|---:|---:|"]
+    pairs_ = [(k.removesuffix("_ms"), ref["ego_stage_ms"][k], fast["ego_stage_ms"][k]) for k in ref["ego_stage_ms"]]
+    pairs_ += [("CPU", ref["cpu_ms_per_frame"]["ego"], fast["cpu_ms_per_frame"]["ego"]),
+               ("latency (first sensor message -> /ego/occupancy)", ref["latency_ms_p50"], fast["latency_ms_p50"])]
+    rows += [f"| {k} | {a:.1f} | {b:.1f} | {a / b:.1f}x |" for k, a, b in pairs_]
+    print("\n".join(rows))
+    opts.out.mkdir(parents=True, exist_ok=True)
+    (opts.out / "bench_graph_paths.json").write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[1])
     parser.add_argument("--bag", type=Path, help="default: the demo scenario")
     parser.add_argument("--out", type=Path, default=Path("results/bench_graph"))
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
+    parser.add_argument("--rates", nargs="*", type=float, help="sweep these playback rates (default codec) instead of the settings")
+    parser.add_argument("--paths", action="store_true", help="the ego's reference paths against its fast paths instead of the settings")
     opts = parser.parse_args()
     demo = Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo")
+    if opts.rates:
+        return sweep(demo, opts)
+    if opts.paths:
+        return paths(demo, opts)
     results = {}
     for name in opts.settings:
-        out = opts.out / name
-        argv = [str(demo), "--out", str(out), "--quiet", *SETTINGS[name]] + (["--bag", str(opts.bag)] if opts.bag else [])
-        print(f"[bench_graph] {name}: running the demo graph", flush=True)
-        done = subprocess.run(argv, capture_output=True, text=True)
-        if done.returncode != 0:
-            print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
-            return 1
+        out = run_demo(demo, opts, name, SETTINGS[name])[1]
         score = json.loads((out / "score.json").read_text())
         results[name] = {**measure(out / "demo.mcap"), "miou": score["co3sop-readme"]["miou"], "miou_code": score["co3sop-code"]["miou"]}
     ref = results[opts.settings[0]]

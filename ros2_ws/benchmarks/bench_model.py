@@ -18,29 +18,19 @@ from __future__ import annotations
 
 import argparse
 import resource
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from co3sop_nodes.model import pace
+from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.frames import CameraFrame
-from co3sop_nodes.model.inputs import camera_inputs, to_batch
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.outputs import labels_from_logits
 from co3sop_nodes.model.warp import warp_with_mask
-from co3sop_nodes.sim import rig
 from timing import timed
-
-
-def random_camera_inputs(cfg) -> dict:
-    """Random images seen through the OPV2V rig, at the config's image size."""
-    w, h = cfg.image_size
-    rng = np.random.default_rng(0)
-    cams = [CameraFrame(name, mount, rig.intrinsics(w, h), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
-            for name, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras())]
-    images, lidar2img = camera_inputs(cams, rig.vehicle_from_lidar(), cfg.image_size)
-    return to_batch({"images": images, "lidar2img": lidar2img})
 
 
 @torch.no_grad()
@@ -50,7 +40,7 @@ def stage_table(name: str, repeats: int) -> str:
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
         model = build_model(cfg).eval()
-        inputs = random_camera_inputs(cfg)
+        inputs = pace.shaped_inputs(model)
         t_vehicle, ego = timed(lambda: model.vehicle(**inputs), repeats)
         others = [VehicleOutput(ego.features.roll(3, 2), torch.rand_like(ego.confidence)) for _ in range(2)]
         rel = torch.eye(4)[None].repeat(1, 2, 1, 1)
@@ -66,18 +56,36 @@ def stage_table(name: str, repeats: int) -> str:
 
 @torch.no_grad()
 def head_table(name: str, repeats: int) -> str:
-    """Fused features -> labels + confidence: the dense reference against the exact fast path, same inputs, same run."""
-    rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | fast s (`head.labels`) | reference / fast | labels identical |",
-            "|---|---|---:|---:|---:|---|"]
+    """Fused features -> labels + confidence: the dense reference, the PyTorch loop and the compiled kernel, same run."""
+    rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | PyTorch loop s | compiled s | reference / compiled "
+            "| loop / compiled | labels differing (loop, compiled) |", "|---|---|---:|---:|---:|---:|---:|---|"]
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
         head = build_model(cfg).ego.head.eval()
         fused = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims, generator=torch.Generator().manual_seed(0))
         t_ref, (ref_labels, _) = timed(lambda: labels_from_logits(head(fused)[-1]), repeats)
-        t_fast, (labels, _) = timed(lambda: head.labels(fused), repeats)
-        same = bool((labels[0].numpy() == ref_labels).all())
-        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_fast:.3f} | {t_ref / t_fast:.1f}x | {'yes' if same else 'NO'} |")
-        print(f"  head {range_name}: reference {t_ref:.3f} s, fast {t_fast:.3f} s", flush=True)
+        t_loop, (loop, _) = timed(lambda: head.labels(fused, compiled=False), repeats)
+        t_fast, (fast, _) = timed(lambda: head.labels(fused, compiled=True), repeats)
+        differ = [int((t[0].numpy() != ref_labels).sum()) for t in (loop, fast)]
+        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_loop:.3f} | {t_fast:.3f} | {t_ref / t_fast:.1f}x "
+                    f"| {t_loop / t_fast:.1f}x | {differ[0]}, {differ[1]} of {ref_labels.size:,} |")
+        print(f"  head {range_name}: reference {t_ref:.3f} s, loop {t_loop:.3f} s, compiled {t_fast:.3f} s", flush=True)
+    return "\n".join(rows)
+
+
+def frame_table(repeats: int) -> str:
+    """Each shipped model's work per frame on one thread, as the nodes do it, at each range's grid (untrained beyond 51.2 m:
+    timing depends on shapes only) and the playback rate 2 cores keep up with for 3 vehicles + ego."""
+    rows = ["| model | range | vehicle ms (model + codec) | ego ms (2 neighbours, labels, encoding, cloud) | rate kept up with (3 vehicles, 2 cores) |",
+            "|---|---|---:|---:|---:|"]
+    for name in ("tiny-lidar", "tiny"):
+        trained, _ = load_model(shipped_checkpoint(f"{name}.pt"))
+        for range_name in ("25.6m", "51.2m", "76.8m"):
+            model = trained if range_name == trained.cfg.range else build_model(replace(trained.cfg, range=range_name)).eval()
+            cost = pace.frame_cost(model, repeats)
+            rate = pace.sustainable_rate(cost, 3, 0.1, 2)
+            rows.append(f"| {name} | {range_name} | {1e3 * cost.vehicle_s:.0f} | {1e3 * cost.ego_s:.0f} | {rate:.2f} |")
+            print(f"  frame {name} {range_name}: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms", flush=True)
     return "\n".join(rows)
 
 
@@ -111,7 +119,8 @@ def main() -> None:
     torch.set_num_threads(opts.threads)
     text = "\n\n".join([
         f"### CPU time per stage, preset `{opts.preset}` ({opts.threads} threads, median of {opts.repeats})", stage_table(opts.preset, opts.repeats),
-        f"### Head to labels: dense reference vs exact fast path (`{opts.preset}`)", head_table(opts.preset, opts.repeats),
+        f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads)", head_table(opts.preset, opts.repeats),
+        "### CPU per frame as the nodes compute it (shipped models, one thread, median)", frame_table(opts.repeats),
         f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats),
         f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB.",
     ])

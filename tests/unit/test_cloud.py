@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from co3sop_nodes.classes import IGNORE, PALETTE
-from co3sop_nodes.cloud import CLOUD_DTYPE, cloud_xyz, occupancy_cloud
+from co3sop_nodes.cloud import CLOUD_DTYPE, cloud_xyz, occupancy_cloud, occupancy_cloud_reference
 from co3sop_nodes.errors import DatasetError
 from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
 
@@ -23,25 +23,12 @@ def test_occupied_voxel_centres_in_the_palette():
     assert np.allclose(cloud_xyz(cloud.tobytes(), fields, CLOUD_DTYPE.itemsize, len(cloud)), [[-0.25, 0.25, 0.75]])
 
 
-def reference_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
-    """The definition: index arrays of the kept voxels, centres, palette colours."""
-    idx = np.argwhere((labels != 0) & (labels != IGNORE))  # (N, 3) i, j, k
-    lab = labels[tuple(idx.T)]
-    centres = np.asarray(grid.origin) + (idx + 0.5) * grid.voxel_size
-    rgb = PALETTE[np.minimum(lab, len(PALETTE) - 1)].astype(np.uint32)
-    cloud = np.zeros(len(idx), CLOUD_DTYPE)
-    cloud["x"], cloud["y"], cloud["z"] = centres.T
-    cloud["rgb"] = ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).view(np.float32)
-    cloud["label"] = lab
-    return cloud
-
-
 @pytest.mark.parametrize("range_name", sorted(BENCHMARK_RANGES))
 def test_the_cloud_equals_its_definition_at_every_range(range_name):
     grid = BENCHMARK_RANGES[range_name]
     rng = np.random.default_rng(len(range_name))
     labels = np.where(rng.random(grid.dims) < 0.2, rng.integers(0, 256, grid.dims), 0).astype(np.uint8)  # every value, out of range too
-    want, got = reference_cloud(labels, grid), occupancy_cloud(labels, grid)
+    want, got = occupancy_cloud_reference(labels, grid), occupancy_cloud(labels, grid)
     assert len(got) > 1000 and got.tobytes() == want.tobytes()  # bit-identical payloads
 
 

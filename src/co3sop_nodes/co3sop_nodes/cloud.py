@@ -21,11 +21,25 @@ _RGB[: len(PALETTE)] = (PALETTE[:, 0].astype(np.uint32) << 16) | (PALETTE[:, 1].
 _RGB[len(PALETTE) :] = _RGB[len(PALETTE) - 1]  # out-of-range labels take the last colour (unlabeled)
 
 
+def occupancy_cloud_reference(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """The definition of `occupancy_cloud`: index arrays of the kept voxels, their centres, palette colours."""
+    idx = np.argwhere((labels != EMPTY) & (labels != IGNORE))  # (N, 3) i, j, k
+    lab = labels[tuple(idx.T)]
+    centres = np.asarray(grid.origin) + (idx + 0.5) * grid.voxel_size
+    rgb = PALETTE[np.minimum(lab, len(PALETTE) - 1)].astype(np.uint32)
+    cloud = np.zeros(len(idx), CLOUD_DTYPE)
+    cloud["x"], cloud["y"], cloud["z"] = centres.T
+    cloud["rgb"] = ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).view(np.float32)
+    cloud["label"] = lab
+    return cloud
+
+
 def occupancy_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
     """(N,) CLOUD_DTYPE: the centre of every voxel that is neither empty nor ignored, in the grid's frame (C order).
 
     By table lookups and one pass over the kept voxels: centres per axis are computed once, a voxel's
-    x, y, z are three gathers (a fifth of the time of index arrays and fancy indexing over the grid).
+    x, y, z are three gathers, not index arrays and fancy indexing over the grid (the same bytes as
+    `occupancy_cloud_reference`, tested).
     """
     nx, ny, nz = labels.shape
     flat = np.flatnonzero(_SHOWN[labels.ravel()])  # (N,) C-order voxel indices

@@ -173,6 +173,7 @@ def main(args: list[str] | None = None) -> int:
                              f"(default: {DEFAULT_MODEL})")
     parser.add_argument("--params", nargs="*", default=[],
                         help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
+    parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
     opts = parser.parse_args(args)
     t0 = time.monotonic()
@@ -192,7 +193,8 @@ def main(args: list[str] | None = None) -> int:
     ros_params = [x for p in opts.params for x in ("-p", p)]
     echo = not opts.quiet
     recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
-    nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model], echo)]
+    ego_params = [x for p in opts.ego_params for x in ("-p", p)]
+    nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params], echo)]
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
     nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)], echo)

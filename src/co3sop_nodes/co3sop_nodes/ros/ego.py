@@ -34,7 +34,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from .. import topics
-from ..cloud import occupancy_cloud
+from ..cloud import occupancy_cloud, occupancy_cloud_reference
 from ..codec import decode_features, encode_labels
 from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
@@ -79,6 +79,8 @@ class Ego(Node):
         self.neighbour_timeout_ns = int(p("neighbour_timeout", 5.0) * 1e9)
         self.max_raw_bytes = int(p("max_payload_mb", 64.0) * 2**20)
         self.publish_points = p("publish_points", True)
+        # the reference paths (dense head, cloud by index arrays): the same outputs, slower; for bench_graph's same-run ratios
+        self.reference_paths = p("reference_paths", False)
         torch.set_num_threads(p("threads", 1))
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
@@ -182,7 +184,7 @@ class Ego(Node):
         heard = sorted(a for a in self._received if a != self.ego_id)
         matched = {a: r for a in heard if (r := self._match(a, stamp)) is not None}
         pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
-                             self.comm_range, self.max_collaborators, self.mu, self.sigma, self.rng)
+                             self.comm_range, self.max_collaborators, self.mu, self.sigma, self.rng, reference=self.reference_paths)
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
         t2 = time.perf_counter()
         frame = topics.lidar_frame(self.ego_id)
@@ -190,7 +192,8 @@ class Ego(Node):
         self._occupancy.publish(labels_to_msg(enc, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id))
         published_wall = time.time_ns()
         if self.publish_points:
-            self._points.publish(cloud_to_msg(occupancy_cloud(pred.labels, self.cfg.grid), stamp_ns=stamp, frame_id=frame))
+            cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
+            self._points.publish(cloud_to_msg(cloud, stamp_ns=stamp, frame_id=frame))
         t3 = time.perf_counter()
         self.published += 1
         self._last_stamp = max(self._last_stamp, stamp)
