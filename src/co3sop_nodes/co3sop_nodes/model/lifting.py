@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from ..grid import GridSpec
+from . import deform_kernel
 from .deform_attn import sample_2d
 
 
@@ -51,20 +52,30 @@ class ImageCrossAttention(nn.Module):
         b, q, c = query.shape
         n = uv.shape[1]
         h, lv, p = self.heads, self.levels, self.points
-        shapes = torch.tensor([[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device)  # (L, 2) W, H
-        off = self.offsets(query).view(b, q, h, lv, p, 2) / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
+        offsets = self.offsets(query).view(b, q, h, lv, p, 2)  # in pixels of each level
         w = torch.softmax(self.weights(query).view(b, q, h, lv * p), -1).view(b, q, h, lv, p)
-        # per level, every image's value map split by head: L x (B*N) x (H, C/H, Hl, Wl)
-        values = [self.value(f.permute(0, 2, 3, 1)).permute(0, 3, 1, 2).unflatten(1, (h, c // h)).unbind(0) for f in feats]
+        values = [self.value(f.permute(0, 2, 3, 1)) for f in feats]  # L x (B*N, Hl, Wl, C)
+        # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
+        compiled = not torch.is_grad_enabled() and query.device.type == "cpu" and deform_kernel.available(c // h)
+        if not compiled:
+            shapes = torch.tensor([[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device)  # (L, 2) W, H
+            off = offsets / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
+            # per level, every image's value map split by head: L x (B*N) x (H, C/H, Hl, Wl)
+            values = [v.permute(0, 3, 1, 2).unflatten(1, (h, c // h)).unbind(0) for v in values]
         pooled = []
         for i in range(b):
-            # only the (camera, query) pairs where the camera sees the query, camera-major; one gather for all
-            # pairs (a gather per camera would zero-fill a full-size gradient for each), then split by camera
+            # only the (camera, query) pairs where the camera sees the query, camera-major
             cam, idx = visible[i].nonzero(as_tuple=True)
-            per_cam = torch.bincount(cam, minlength=n).tolist()
-            locs = (uv[i, cam, idx][:, None, None, None, :] + off[i, idx]).split(per_cam)  # N x (Qv, H, L, P, 2)
-            weights = w[i, idx].split(per_cam)  # N x (Qv, H, L, P)
-            sampled = [sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0] for k in range(n) if per_cam[k]]
+            if compiled:
+                sampled = [deform_kernel.sample_pairs([v[i * n : (i + 1) * n] for v in values], cam, idx, uv[i, cam, idx], offsets[i], w[i],
+                                                      torch.get_num_threads())]
+            else:
+                # one gather for all pairs (a gather per camera would zero-fill a full-size gradient for each), then
+                # split by camera
+                per_cam = torch.bincount(cam, minlength=n).tolist()
+                locs = (uv[i, cam, idx][:, None, None, None, :] + off[i, idx]).split(per_cam)  # N x (Qv, H, L, P, 2)
+                weights = w[i, idx].split(per_cam)  # N x (Qv, H, L, P)
+                sampled = [sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0] for k in range(n) if per_cam[k]]
             total = query.new_zeros(q, c)
             if sampled:
                 total = total.index_add(0, idx, torch.cat(sampled))  # (Q, C)

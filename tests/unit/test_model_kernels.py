@@ -1,0 +1,58 @@
+"""The compiled deformable sampler against its definition (deform_attn.sample_2d), alone and inside the vehicle half."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from co3sop_nodes.model import deform_kernel, pace
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.deform_attn import sample_2d
+from co3sop_nodes.model.model import build_model
+from model_checks import MICRO
+
+
+@pytest.mark.parametrize("channels_per_head, threads", [(8, 1), (16, 1), (8, 3)])
+def test_the_compiled_sampler_equals_grid_sample(channels_per_head, threads):
+    gen = torch.Generator().manual_seed(channels_per_head + threads)
+    h, levels, points, q, n = 4, 3, 4, 2000, 3
+    shapes = [(30, 40), (15, 20), (7, 11)]  # (Hl, Wl)
+    values = [torch.randn(n, rows, cols, h * channels_per_head, generator=gen) for rows, cols in shapes]  # channels-last, per camera
+    visible = torch.rand(n, q, generator=gen) < 0.4
+    camera, query = visible.nonzero(as_tuple=True)
+    uv = torch.rand(len(camera), 2, generator=gen)
+    offsets = torch.randn(q, h, levels, points, 2, generator=gen) * 8  # pixels: some points fall outside every map
+    offsets[query[0], 0, 0, 0] = float("nan")  # the kernel reads zeros there (grid_sample's value for NaN is unspecified)
+    weights = torch.softmax(torch.randn(q, h, levels * points, generator=gen), -1).view(q, h, levels, points)
+    assert deform_kernel.available(channels_per_head)
+    got = deform_kernel.sample_pairs(values, camera, query, uv, offsets, weights, threads)
+    offsets[query[0], 0, 0, 0] = 1e6  # the definition on a point outside every map: zeros
+    scale = torch.tensor([[cols, rows] for rows, cols in shapes], dtype=torch.float32)  # (L, 2) W, H
+    want = []
+    for k in range(n):  # the definition, camera by camera: (B*H, Ch, Hl, Wl) maps, B = 1
+        maps = [v[k].permute(2, 0, 1).reshape(h, channels_per_head, *v.shape[1:3]) for v in values]
+        mine = camera == k
+        loc = uv[mine][:, None, None, None, :] + offsets[query[mine]] / scale[None, None, :, None, :]
+        want.append(sample_2d(maps, loc[None], weights[query[mine]][None])[0])
+    torch.testing.assert_close(got, torch.cat(want), rtol=1e-5, atol=1e-5)
+
+
+def test_no_kernel_for_head_widths_that_are_not_vectors():
+    assert not deform_kernel.available(6)
+
+
+@pytest.mark.parametrize("name", ["tiny", "paper"])
+def test_the_camera_vehicle_half_at_inference_equals_its_training_path(name, monkeypatch):
+    torch.manual_seed(0)
+    model = build_model(preset(name, **MICRO)).eval()
+    inputs = pace.shaped_inputs(model)
+    calls = []
+    compiled = deform_kernel.sample_pairs
+    monkeypatch.setattr(deform_kernel, "sample_pairs", lambda *a: calls.append(1) or compiled(*a))
+    with torch.no_grad():  # inference: the compiled sampler
+        fast = model.vehicle(**inputs)
+    assert len(calls) == model.cfg.image_attention.layers  # every lifting layer
+    with torch.enable_grad():  # the PyTorch definition (grid_sample), as in training
+        ref = model.vehicle(**inputs)
+    torch.testing.assert_close(fast.features, ref.features.detach(), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(fast.confidence, ref.confidence.detach(), rtol=1e-4, atol=1e-4)
