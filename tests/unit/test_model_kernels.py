@@ -1,4 +1,5 @@
-"""The compiled deformable sampler against its definition (deform_attn.sample_2d), alone and inside the vehicle half."""
+"""The compiled deformable samplers against their definitions (deform_attn.sample_2d / sample_3d with grid_sample):
+the 2D one alone and inside the vehicle half, the 3D one inside the fusion's attention."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import torch
 
 from co3sop_nodes.model import deform_kernel, pace
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.deform_attn import sample_2d
+from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
 from co3sop_nodes.model.model import build_model
 from model_checks import MICRO
 
@@ -56,3 +57,25 @@ def test_the_camera_vehicle_half_at_inference_equals_its_training_path(name, mon
         ref = model.vehicle(**inputs)
     torch.testing.assert_close(fast.features, ref.features.detach(), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(fast.confidence, ref.confidence.detach(), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("dims, heads, agents", [(32, 4, 2), (64, 4, 3)])
+def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads, agents, monkeypatch):
+    torch.manual_seed(dims + agents)
+    att = DeformableAttention3d(dims, heads, 4, slots=6, extent_voxels=(16, 12, 6)).eval()
+    with torch.no_grad():
+        for param in att.parameters():
+            param.normal_(0, 0.5)  # offsets of several voxels: many samples between and outside voxels
+    q = 3000
+    query, reference = torch.randn(1, q, dims), torch.rand(1, q, 3)
+    values = torch.randn(1, agents, dims, 16, 12, 6)
+    mask = torch.rand(1, q, agents) < 0.6  # some queries may attend to no agent: they read nothing
+    calls = []
+    compiled = deform_kernel.sample_3d
+    monkeypatch.setattr(deform_kernel, "sample_3d", lambda *a: calls.append(1) or compiled(*a))
+    with torch.no_grad():
+        got = att(query, reference, values, mask)
+    with torch.enable_grad():
+        want = att(query, reference, values, mask).detach()
+    assert calls == [1]
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)

@@ -1,11 +1,12 @@
-"""Image-to-voxel deformable sampling on the CPU as a compiled kernel (native/deform_sample.c), for inference.
+"""Deformable sampling on the CPU as compiled kernels (native/deform_sample.c), for inference.
 
-The same sums as `ImageCrossAttention`'s PyTorch path (`deform_attn.sample_2d`
-with `grid_sample`, its definition), for every visible (camera, query) pair at
-once, without the (pairs x heads x levels x points) intermediates that path
-gathers, adds, samples and weights: locations are computed per sample, values
-read channels-last, a head's channels at a pixel as contiguous vectors.
-Threads split the pairs (ctypes releases the GIL).
+Image to voxel (`ImageCrossAttention`) and voxel to voxel (`DeformableAttention3d`):
+the same sums as their PyTorch paths (`deform_attn.sample_2d` / `sample_3d`
+with `grid_sample`, the definitions), without the (queries x heads x levels
+or agents x points) intermediates those paths gather, add, sample and weight:
+locations are computed per sample, values read channels-last, a head's
+channels at a pixel or voxel as contiguous vectors. Threads split the queries
+(ctypes releases the GIL).
 """
 
 from __future__ import annotations
@@ -23,16 +24,29 @@ _P = ctypes.c_void_p
 _I = ctypes.c_int64
 
 
+_ARGS = {"deform_sample_2d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
+         "deform_sample_3d": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I]}
+
+
 @cache
-def _kernel(channels_per_head: int):
+def _kernel(channels_per_head: int, name: str = "deform_sample_2d"):
     if channels_per_head % 8:
-        return None  # the kernel reads a head's channels as 8-lane vectors
+        return None  # the kernels read a head's channels as 8-lane vectors
     lib = native.load("deform_sample", CH=channels_per_head)
     if lib is None:
         return None
-    fn = lib.deform_sample_2d
-    fn.argtypes, fn.restype = [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I], None
+    fn = getattr(lib, name)
+    fn.argtypes, fn.restype = _ARGS[name], None
     return fn
+
+
+def _run(fn, args: tuple, n: int, threads: int) -> None:
+    """fn(*args, start, end) over [0, n), split across threads (the caller keeps the arrays referenced)."""
+    if threads <= 1 or n < 1024:
+        fn(*args, 0, n)
+    else:
+        bounds = np.linspace(0, n, threads + 1).astype(np.int64)
+        list(_pool(threads).map(lambda i: fn(*args, int(bounds[i]), int(bounds[i + 1])), range(threads)))
 
 
 @cache
@@ -63,11 +77,23 @@ def sample_pairs(values: list[torch.Tensor], camera: torch.Tensor, query: torch.
     off, w = _array(offsets, np.float32), _array(weights, np.float32)
     pairs = len(cams)
     out = np.empty((pairs, c), np.float32)
-    args = (ctypes.addressof(pointers), shapes.ctypes.data, levels, h, p, cams.ctypes.data, queries.ctypes.data, uvs.ctypes.data,
-            off.ctypes.data, w.ctypes.data, out.ctypes.data)
-    if threads <= 1 or pairs < 1024:
-        fn(*args, 0, pairs)
-    else:  # the arrays above stay referenced until every part is done
-        bounds = np.linspace(0, pairs, threads + 1).astype(np.int64)
-        list(_pool(threads).map(lambda i: fn(*args, int(bounds[i]), int(bounds[i + 1])), range(threads)))
+    _run(fn, (ctypes.addressof(pointers), shapes.ctypes.data, levels, h, p, cams.ctypes.data, queries.ctypes.data, uvs.ctypes.data,
+              off.ctypes.data, w.ctypes.data, out.ctypes.data), pairs, threads)
+    return torch.from_numpy(out)
+
+
+def sample_3d(values: torch.Tensor, reference: torch.Tensor, offsets: torch.Tensor, scale: torch.Tensor, weights: torch.Tensor,
+              threads: int) -> torch.Tensor:
+    """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, slots, P, 3) in voxels, scale (3,)
+    voxels -> [0, 1]; weights (Q, H, A, P), agents the first A slots -> (Q, H*Ch). `available` first."""
+    a, c = values.shape[0], values.shape[-1]
+    q, h, slots, p, _ = offsets.shape
+    fn = _kernel(c // h, "deform_sample_3d")
+    maps = _array(values, np.float32)
+    pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
+    dims = np.array(maps.shape[1:4], np.int64)
+    ref, off, sc, w = (_array(t, np.float32) for t in (reference, offsets, scale, weights))
+    out = np.empty((q, c), np.float32)
+    _run(fn, (ctypes.addressof(pointers), dims.ctypes.data, a, slots, h, p, ref.ctypes.data, off.ctypes.data, sc.ctypes.data,
+              w.ctypes.data, out.ctypes.data), q, threads)
     return torch.from_numpy(out)

@@ -40,6 +40,21 @@ class OccupancyHead(nn.Module):
         f0 = self.stage0(x)
         return f0, self.up1(f0)
 
+    def parents(self, x):
+        """x: (B, C, X/4, Y/4, Z/4) -> the 1/2 features as (B, P, C1), parents in flat (x, y, z) order: `coarse`'s f1
+        computed channels-last. The stride-2 transposed convolution is one matrix product per coarse voxel whose
+        8 octants land in place, and the 3x3x3 block reads and writes channels-last, so no layout copy is left."""
+        f0 = self.stage0(x)  # (B, C0, X0, Y0, Z0)
+        conv, norm, block = self.up1[0], self.up1[1], self.up1[3]
+        b, c0, x0, y0, z0 = f0.shape
+        c1 = conv.out_channels
+        u = f0.flatten(2).transpose(1, 2) @ conv.weight.flatten(1)  # (B, P0, C1*8): kernel offsets (i, j, k) last
+        if conv.bias is not None:
+            u = u + conv.bias.repeat_interleave(8)
+        u = u.view(b, x0, y0, z0, c1, 2, 2, 2).permute(0, 1, 5, 2, 6, 3, 7, 4).reshape(b, 2 * x0, 2 * y0, 2 * z0, c1)
+        f1 = block(F.relu(norm(u.permute(0, 4, 1, 2, 3))))  # (B, C1, X/2, Y/2, Z/2), channels-last in memory
+        return f1.permute(0, 2, 3, 4, 1).reshape(b, -1, c1)
+
     def forward(self, x):
         f0, f1 = self.coarse(x)
         f2 = F.relu(self.point2(F.relu(self.up2(f1))))
@@ -53,19 +68,14 @@ class OccupancyHead(nn.Module):
         slices), the pointwise layers, the classifier, then argmax and the label's softmax probability.
         compiled: the compiled kernel (default: on the CPU where it compiles) or the PyTorch loop.
         """
-        _, f1 = self.coarse(x)  # (B, C1, X/2, Y/2, Z/2)
-        b, c1, x1, y1, z1 = f1.shape
-        c2 = self.up2.out_channels
-        parents = f1.flatten(2).transpose(1, 2).contiguous()  # (B, P, C1)
-
-        def fine(t):  # (B, P, 8) octants of parents -> (B, X, Y, Z)
-            return t.view(b, x1, y1, z1, 2, 2, 2).permute(0, 1, 4, 2, 5, 3, 6).reshape(b, 2 * x1, 2 * y1, 2 * z1)
-
+        parents = self.parents(x)  # (B, P, C1)
+        b, (x1, y1, z1) = x.shape[0], (2 * n for n in x.shape[2:])
+        c1, c2 = self.up2.in_channels, self.up2.out_channels
         if compiled is None:
             compiled = x.device.type == "cpu" and octant_kernel.available(c1, c2, self.classify[2].out_channels)
         if compiled:
-            pairs = [octant_kernel.octant_labels(p, self.up2, self.point2, self.classify[2], torch.get_num_threads()) for p in parents]
-            return fine(torch.stack([p[0] for p in pairs])), fine(torch.stack([p[1] for p in pairs]))
+            pairs = [octant_kernel.octant_labels(p, (x1, y1, z1), self.up2, self.point2, self.classify[2], torch.get_num_threads()) for p in parents]
+            return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
         up_w = self.up2.weight.flatten(2).permute(0, 2, 1).reshape(c1, 8 * c2)  # (C1, 8*C2): octant-major
         up_b = self.up2.bias.repeat(8)  # (8*C2,)
         point_w, point_b = self.point2.weight[:, :, 0, 0, 0].t(), self.point2.bias  # (C2, C2), (C2,)
@@ -81,6 +91,10 @@ class OccupancyHead(nn.Module):
             prob = 1.0 / torch.exp(logits - top[..., None]).sum(-1)  # softmax at the label
             labels[:, start : start + chunk] = label.to(torch.uint8)
             confidence[:, start : start + chunk] = torch.round(prob * 255).to(torch.uint8)
+
+        def fine(t):  # (B, P, 8) octants of parents -> (B, X, Y, Z)
+            return t.view(b, x1, y1, z1, 2, 2, 2).permute(0, 1, 4, 2, 5, 3, 6).reshape(b, 2 * x1, 2 * y1, 2 * z1)
+
         return fine(labels), fine(confidence)
 
     def forward_at(self, x, index: torch.Tensor):

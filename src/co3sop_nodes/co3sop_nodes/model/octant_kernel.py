@@ -20,7 +20,7 @@ import torch
 from .. import native
 
 _POINTER = ctypes.c_void_p
-_ARGS = [_POINTER, ctypes.c_int64, ctypes.c_int64, *[_POINTER] * 8]
+_ARGS = [_POINTER, *[ctypes.c_int64] * 4, *[_POINTER] * 8]
 
 
 @cache
@@ -43,9 +43,10 @@ def available(c1: int, c2: int, classes: int) -> bool:
     return _kernel(c1, c2, classes) is not None
 
 
-def octant_labels(parents: torch.Tensor, up: torch.nn.ConvTranspose3d, point: torch.nn.Conv3d, classify: torch.nn.Conv3d,
-                  threads: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """parents (P, C1) on the CPU -> labels, confidence (P, 8) uint8, on `threads` threads (the kernel must be `available`)."""
+def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.nn.ConvTranspose3d, point: torch.nn.Conv3d,
+                  classify: torch.nn.Conv3d, threads: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """parents (P, C1) of the 1/2 grid `dims`, flat order, on the CPU -> labels, confidence (2X1, 2Y1, 2Z1) uint8,
+    on `threads` threads (the kernel must be `available`)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k)
     f32 = lambda t: np.ascontiguousarray(t.detach().float().cpu().numpy())  # noqa: E731
@@ -55,11 +56,12 @@ def octant_labels(parents: torch.Tensor, up: torch.nn.ConvTranspose3d, point: to
     point_w, point_b = f32(point.weight[:, :, 0, 0, 0].t()), f32(point.bias)  # (C2 in, C2 out), (C2,)
     cls_w, cls_b = f32(classify.weight[:, :, 0, 0, 0].t()), f32(classify.bias)  # (C2, K), (K,)
     n = x.shape[0]
-    labels, confidence = np.empty((n, 8), np.uint8), np.empty((n, 8), np.uint8)
+    x1, y1, z1 = dims
+    labels, confidence = np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8), np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8)
     ptrs = [a.ctypes.data for a in (up_w, up_b, point_w, point_b, cls_w, cls_b, labels, confidence)]
     bounds = np.linspace(0, n, max(1, threads) + 1).astype(np.int64)
     if threads <= 1:
-        fn(x.ctypes.data, 0, n, *ptrs)
+        fn(x.ctypes.data, y1, z1, 0, n, *ptrs)
     else:  # arrays stay referenced here until every part is done
-        list(_pool(threads).map(lambda i: fn(x.ctypes.data, int(bounds[i]), int(bounds[i + 1]), *ptrs), range(threads)))
+        list(_pool(threads).map(lambda i: fn(x.ctypes.data, y1, z1, int(bounds[i]), int(bounds[i + 1]), *ptrs), range(threads)))
     return torch.from_numpy(labels), torch.from_numpy(confidence)

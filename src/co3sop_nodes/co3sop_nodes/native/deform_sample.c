@@ -55,3 +55,45 @@ void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t
     }
   }
 }
+
+/* Voxel-to-voxel deformable sampling (the ego's queries over the warped agents' volumes) for queries [start, end);
+ * the definition is deform_attn.DeformableAttention3d's PyTorch path (sample_3d: trilinear grid_sample, zeros
+ * outside, align_corners=False).
+ *
+ * values[a]: (X, Y, Z, heads * CH) channels-last per agent; dims: X, Y, Z; reference: (Q, 3) in [0, 1];
+ * offsets: (Q, heads, slots, points, 3) in voxels; scale: 1 / dims per axis; weights: (Q, heads, agents, points),
+ * the agents being the first `agents` of the slots -> out: (Q, heads * CH) */
+void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t slots, int64_t heads,
+                      int64_t points, const float *restrict reference, const float *restrict offsets,
+                      const float *restrict scale, const float *restrict weights, float *restrict out, int64_t start,
+                      int64_t end) {
+  const int64_t c = heads * CH, nx = dims[0], ny = dims[1], nz = dims[2];
+  for (int64_t q = start; q < end; ++q)
+    for (int64_t h = 0; h < heads; ++h) {
+      f8 acc[NV];
+      for (int j = 0; j < NV; ++j) acc[j] = (f8){0};
+      for (int64_t a = 0; a < agents; ++a) {
+        const float *map = values[a] + h * CH;
+        for (int64_t p = 0; p < points; ++p) {
+          const float w = weights[((q * heads + h) * agents + a) * points + p];
+          if (w == 0.0f) continue;  /* a masked agent (or one a query may not attend to) */
+          const float *o = offsets + (((q * heads + h) * slots + a) * points + p) * 3;
+          float pos[3];
+          for (int d = 0; d < 3; ++d) pos[d] = (reference[3 * q + d] + o[d] * scale[d]) * dims[d] - 0.5f;
+          if (!(pos[0] > -1.0f && pos[0] < nx && pos[1] > -1.0f && pos[1] < ny && pos[2] > -1.0f && pos[2] < nz)) continue;
+          const float fx = floorf(pos[0]), fy = floorf(pos[1]), fz = floorf(pos[2]);
+          const float ax = pos[0] - fx, ay = pos[1] - fy, az = pos[2] - fz;
+          const int64_t x0 = (int64_t)fx, y0 = (int64_t)fy, z0 = (int64_t)fz;
+          for (int k = 0; k < 8; ++k) {
+            const int64_t x = x0 + (k >> 2), y = y0 + ((k >> 1) & 1), z = z0 + (k & 1);
+            if (x < 0 || x >= nx || y < 0 || y >= ny || z < 0 || z >= nz) continue;
+            const float s = w * ((k >> 2) ? ax : 1 - ax) * (((k >> 1) & 1) ? ay : 1 - ay) * ((k & 1) ? az : 1 - az);
+            const f8u *src = (const f8u *)(map + ((x * ny + y) * nz + z) * c);
+            for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
+          }
+        }
+      }
+      f8u *dst = (f8u *)(out + q * c + h * CH);
+      for (int j = 0; j < NV; ++j) dst[j] = acc[j];
+    }
+}

@@ -27,12 +27,13 @@ static inline f8 exp_nonpositive(f8 d) {
   return p * (f8)((i + 127) << 23);
 }
 
-/* parents (N, C1); up_w (C1, C2, 8) and up_b (C2, 8): the transposed convolution, octant last;
- * point_w (C2 in, C2 out); cls_w (C2, K) -> labels and round(255 p(label)), (N, 8) uint8 */
-void octant_labels(const float *restrict parents, int64_t start, int64_t end, const f8u *restrict up_w,
-                   const f8u *restrict up_b, const float *restrict point_w, const float *restrict point_b,
-                   const float *restrict cls_w, const float *restrict cls_b, uint8_t *restrict labels,
-                   uint8_t *restrict confidence) {
+/* parents (N, C1) of a (X1, Y1, Z1) grid in flat order; up_w (C1, C2, 8) and up_b (C2, 8): the transposed
+ * convolution, octant (i, j, k) last; point_w (C2 in, C2 out); cls_w (C2, K) -> labels and round(255 p(label)),
+ * both (2 X1, 2 Y1, 2 Z1) uint8: each octant written at its fine voxel */
+void octant_labels(const float *restrict parents, int64_t y1, int64_t z1, int64_t start, int64_t end,
+                   const f8u *restrict up_w, const f8u *restrict up_b, const float *restrict point_w,
+                   const float *restrict point_b, const float *restrict cls_w, const float *restrict cls_b,
+                   uint8_t *restrict labels, uint8_t *restrict confidence) {
   for (int64_t p = start; p < end; ++p) {
     const float *x = parents + p * C1;
     f8 h[C2], g[C2], logits[K];
@@ -59,9 +60,11 @@ void octant_labels(const float *restrict parents, int64_t start, int64_t end, co
     f8 total = {0};
     for (int q = 0; q < K; ++q) total += exp_nonpositive(logits[q] - best);
     f8 conf = 255.0f / total + 0.5f;  /* total >= 1, so conf in [0.5, 255.5] */
+    const int64_t px = p / (y1 * z1), py = (p / z1) % y1, pz = p % z1;
     for (int o = 0; o < 8; ++o) {
-      labels[p * 8 + o] = (uint8_t)label[o];
-      confidence[p * 8 + o] = (uint8_t)(int)conf[o];
+      const int64_t fine = ((2 * px + (o >> 2)) * 2 * y1 + 2 * py + ((o >> 1) & 1)) * 2 * z1 + 2 * pz + (o & 1);
+      labels[fine] = (uint8_t)label[o];
+      confidence[fine] = (uint8_t)(int)conf[o];
     }
   }
 }
