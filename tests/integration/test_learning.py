@@ -174,20 +174,22 @@ def test_shipped_models_use_their_sensors(street_split, tmp_path, model):
 
 @pytest.mark.parametrize("model", [p.name for p in shipped_models()])
 def test_fast_paths_equal_their_references_on_real_samples(street_split, model):
-    """On generated scenes with the shipped weights: the vehicle half at inference (compiled sampler for cameras)
-    against its training path, and the head's compiled kernel and PyTorch loop against dense logits + argmax."""
+    """On generated scenes with the shipped weights: the vehicle half and the ego's fusion at inference (compiled
+    sampler, warp) against their training paths, and the head's compiled kernel and PyTorch loop against dense
+    logits + argmax."""
     net, _ = load_model(shipped_checkpoint(model))
     dataset = OccupancyDataset(street_split, ["test"], net.cfg)
     for i in (0, len(dataset) - 1):
         sample = dataset.sample(i)
-        inputs = to_batch(sample.ego.inputs)
-        with torch.enable_grad():
-            want = net.vehicle(**inputs)
-        with torch.no_grad():
-            got = net.vehicle(**inputs)
-            torch.testing.assert_close(got.features, want.features.detach(), rtol=1e-4, atol=1e-4)
-            ego, *others = (net.vehicle(**to_batch(a.inputs, torch.device("cpu"))) for a in (sample.ego, *sample.others))
-            fused = net.ego.fuse(ego, others, torch.from_numpy(sample.neighbour_from_ego).float()[None])  # (1, C, X/4, Y/4, Z/4)
+        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None]
+        for grad in (True, False):  # the training paths, then inference's
+            with torch.set_grad_enabled(grad):
+                ego, *others = (net.vehicle(**to_batch(a.inputs)) for a in (sample.ego, *sample.others))
+                fused = net.ego.fuse(ego, others, rel).detach()  # (1, C, X/4, Y/4, Z/4)
+            if grad:
+                want_features, want_fused = ego.features.detach(), fused
+        torch.testing.assert_close(ego.features, want_features, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(fused, want_fused, rtol=1e-4, atol=1e-4)
         want_labels, want_conf = reference(net.ego.head, fused)
         assert len(np.unique(want_labels)) >= 4 and len(others) == 1
         for compiled in (True, False):

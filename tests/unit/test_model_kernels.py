@@ -3,13 +3,15 @@ the 2D one alone and inside the vehicle half, the 3D one inside the fusion's att
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from co3sop_nodes.model import deform_kernel, pace
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
-from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.model import VehicleOutput, build_model
 from model_checks import MICRO
 
 
@@ -79,3 +81,26 @@ def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads,
         want = att(query, reference, values, mask).detach()
     assert calls == [1]
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("yaw, shift", [(0.3, (7.3, -4.1, 0.2)), (-2.0, (-20.5, 13.7, -0.4))])
+def test_the_compiled_warp_equals_grid_sample(yaw, shift):
+    torch.manual_seed(1)
+    cfg = preset("tiny-lidar")
+    model = build_model(cfg).eval()
+    grid = cfg.feature_grid
+    ego = VehicleOutput(torch.randn(1, cfg.embed_dims, *grid.dims), torch.rand(1, 1, *grid.dims))
+    others = [VehicleOutput(torch.randn(1, cfg.embed_dims, *grid.dims), torch.rand(1, 1, *grid.dims)) for _ in range(2)]
+    rel = torch.eye(4).repeat(1, 2, 1, 1)  # (B, A, 4, 4) neighbour_from_ego
+    c, s = math.cos(yaw), math.sin(yaw)
+    rel[0, 0, :2, :2] = torch.tensor([[c, -s], [s, c]])
+    rel[0, 0, :3, 3] = torch.tensor(shift)
+    rel[0, 1, :3, 3] = -torch.tensor(shift)
+    with torch.no_grad():
+        fast = model.ego.align(ego, others, rel)
+    with torch.enable_grad():
+        ref = model.ego.align(ego, others, rel)
+    assert fast[0].shape == ref[0].shape and fast[2].dtype == torch.bool
+    torch.testing.assert_close(fast[0], ref[0].detach(), rtol=1e-5, atol=1e-5)  # features
+    torch.testing.assert_close(fast[1], ref[1].detach(), rtol=1e-5, atol=1e-5)  # confidences
+    assert 0.1 < ref[2].float().mean() < 0.9 and torch.equal(fast[2], ref[2])  # hybrid masks

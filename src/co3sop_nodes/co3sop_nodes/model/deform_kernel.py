@@ -12,7 +12,6 @@ channels at a pixel or voxel as contiguous vectors. Threads split the queries
 from __future__ import annotations
 
 import ctypes
-from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 
 import numpy as np
@@ -40,20 +39,6 @@ def _kernel(channels_per_head: int, name: str = "deform_sample_2d"):
     return fn
 
 
-def _run(fn, args: tuple, n: int, threads: int) -> None:
-    """fn(*args, start, end) over [0, n), split across threads (the caller keeps the arrays referenced)."""
-    if threads <= 1 or n < 1024:
-        fn(*args, 0, n)
-    else:
-        bounds = np.linspace(0, n, threads + 1).astype(np.int64)
-        list(_pool(threads).map(lambda i: fn(*args, int(bounds[i]), int(bounds[i + 1])), range(threads)))
-
-
-@cache
-def _pool(threads: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(threads, thread_name_prefix="deform")
-
-
 def available(channels_per_head: int) -> bool:
     """Whether the kernel exists for this head width and compiles here (compiling it on first call)."""
     return _kernel(channels_per_head) is not None
@@ -77,7 +62,7 @@ def sample_pairs(values: list[torch.Tensor], camera: torch.Tensor, query: torch.
     off, w = _array(offsets, np.float32), _array(weights, np.float32)
     pairs = len(cams)
     out = np.empty((pairs, c), np.float32)
-    _run(fn, (ctypes.addressof(pointers), shapes.ctypes.data, levels, h, p, cams.ctypes.data, queries.ctypes.data, uvs.ctypes.data,
+    native.parallel(fn, (ctypes.addressof(pointers), shapes.ctypes.data, levels, h, p, cams.ctypes.data, queries.ctypes.data, uvs.ctypes.data,
               off.ctypes.data, w.ctypes.data, out.ctypes.data), pairs, threads)
     return torch.from_numpy(out)
 
@@ -94,6 +79,6 @@ def sample_3d(values: torch.Tensor, reference: torch.Tensor, offsets: torch.Tens
     dims = np.array(maps.shape[1:4], np.int64)
     ref, off, sc, w = (_array(t, np.float32) for t in (reference, offsets, scale, weights))
     out = np.empty((q, c), np.float32)
-    _run(fn, (ctypes.addressof(pointers), dims.ctypes.data, a, slots, h, p, ref.ctypes.data, off.ctypes.data, sc.ctypes.data,
+    native.parallel(fn, (ctypes.addressof(pointers), dims.ctypes.data, a, slots, h, p, ref.ctypes.data, off.ctypes.data, sc.ctypes.data,
               w.ctypes.data, out.ctypes.data), q, threads)
     return torch.from_numpy(out)

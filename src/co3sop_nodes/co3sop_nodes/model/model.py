@@ -23,7 +23,7 @@ from .fusion import VoxelFusion, hybrid_mask
 from .head import OccupancyHead
 from .lidar import LMSCNetEncoder, SSCNetEncoder
 from .lifting import LiftingLayer, project, voxel_centres
-from .warp import warp_with_mask
+from .warp import compiled_available, warp_compiled, warp_with_mask
 
 # ImageNet-style normalisation of uint8 RGB inputs
 _MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1) * 255
@@ -89,6 +89,17 @@ class EgoHalf(nn.Module):
         """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
         fg = self.cfg.feature_grid
         feats, confs, masks = [], [], []
+        if not torch.is_grad_enabled() and ego.features.device.type == "cpu" and len(ego.features) == 1 and compiled_available():
+            # inference on the CPU: the compiled warp, channels-last (the attention reads the features so)
+            threads = torch.get_num_threads()
+            for a, other in enumerate(others):
+                warped, filled = warp_compiled(torch.cat([other.features, other.confidence], 1), neighbour_from_ego[:, a], fg, threads)
+                feats.append(warped[..., :-1])
+                confs.append(warped[..., -1])
+                masks.append(filled)
+            feats = torch.stack(feats)[None].permute(0, 1, 5, 2, 3, 4)  # (1, A, C, X, Y, Z), channels-last in memory
+            confs, filled = torch.stack(confs)[None], torch.stack(masks)[None]
+            return feats, confs, hybrid_mask(ego.confidence, confs, filled)
         for a, other in enumerate(others):
             both = torch.cat([other.features, other.confidence], 1)
             warped, filled = warp_with_mask(both, neighbour_from_ego[:, a], fg)

@@ -11,7 +11,6 @@ writing and reading. Threads split the parents (ctypes releases the GIL).
 from __future__ import annotations
 
 import ctypes
-from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 
 import numpy as np
@@ -31,11 +30,6 @@ def _kernel(c1: int, c2: int, classes: int):
     fn = lib.octant_labels
     fn.argtypes, fn.restype = _ARGS, None
     return fn
-
-
-@cache
-def _pool(threads: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(threads, thread_name_prefix="octant")
 
 
 def available(c1: int, c2: int, classes: int) -> bool:
@@ -59,9 +53,5 @@ def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.n
     x1, y1, z1 = dims
     labels, confidence = np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8), np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8)
     ptrs = [a.ctypes.data for a in (up_w, up_b, point_w, point_b, cls_w, cls_b, labels, confidence)]
-    bounds = np.linspace(0, n, max(1, threads) + 1).astype(np.int64)
-    if threads <= 1:
-        fn(x.ctypes.data, y1, z1, 0, n, *ptrs)
-    else:  # arrays stay referenced here until every part is done
-        list(_pool(threads).map(lambda i: fn(x.ctypes.data, y1, z1, int(bounds[i]), int(bounds[i + 1]), *ptrs), range(threads)))
+    native.parallel(lambda *bounds: fn(x.ctypes.data, y1, z1, *bounds, *ptrs), (), n, threads)
     return torch.from_numpy(labels), torch.from_numpy(confidence)

@@ -20,8 +20,11 @@ import platform
 import shutil
 import subprocess
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
+
+import numpy as np
 
 FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 log = logging.getLogger(__name__)
@@ -62,3 +65,18 @@ def load(name: str, **defines: int) -> ctypes.CDLL | None:
                 return None
             os.replace(out, path)  # atomic: a concurrent loader sees the old state or the whole file
     return ctypes.CDLL(str(path))
+
+
+@cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads, thread_name_prefix="co3sop-native")
+
+
+def parallel(fn, args: tuple, n: int, threads: int) -> None:
+    """fn(*args, start, end) over [0, n), split in `threads` parts run at once (ctypes releases the GIL); the caller
+    keeps every array the args point to referenced until this returns."""
+    if threads <= 1 or n < 1024:
+        fn(*args, 0, n)
+        return
+    bounds = np.linspace(0, n, threads + 1).astype(np.int64)
+    list(_pool(threads).map(lambda i: fn(*args, int(bounds[i]), int(bounds[i + 1])), range(threads)))
