@@ -14,8 +14,10 @@ import numpy as np
 import torch
 
 from ..collaboration import COMM_RANGE, nearest_collaborators, noisy_relative
+from . import deform_kernel, octant_kernel
 from .model import Co3SOP, VehicleOutput
 from .outputs import labels_from_logits
+from .warp import compiled_available
 
 
 @dataclass
@@ -50,3 +52,17 @@ def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
     else:
         labels, confidence = (t[0].cpu().numpy() for t in model.ego.head.labels(fused))  # exact fast path of labels_from_logits
     return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)
+
+
+def compile_kernels(model: Co3SOP) -> list[str]:
+    """Compile (or load from the cache) the CPU kernels `model`'s inference uses, so that no frame waits for a
+    compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
+    cfg = model.cfg
+    c1, c2, _ = cfg.head_channels
+    kernels = {"head": lambda: octant_kernel.available(c1, c2, cfg.num_classes)}
+    if cfg.modality == "camera":
+        kernels["image sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.image_attention.heads)
+    if cfg.fusion:
+        kernels["warp"] = compiled_available
+        kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)
+    return [name for name, ready in kernels.items() if ready()]

@@ -41,7 +41,7 @@ from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
-from ..model.predict import predict_frame
+from ..model.predict import compile_kernels, predict_frame
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
 from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_foreign
 
@@ -69,6 +69,7 @@ class Ego(Node):
         checkpoint = p("checkpoint", "")
         self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = self.model.cfg
+        self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
         self.tolerance_ns = int(p("tolerance", 0.05) * 1e9)
         self.comm_range = p("comm_range", COMM_RANGE)
         k = p("max_collaborators", -1)
@@ -99,7 +100,7 @@ class Ego(Node):
         self.create_timer(p("discovery_period", 0.5), self._discover)
         self.create_timer(0.05, self._fuse_ready)
         self.get_logger().info(f"ready: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
-                               f"{self.max_collaborators} collaborators within {self.comm_range:g} m")
+                               f"{self.max_collaborators} collaborators within {self.comm_range:g} m; compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     # --- receiving ---------------------------------------------------------------------------------
 

@@ -34,6 +34,7 @@ from ..codec import FeatureCodecConfig
 from ..errors import Co3sopError
 from ..geometry import Pose
 from ..model.checkpoint import load_model, shipped_checkpoint
+from ..model.predict import compile_kernels
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
@@ -70,6 +71,7 @@ class Vehicle(Node):
         checkpoint = p("checkpoint", "")
         self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = cfg = self.model.cfg
+        self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
             wanted = p(name, "")
             if wanted and wanted != have:
@@ -100,7 +102,8 @@ class Vehicle(Node):
         self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
             f"ready: cav {a}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
-            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}")
+            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}; "
+            f"compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     def _on_static(self, msg: TFMessage) -> None:
         for t in msg.transforms:
@@ -151,7 +154,7 @@ class Vehicle(Node):
         except Co3sopError as exc:
             return self.drops(topics.namespace(self.agent_id), "input", f"frame {stamp}: {exc}")
         t1 = time.perf_counter()
-        with torch.no_grad():
+        with torch.inference_mode():
             out = self.model.vehicle(**to_batch(inputs))
         t2 = time.perf_counter()
         try:
