@@ -29,7 +29,7 @@ from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.outputs import labels_from_logits
-from co3sop_nodes.model.warp import warp_with_mask
+from co3sop_nodes.model.warp import warp_compiled
 from timing import timed
 
 
@@ -45,9 +45,10 @@ def stage_table(name: str, repeats: int) -> str:
         others = [VehicleOutput(ego.features.roll(3, 2), torch.rand_like(ego.confidence)) for _ in range(2)]
         rel = torch.eye(4)[None].repeat(1, 2, 1, 1)
         rel[0, :, 0, 3] = torch.tensor([6.0, -9.0])
-        t_warp, _ = timed(lambda: warp_with_mask(torch.cat([others[0].features, others[0].confidence], 1), rel[:, 0], cfg.feature_grid), repeats)
+        both = torch.cat([others[0].features, others[0].confidence], 1)
+        t_warp, _ = timed(lambda: warp_compiled(both, rel[:, 0], cfg.feature_grid, torch.get_num_threads()), repeats)
         t_fuse, fused = timed(lambda: model.ego.fuse(ego, others, rel), repeats)
-        t_head, _ = timed(lambda: model.ego.head(fused), repeats)
+        t_head, _ = timed(lambda: model.ego.head.labels(fused), repeats)
         total = 3 * t_vehicle + 2 * t_warp + t_fuse + t_head
         rows.append(f"| {range_name} | {'x'.join(map(str, cfg.feature_grid.dims))} | {t_vehicle:.3f} | {t_warp:.4f} | {t_fuse:.3f} | {t_head:.3f} | {total:.2f} |")
         print(f"  {range_name}: vehicle {t_vehicle:.3f} s, fusion {t_fuse:.3f} s, head {t_head:.3f} s", flush=True)
