@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from co3sop_nodes import native
 from co3sop_nodes.model import pace
 from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
@@ -75,18 +76,25 @@ def head_table(name: str, repeats: int) -> str:
 
 
 def frame_table(repeats: int) -> str:
-    """Each shipped model's work per frame on one thread, as the nodes do it, at each range's grid (untrained beyond 51.2 m:
-    timing depends on shapes only) and the playback rate 2 cores keep up with for 3 vehicles + ego."""
-    rows = ["| model | range | vehicle ms (model + codec) | ego ms (2 neighbours, labels, encoding, cloud) | rate kept up with (3 vehicles, 2 cores) |",
-            "|---|---|---:|---:|---:|"]
+    """Each shipped model's work per frame on one thread, as the nodes do it, at each range's grid (untrained beyond
+    51.2 m: timing depends on shapes only), on the PyTorch paths and with the compiled kernels, same run; and the
+    playback rate 2 cores keep up with for 3 vehicles + ego."""
+    rows = ["| model | range | vehicle ms (model + codec): PyTorch / compiled | ratio | ego ms (2 neighbours, labels, encoding, cloud): "
+            "PyTorch / compiled | ratio | rate kept up with (3 vehicles, 2 cores): PyTorch / compiled |", "|---|---|---:|---:|---:|---:|---:|"]
     for name in ("tiny-lidar", "tiny"):
         trained, _ = load_model(shipped_checkpoint(f"{name}.pt"))
         for range_name in ("25.6m", "51.2m", "76.8m"):
             model = trained if range_name == trained.cfg.range else build_model(replace(trained.cfg, range=range_name)).eval()
-            cost = pace.frame_cost(model, repeats)
-            rate = pace.sustainable_rate(cost, 3, 0.1, 2)
-            rows.append(f"| {name} | {range_name} | {1e3 * cost.vehicle_s:.0f} | {1e3 * cost.ego_s:.0f} | {rate:.2f} |")
-            print(f"  frame {name} {range_name}: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms", flush=True)
+            costs = []
+            for enabled in (False, True):
+                native.ENABLED = enabled
+                costs.append(pace.frame_cost(model, repeats))
+            ref, fast = costs
+            rates = [pace.sustainable_rate(c, 3, 0.1, 2) for c in costs]
+            rows.append(f"| {name} | {range_name} | {1e3 * ref.vehicle_s:.0f} / {1e3 * fast.vehicle_s:.0f} | {ref.vehicle_s / fast.vehicle_s:.1f}x | "
+                        f"{1e3 * ref.ego_s:.0f} / {1e3 * fast.ego_s:.0f} | {ref.ego_s / fast.ego_s:.1f}x | {rates[0]:.2f} / {rates[1]:.2f} |")
+            print(f"  frame {name} {range_name}: vehicle {1e3 * ref.vehicle_s:.0f} -> {1e3 * fast.vehicle_s:.0f} ms, "
+                  f"ego {1e3 * ref.ego_s:.0f} -> {1e3 * fast.ego_s:.0f} ms", flush=True)
     return "\n".join(rows)
 
 

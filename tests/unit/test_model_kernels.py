@@ -8,10 +8,12 @@ import math
 import pytest
 import torch
 
-from co3sop_nodes.model import deform_kernel, pace
+from co3sop_nodes import native
+from co3sop_nodes.model import deform_kernel, octant_kernel, pace
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
 from co3sop_nodes.model.model import VehicleOutput, build_model
+from co3sop_nodes.model.warp import compiled_available
 from model_checks import MICRO
 
 
@@ -104,3 +106,8 @@ def test_the_compiled_warp_equals_grid_sample(yaw, shift):
     torch.testing.assert_close(fast[0], ref[0].detach(), rtol=1e-5, atol=1e-5)  # features
     torch.testing.assert_close(fast[1], ref[1].detach(), rtol=1e-5, atol=1e-5)  # confidences
     assert 0.1 < ref[2].float().mean() < 0.9 and torch.equal(fast[2], ref[2])  # hybrid masks
+
+
+def test_disabled_kernels_leave_the_pytorch_paths(monkeypatch):
+    monkeypatch.setattr(native, "ENABLED", False)
+    assert not deform_kernel.available(8) and not octant_kernel.available(16, 8, 24) and not compiled_available()

@@ -40,8 +40,8 @@ def _kernel(channels_per_head: int, name: str = "deform_sample_2d"):
 
 
 def available(channels_per_head: int) -> bool:
-    """Whether the kernel exists for this head width and compiles here (compiling it on first call)."""
-    return _kernel(channels_per_head) is not None
+    """Whether the kernels exist for this head width, are enabled and compile here (compiling them on first call)."""
+    return native.ENABLED and _kernel(channels_per_head) is not None
 
 
 def _array(t: torch.Tensor, dtype) -> np.ndarray:

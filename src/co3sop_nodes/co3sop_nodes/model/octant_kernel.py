@@ -33,8 +33,8 @@ def _kernel(c1: int, c2: int, classes: int):
 
 
 def available(c1: int, c2: int, classes: int) -> bool:
-    """Whether the kernel for this head shape compiles here (compiling it on first call)."""
-    return _kernel(c1, c2, classes) is not None
+    """Whether the kernel for this head shape is enabled and compiles here (compiling it on first call)."""
+    return native.ENABLED and _kernel(c1, c2, classes) is not None
 
 
 def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.nn.ConvTranspose3d, point: torch.nn.Conv3d,

@@ -64,8 +64,8 @@ def _kernel():
 
 
 def compiled_available() -> bool:
-    """Whether the compiled warp compiles here (compiling it on first call)."""
-    return _kernel() is not None
+    """Whether the compiled warp is enabled and compiles here (compiling it on first call)."""
+    return native.ENABLED and _kernel() is not None
 
 
 def warp_compiled(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, threads: int):

@@ -7,7 +7,8 @@ compiler is the system's C compiler (`$CC`, else `cc`), which every ROS 2
 install has. The library is cached under `$CO3SOP_CACHE` (default
 `~/.cache/co3sop/native`), keyed by source, defines, flags and CPU; written
 atomically, so concurrent nodes never load a half-written file. Without a
-compiler, `load` returns None and callers take their PyTorch path (tested equal).
+compiler, `load` returns None and callers take their PyTorch path (tested equal);
+`CO3SOP_NATIVE=0` makes them take it anyway.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
+# False: every caller takes its PyTorch path (CO3SOP_NATIVE=0 in the environment; benchmarks toggle it to time both)
+ENABLED = os.environ.get("CO3SOP_NATIVE", "1") != "0"
 log = logging.getLogger(__name__)
 
 
