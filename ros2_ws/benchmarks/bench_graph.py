@@ -18,8 +18,9 @@ once per playback rate instead, and the table gives the frames the ego fused
 and the recorder recorded of the bag's, latency and CPU per node: the highest
 rate with every frame fused is what the machine keeps up with (the demo's own
 default rate is measured before it starts, `model.pace`). With --paths, the
-graph runs twice at rate 0.04, the ego on its reference paths (dense head,
-reference point cloud) and on its fast paths: each ego stage's ratio, same run.
+graph runs twice at rate 0.04, the ego on its reference paths (PyTorch warp
+and sampling, dense head, reference point cloud) and on its fast paths: each
+ego stage's ratio, same run.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ SETTINGS = {  # name -> `demo` arguments (--params: the neighbours' vehicle para
     "int8-topk1024-zstd": ["--params", "codec.dtype:=int8", "codec.selection:=topk", "codec.topk:=1024"],
     "ego-alone-no-v2x": ["--vehicles", "1"],  # what collaboration adds: only the ego's own vehicle runs
 }
-# the ego's fast paths against its reference paths (dense head, reference cloud), same codec, same slow rate: stage ratios
+# the ego's fast paths against its reference paths (PyTorch warp and sampling, dense head, reference cloud), same codec,
+# same slow rate: stage ratios
 PATHS = {"ego-fast-paths": ["--rate", "0.04"], "ego-reference-paths": ["--rate", "0.04", "--ego-params", "reference_paths:=true"]}
 CPU_SETTING = "int8-topk1024-zstd"  # per-node CPU is reported for the setting that meets the size goal
 

@@ -33,7 +33,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from .. import topics
+from .. import native, topics
 from ..cloud import occupancy_cloud, occupancy_cloud_reference
 from ..codec import decode_features, encode_labels
 from ..collaboration import COMM_RANGE
@@ -80,8 +80,10 @@ class Ego(Node):
         self.neighbour_timeout_ns = int(p("neighbour_timeout", 5.0) * 1e9)
         self.max_raw_bytes = int(p("max_payload_mb", 64.0) * 2**20)
         self.publish_points = p("publish_points", True)
-        # the reference paths (dense head, cloud by index arrays): the same outputs, slower; for bench_graph's same-run ratios
+        # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
+        # for bench_graph's same-run ratios
         self.reference_paths = p("reference_paths", False)
+        native.ENABLED = native.ENABLED and not self.reference_paths
         torch.set_num_threads(p("threads", 1))
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
