@@ -132,7 +132,9 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     ego, neighbour = cavs[0], cavs[-1]
     mcap = graph.folder / "run.mcap"
     graph.start("recorder", executable("recorder"), "--out", str(mcap), "--topics", "/diagnostics", "/ego/occupancy")
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=2.0")
+    # max_wait 3 s: a vehicle's first frame can come more than a second after the ego's own (its start-up), and the
+    # first fused frame must use the neighbour; frames are 5 s apart, and the dead neighbour is dropped after 2 s silent
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=3.0", "-p", "neighbour_timeout:=2.0")
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
     for name in ("ego", f"vehicle{ego}", f"vehicle{neighbour}"):
