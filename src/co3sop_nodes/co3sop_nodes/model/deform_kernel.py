@@ -44,10 +44,6 @@ def available(channels_per_head: int) -> bool:
     return native.ENABLED and _kernel(channels_per_head) is not None
 
 
-def _array(t: torch.Tensor, dtype) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype)
-
-
 def sample_pairs(values: list[torch.Tensor], camera: torch.Tensor, query: torch.Tensor, uv: torch.Tensor, offsets: torch.Tensor,
                  weights: torch.Tensor, threads: int) -> torch.Tensor:
     """values: L x (N, Hl, Wl, H*Ch) channels-last, per camera; per pair (camera, query index, uv (pairs, 2) in [0, 1]);
@@ -55,11 +51,11 @@ def sample_pairs(values: list[torch.Tensor], camera: torch.Tensor, query: torch.
     _, h, levels, p, _ = offsets.shape
     n, c = values[0].shape[0], values[0].shape[-1]
     fn = _kernel(c // h)
-    maps = [_array(v, np.float32) for v in values]
+    maps = [native.array(v) for v in values]
     pointers = (ctypes.c_void_p * (n * levels))(*[m.ctypes.data + k * m.strides[0] for k in range(n) for m in maps])  # camera-major
     shapes = np.array([m.shape[1:3] for m in maps], np.int64)  # (L, 2) Hl, Wl
-    cams, queries, uvs = _array(camera, np.int64), _array(query, np.int64), _array(uv, np.float32)
-    off, w = _array(offsets, np.float32), _array(weights, np.float32)
+    cams, queries, uvs = native.array(camera, np.int64), native.array(query, np.int64), native.array(uv)
+    off, w = native.array(offsets), native.array(weights)
     pairs = len(cams)
     out = np.empty((pairs, c), np.float32)
     native.parallel(fn, (ctypes.addressof(pointers), shapes.ctypes.data, levels, h, p, cams.ctypes.data, queries.ctypes.data, uvs.ctypes.data,
@@ -74,10 +70,10 @@ def sample_3d(values: torch.Tensor, reference: torch.Tensor, offsets: torch.Tens
     a, c = values.shape[0], values.shape[-1]
     q, h, slots, p, _ = offsets.shape
     fn = _kernel(c // h, "deform_sample_3d")
-    maps = _array(values, np.float32)
+    maps = native.array(values)
     pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
     dims = np.array(maps.shape[1:4], np.int64)
-    ref, off, sc, w = (_array(t, np.float32) for t in (reference, offsets, scale, weights))
+    ref, off, sc, w = (native.array(t) for t in (reference, offsets, scale, weights))
     out = np.empty((q, c), np.float32)
     native.parallel(fn, (ctypes.addressof(pointers), dims.ctypes.data, a, slots, h, p, ref.ctypes.data, off.ctypes.data, sc.ctypes.data,
               w.ctypes.data, out.ctypes.data), q, threads)

@@ -43,12 +43,11 @@ def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.n
     on `threads` threads (the kernel must be `available`)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k)
-    f32 = lambda t: np.ascontiguousarray(t.detach().float().cpu().numpy())  # noqa: E731
-    x = f32(parents)  # (P, C1)
-    up_w = f32(up.weight.flatten(2))  # (C1, C2, 8): octant (kernel offset i, j, k) last
-    up_b = f32(up.bias[:, None].expand(c2, 8))  # (C2, 8)
-    point_w, point_b = f32(point.weight[:, :, 0, 0, 0].t()), f32(point.bias)  # (C2 in, C2 out), (C2,)
-    cls_w, cls_b = f32(classify.weight[:, :, 0, 0, 0].t()), f32(classify.bias)  # (C2, K), (K,)
+    x = native.array(parents)  # (P, C1)
+    up_w = native.array(up.weight.flatten(2))  # (C1, C2, 8): octant (kernel offset i, j, k) last
+    up_b = native.array(up.bias[:, None].expand(c2, 8))  # (C2, 8)
+    point_w, point_b = native.array(point.weight[:, :, 0, 0, 0].t()), native.array(point.bias)  # (C2 in, C2 out), (C2,)
+    cls_w, cls_b = native.array(classify.weight[:, :, 0, 0, 0].t()), native.array(classify.bias)  # (C2, K), (K,)
     n = x.shape[0]
     x1, y1, z1 = dims
     labels, confidence = np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8), np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8)

@@ -72,8 +72,8 @@ def warp_compiled(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: 
     """`warp_with_mask` for one CPU volume (1, C, X, Y, Z), channels-last out: warped (X, Y, Z, C), warp mask (X, Y, Z)."""
     _, c, nx, ny, nz = volume.shape
     sampling = F.affine_grid(warp_theta(neighbour_from_ego, grid), [1, c, nx, ny, nz], align_corners=False)  # (1, X, Y, Z, 3)
-    src = np.ascontiguousarray(volume[0].permute(1, 2, 3, 0).float().numpy())  # (X, Y, Z, C)
-    points = np.ascontiguousarray(sampling[0].numpy()).reshape(-1, 3)
+    src = native.array(volume[0].permute(1, 2, 3, 0))  # (X, Y, Z, C)
+    points = native.array(sampling[0]).reshape(-1, 3)
     out, filled = np.empty((nx, ny, nz, c), np.float32), np.empty((nx, ny, nz), np.float32)
     fn = _kernel()
     native.parallel(fn, (src.ctypes.data, nx, ny, nz, c, points.ctypes.data, out.ctypes.data, filled.ctypes.data), len(points), threads)

@@ -70,6 +70,11 @@ def load(name: str, **defines: int) -> ctypes.CDLL | None:
     return ctypes.CDLL(str(path))
 
 
+def array(t, dtype=np.float32) -> np.ndarray:
+    """A tensor as a C-contiguous numpy array of `dtype` for a kernel (a view where it already is one)."""
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype)
+
+
 @cache
 def _pool(threads: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(threads, thread_name_prefix="co3sop-native")
