@@ -204,6 +204,9 @@ def main(args: list[str] | None = None) -> int:
         say("waiting for the nodes to load the model")
         for node in nodes:
             node.wait_for(r"ready:", timeout=180)
+        for c in cavs:  # the ego knows every neighbour before the first frame, or fuses it alone
+            if c != ego:
+                nodes[0].wait_for(rf"neighbour discovered: {re.escape(topics.voxel_features(c))}", timeout=60)
         for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS):  # the nodes' outputs are recorded from their first frame on
             recorder.wait_for(rf"recording {re.escape(topic)} ", timeout=60)
         say(f"playing the bag at rate {opts.rate}")

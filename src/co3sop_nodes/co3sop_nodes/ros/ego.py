@@ -8,7 +8,7 @@ agent id, pose, grid, payload, finite values, size limit, age) and decoded on
 arrival; a bad one is dropped and counted by reason, with a warning naming the
 topic and the reason once per burst. For each of its own frames the ego waits
 (at most max_wait s) for every live neighbour (one heard from, or discovered,
-within neighbour_timeout s) for its frame within `tolerance` s of its stamp, keeps the nearest max_collaborators
+within neighbour_timeout s of the later of its discovery and the ego's first own frame) for its frame within `tolerance` s of its stamp, keeps the nearest max_collaborators
 within comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
 runs the model's ego half and publishes /ego/occupancy
 (co3sop_msgs/SemanticOccupancy), /ego/occupancy/points (PointCloud2: x, y, z,
@@ -89,6 +89,9 @@ class Ego(Node):
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
         self._received: dict[int, deque[Received]] = {}
         self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last accepted message (or of its discovery)
+        # silence is judged only while the ego's own frames flow: sensors that start long after the graph's
+        # discovery must not make every neighbour look silent at the first frame
+        self._first_own_ns: int | None = None
         self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
         self._last_stamp = -1
         self._subs: dict[str, object] = {}
@@ -153,6 +156,8 @@ class Ego(Node):
         self._received.setdefault(agent, deque(maxlen=8)).append(record)
         self._last_heard[agent] = wall
         if agent == self.ego_id:
+            self._first_own_ns = self._first_own_ns or wall
+            self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
             self._pending.append((stamp, time.monotonic() + self.max_wait))
         self._fuse_ready()
 
@@ -164,9 +169,11 @@ class Ego(Node):
         return best if best is not None and abs(best.stamp - stamp) <= self.tolerance_ns else None
 
     def _live_neighbours(self) -> list[int]:
-        """Discovered neighbours with a publisher, heard from (or discovered) within neighbour_timeout."""
+        """Discovered neighbours with a publisher, heard from within neighbour_timeout (counted from the later of their
+        discovery and the ego's first own frame)."""
         now = time.time_ns()
-        return [a for a in self._agents.values() if a != self.ego_id and now - self._last_heard[a] < self.neighbour_timeout_ns
+        start = self._first_own_ns or now
+        return [a for a in self._agents.values() if a != self.ego_id and now - max(self._last_heard[a], start) < self.neighbour_timeout_ns
                 and self.count_publishers(topics.voxel_features(a)) > 0]
 
     def _fuse_ready(self) -> None:
