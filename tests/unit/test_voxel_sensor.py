@@ -115,10 +115,11 @@ def random_scene(seed: int) -> tuple[list[SceneObject], list[SceneObject], np.nd
 # --- annotate == oracles on random scenes -----------------------------------------------------------
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "numpy"])
 @pytest.mark.parametrize("seed", range(24))
-def test_annotate_equals_brute_force_on_random_scenes(seed):
+def test_annotate_equals_brute_force_on_random_scenes(seed, compiled):
     world, local, world_from_sensor = random_scene(seed)
-    got = annotate(world, world_from_sensor, SMALL)
+    got = annotate(world, world_from_sensor, SMALL, compiled=compiled)
     assert got.shape == SMALL.dims and got.dtype == np.uint8
     brute = annotate_brute_force(world, world_from_sensor, SMALL)
     np.testing.assert_array_equal(got, brute)
@@ -150,17 +151,20 @@ def test_random_scenes_exercise_overlaps_and_thin_objects():
     assert thin_missed >= 15
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "numpy"])
 @pytest.mark.parametrize("workers", [1, 4])
-def test_worker_count_does_not_change_the_result(workers):
+def test_worker_count_does_not_change_the_result(workers, compiled):
     world, _, world_from_sensor = random_scene(100)
-    np.testing.assert_array_equal(annotate(world, world_from_sensor, SMALL, workers=workers), annotate(world, world_from_sensor, SMALL, workers=2))
+    np.testing.assert_array_equal(annotate(world, world_from_sensor, SMALL, workers=workers, compiled=compiled),
+                                  annotate(world, world_from_sensor, SMALL, workers=2))
 
 
 # --- a procedural town around a CAV ---------------------------------------------------------------
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "numpy"])
 @pytest.mark.parametrize("seed", [0, 5])
-def test_annotate_equals_brute_force_in_a_town(seed):
+def test_annotate_equals_brute_force_in_a_town(seed, compiled):
     town = generate_town(TownConfig(), seed)
     traffic = Traffic(town, TrafficConfig(), seed + 1)
     for _ in range(3):
@@ -169,13 +173,13 @@ def test_annotate_equals_brute_force_in_a_town(seed):
     cav = traffic.cavs[0]
     world_from_lidar = cav.pose() @ rig.vehicle_from_lidar()
     grid = GridSpec.centred(12.8, (-2.0, 2.8), 0.2)
-    got = annotate(objects, world_from_lidar, grid, ignore=(cav.id,))
+    got = annotate(objects, world_from_lidar, grid, ignore=(cav.id,), compiled=compiled)
     np.testing.assert_array_equal(got, annotate_brute_force(objects, world_from_lidar, grid, ignore=(cav.id,)))
     body = np.linalg.inv(rig.vehicle_from_lidar()) @ [0.0, 0.0, 0.5, 1.0]  # a point of its body, vehicle frame
     ijk = tuple(np.floor((body[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))
     # the sensor ignores the CAV that carries it (Co3SOP's self_ignore) ...
     assert got[ijk] == L["empty"]
-    assert annotate(objects, world_from_lidar, grid)[ijk] == L["vehicle"]
+    assert annotate(objects, world_from_lidar, grid, compiled=compiled)[ijk] == L["vehicle"]
     # ... and the road surface lies just under it (world z in (-0.2, 0])
     under = np.linalg.inv(rig.vehicle_from_lidar()) @ [2.0, 0.0, -0.05, 1.0]
     assert got[tuple(np.floor((under[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))] in (L["road"], L["roadline"], L["railtrack"])
@@ -216,8 +220,9 @@ OVERLAP_GRID = GridSpec((-1.0, -1.0, -1.0), 0.2, (10, 10, 10))  # layer k spans 
 
 def _labels_of(objects, grid=OVERLAP_GRID, world_from_sensor=None):
     m = np.eye(4) if world_from_sensor is None else world_from_sensor
-    got = annotate(objects, m, grid)
+    got = annotate(objects, m, grid)  # the kernel where it compiles, as the simulator runs
     np.testing.assert_array_equal(got, annotate_brute_force(objects, m, grid))
+    np.testing.assert_array_equal(got, annotate(objects, m, grid, compiled=False))
     return got
 
 
@@ -317,7 +322,7 @@ def test_wire_crossing_the_volume_border():
 
 
 def test_empty_scene_is_all_zeros():
-    for got in (annotate([], np.eye(4), SMALL), annotate_brute_force([], np.eye(4), SMALL)):
+    for got in (annotate([], np.eye(4), SMALL), annotate([], np.eye(4), SMALL, compiled=False), annotate_brute_force([], np.eye(4), SMALL)):
         assert got.shape == SMALL.dims and got.dtype == np.uint8 and not got.any()
 
 

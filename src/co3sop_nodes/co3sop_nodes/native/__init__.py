@@ -7,8 +7,8 @@ compiler is the system's C compiler (`$CC`, else `cc`), which every ROS 2
 install has. The library is cached under `$CO3SOP_CACHE` (default
 `~/.cache/co3sop/native`), keyed by source, defines, flags and CPU; written
 atomically, so concurrent nodes never load a half-written file. Without a
-compiler, `load` returns None and callers take their PyTorch path (tested equal);
-`CO3SOP_NATIVE=0` makes them take it anyway.
+compiler, `load` returns None and callers take their PyTorch or NumPy path
+(tested equal); `CO3SOP_NATIVE=0` makes them take it anyway.
 """
 
 from __future__ import annotations
@@ -88,3 +88,10 @@ def parallel(fn, args: tuple, n: int, threads: int) -> None:
         return
     bounds = np.linspace(0, n, threads + 1).astype(np.int64)
     list(_pool(threads).map(lambda i: fn(*args, int(bounds[i]), int(bounds[i + 1])), range(threads)))
+
+
+def together(fn, threads: int) -> list:
+    """fn() on `threads` threads at once (workers sharing a queue inside the kernel); their results."""
+    if threads <= 1:
+        return [fn()]
+    return list(_pool(threads).map(lambda _: fn(), range(threads)))

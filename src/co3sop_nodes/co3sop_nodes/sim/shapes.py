@@ -50,22 +50,31 @@ class Box:
         return self.center - r, self.center + r
 
     @cached_property
-    def _axes(self) -> np.ndarray:
-        """Candidate separating axes (K, 3): the cube's faces, the box's faces, their edge crossings."""
-        axes = [np.eye(3)[i] for i in range(3)] + [self.rot[:, j] for j in range(3)]
+    def overlap_constants(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The separating axis test's constants: 15 candidate axes (15, 3) (the cube's faces, the box's faces, their
+        edge crossings; a degenerate crossing is all zeros), per axis |a| summed (15,) and the box's reach (15,)
+        (inf for a degenerate axis, which separates nothing). Written as elementwise float64 arithmetic, as the
+        compiled voxel sensor (native/voxel_sensor.c) repeats it, so both decide every voxel alike."""
+        eye, r = np.eye(3), self.rot
+        axes = [eye[i] for i in range(3)] + [r[:, j] for j in range(3)]
         for i in range(3):
             for j in range(3):
-                axis = np.cross(np.eye(3)[i], self.rot[:, j])
-                norm = np.linalg.norm(axis)
-                if norm > 1e-9:
-                    axes.append(axis / norm)
-        return np.array(axes)
+                axis = np.cross(eye[i], r[:, j])
+                norm = np.sqrt(axis @ axis)
+                axes.append(axis / norm if norm > 1e-9 else np.zeros(3))
+        a = np.array(axes)  # (15, 3)
+        valid = np.abs(a).sum(axis=1) > 0
+        abs_sum = (np.abs(a[:, 0]) + np.abs(a[:, 1])) + np.abs(a[:, 2])
+        along = np.abs(a @ r)  # (15, 3): |axis . box axis j|
+        reach = (along[:, 0] * self.half[0] + along[:, 1] * self.half[1]) + along[:, 2] * self.half[2]
+        return a, abs_sum, np.where(valid, reach, np.inf)
 
     def overlaps(self, centers: np.ndarray, half: float) -> np.ndarray:
         """Strict overlap with axis-aligned cubes of half size `half` at `centers` (N, 3) -> (N,) bool."""
-        axes = self._axes
-        reach = half * np.abs(axes).sum(axis=1) + np.abs(axes @ self.rot) @ self.half - EPS  # (K,)
-        distance = np.abs((self.center - centers) @ axes.T)  # (N, K)
+        a, abs_sum, box_reach = self.overlap_constants
+        reach = half * abs_sum + box_reach - EPS  # (15,)
+        d = self.center - centers  # (N, 3)
+        distance = np.abs(d[:, 0:1] * a[:, 0] + d[:, 1:2] * a[:, 1] + d[:, 2:3] * a[:, 2])  # (N, 15)
         return (distance < reach).all(axis=1)  # separating axis theorem
 
     def vertical_entry(self, xy: np.ndarray) -> np.ndarray:
@@ -101,12 +110,18 @@ class Cylinder:
         r = self.radius
         return np.array([self.x - r, self.y - r, self.z0]), np.array([self.x + r, self.y + r, self.z1])
 
+    @cached_property
+    def overlap_constants(self) -> tuple[float, float, float]:
+        """z0 + EPS, z1 - EPS, (radius - EPS)^2: the strict overlap's thresholds (the compiled sensor takes them)."""
+        return self.z0 + EPS, self.z1 - EPS, (self.radius - EPS) ** 2
+
     def overlaps(self, centers: np.ndarray, half: float) -> np.ndarray:
+        z0, z1, r2 = self.overlap_constants
         dx = np.maximum(np.abs(centers[:, 0] - self.x) - half, 0)
         dy = np.maximum(np.abs(centers[:, 1] - self.y) - half, 0)
-        in_z = (centers[:, 2] + half > self.z0 + EPS) & (centers[:, 2] - half < self.z1 - EPS)
+        in_z = (centers[:, 2] + half > z0) & (centers[:, 2] - half < z1)
         # the cube's nearest point to the axis lies inside the circle
-        return in_z & (dx * dx + dy * dy < (self.radius - EPS) ** 2)
+        return in_z & (dx * dx + dy * dy < r2)
 
     def vertical_entry(self, xy: np.ndarray) -> np.ndarray:
         inside = (xy[:, 0] - self.x) ** 2 + (xy[:, 1] - self.y) ** 2 < self.radius**2
@@ -126,9 +141,14 @@ class Sphere:
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
         return self.center - self.radius, self.center + self.radius
 
+    @cached_property
+    def overlap_constants(self) -> float:
+        """(radius - EPS)^2: the strict overlap's threshold (the compiled sensor takes it)."""
+        return (self.radius - EPS) ** 2
+
     def overlaps(self, centers: np.ndarray, half: float) -> np.ndarray:
         gap = np.maximum(np.abs(centers - self.center) - half, 0)  # (N, 3)
-        return (gap * gap).sum(axis=1) < (self.radius - EPS) ** 2
+        return (gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1]) + gap[:, 2] * gap[:, 2] < self.overlap_constants
 
     def vertical_entry(self, xy: np.ndarray) -> np.ndarray:
         d2 = ((xy - self.center[:2]) ** 2).sum(axis=1)

@@ -27,6 +27,9 @@ A primitive thinner than a voxel column may slip between the column centres of
 stage 1; it is then seeded from an exact check of the voxels inside its own
 bounding box, so no object that intersects the volume is missed. The oracle
 checks every voxel against every object and must give the identical grid.
+
+The stages run in a compiled kernel (voxel_kernel.py, native/voxel_sensor.c)
+where a C compiler is present, else in NumPy here; both give the same grid.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ import numpy as np
 
 from ..classes import LABEL_BY_NAME
 from ..grid import GridSpec
+from . import voxel_kernel
 from .scene import SceneObject
 
 # Lowest first; a voxel shared by two objects takes the later label.
@@ -51,6 +55,8 @@ LABEL_PRIORITY: tuple[int, ...] = tuple(
 )
 _RANK = np.zeros(256, np.int16)
 _RANK[list(LABEL_PRIORITY)] = np.arange(1, len(LABEL_PRIORITY) + 1)
+_LABEL_OF_RANK = np.zeros(256, np.uint8)
+_LABEL_OF_RANK[1:len(LABEL_PRIORITY) + 1] = LABEL_PRIORITY
 _NEIGHBOURS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
 
 
@@ -170,15 +176,31 @@ def _kept(objects: Sequence[SceneObject], ignore: Collection[int]) -> list[Scene
     return [o for o in objects if o.id not in ignore]
 
 
+def _compiled(grid: GridSpec, local: Sequence[SceneObject], workers: int) -> np.ndarray:
+    """The three stages in the compiled kernel (voxel_kernel.py): the same grid as the NumPy path."""
+    def box(bounds) -> list[int]:
+        r = _Region(grid, bounds)
+        return [*r.lo, *r.hi]
+
+    boxes = np.array([box(o.aabb()) for o in local], np.int64).reshape(-1, 6)
+    primitive_boxes = np.array([box(p.aabb()) for o in local for p in o.primitives], np.int64).reshape(-1, 6)
+    rank = _RANK[[o.label for o in local]].astype(np.uint8)
+    grid_ranks = voxel_kernel.ranks(grid, local, rank, boxes, primitive_boxes, max(1, workers))
+    return voxel_kernel.to_labels(grid_ranks, _LABEL_OF_RANK, max(1, workers)).reshape(grid.dims)
+
+
 def annotate(
     objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec, workers: int = 2,
-    ignore: Collection[int] = (),
+    ignore: Collection[int] = (), compiled: bool | None = None,
 ) -> np.ndarray:
     """The voxel sensor: (nx, ny, nz) uint8 labels of `grid`, axis-aligned in the sensor frame.
 
-    Objects whose id is in `ignore` (the sensor's own vehicle) are not labelled.
+    Objects whose id is in `ignore` (the sensor's own vehicle) are not labelled. `compiled`: the kernel
+    (voxel_kernel.py; default: where it compiles) or the NumPy stages; the same grid either way.
     """
     local = in_sensor_frame(_near(_kept(objects, ignore), world_from_sensor, grid), world_from_sensor)
+    if voxel_kernel.available() if compiled is None else compiled:
+        return _compiled(grid, local, workers)
     with ThreadPoolExecutor(max(1, workers)) as pool:
         occupied = list(pool.map(lambda o: _grow(grid, o), local))
     return _assign(grid, local, occupied)
