@@ -11,8 +11,9 @@ setup(
     package_data={PACKAGE: ["native/*.c"]},  # C kernels, compiled on first use (co3sop_nodes.native)
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
-        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}", ["package.xml", "rosdep.yaml"]),
         (f"share/{PACKAGE}/config", glob("config/*")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/checkpoints", glob("checkpoints/*")),
     ],
     install_requires=["setuptools"],

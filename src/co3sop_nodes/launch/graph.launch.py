@@ -1,0 +1,58 @@
+"""The whole graph on a CAV bag, as `demo` runs it: recorder, ego, one vehicle per CAV, the player.
+
+    ros2 launch co3sop_nodes graph.launch.py bag:=bags/demo/test/SCENARIO [model:=tiny-lidar] [vehicles:=3]
+        [rate:=0.25] [out:=results/launch] [vehicle_params_file:=...] [ego_params_file:=...]
+
+The CAVs are read from the bag (the first `vehicles`; the first is the ego).
+The ego's own encoder is lossless; the other vehicles use the codec of
+vehicle_params_file. The player waits for every subscriber before playing.
+Score the recording afterwards: ros2 run co3sop_nodes score OUT/graph.mcap.
+"""
+
+from pathlib import Path
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch_ros.actions import Node
+from launch_ros.substitutions import FindPackageShare
+
+from co3sop_nodes.model.checkpoint import read_checkpoint
+from co3sop_nodes.ros.demo import DEFAULT_MODEL, LOSSLESS, bag_contents, model_path, played_topics
+
+CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
+
+
+def nodes(context) -> list[Node]:
+    arg = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
+    bag = Path(arg("bag"))
+    checkpoint = str(model_path(arg("model")))
+    cavs = bag_contents(bag)[0][: int(arg("vehicles"))]
+    ego = cavs[0]
+    sensors = read_checkpoint(checkpoint)["config"]["modality"]
+    lossless = {k: v for k, v in (p.split(":=") for p in LOSSLESS)}
+    out = Path(arg("out"))
+    return [
+        Node(package="co3sop_nodes", executable="recorder", name="recorder", output="screen", arguments=["--out", str(out / "graph.mcap")]),
+        Node(package="co3sop_nodes", executable="ego", name="ego", output="screen",
+             parameters=[arg("ego_params_file"), {"ego_id": ego, "checkpoint": checkpoint}]),
+        *(Node(package="co3sop_nodes", executable="vehicle", name=f"vehicle_{c}", output="screen",
+               parameters=[arg("vehicle_params_file"), {"id": c, "checkpoint": checkpoint, **(lossless if c == ego else {})}])
+          for c in cavs),
+        Node(package="co3sop_nodes", executable="player", name="player", output="screen",
+             arguments=[str(bag), "--rate", arg("rate"), "--wait-subscribers", "30", "--topics", *played_topics(cavs, sensors)]),
+    ]
+
+
+def generate_launch_description() -> LaunchDescription:
+    return LaunchDescription([
+        DeclareLaunchArgument("bag", description="a CAV bag (rosbag2 folder) to play"),
+        DeclareLaunchArgument("model", default_value=DEFAULT_MODEL, description="a shipped checkpoint by name (tiny-lidar, tiny) or a path"),
+        DeclareLaunchArgument("vehicles", default_value="3", description="vehicle nodes: the bag's first CAVs; the first is the ego"),
+        DeclareLaunchArgument("rate", default_value="0.25", description="playback rate (1 = real time)"),
+        DeclareLaunchArgument("out", default_value="results/launch", description="folder of the recording graph.mcap"),
+        DeclareLaunchArgument("vehicle_params_file", default_value=PathJoinSubstitution([CONFIG, "vehicle.yaml"]),
+                              description="the vehicles' parameters (their V2X codec)"),
+        DeclareLaunchArgument("ego_params_file", default_value=PathJoinSubstitution([CONFIG, "ego.yaml"]), description="the ego's parameters"),
+        OpaqueFunction(function=nodes),
+    ])

@@ -1,0 +1,146 @@
+"""The package as a ROS 2 user installs it: package.xml declares what the code imports (under keys rosdep
+resolves), and the launch files reference executables, parameters and files that exist."""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+import yaml
+from ament_index_python.packages import get_package_share_directory
+
+from co3sop_nodes.ros.demo import LOSSLESS
+
+REPO = Path(__file__).resolve().parents[2]
+PACKAGE = REPO / "src" / "co3sop_nodes"
+LAUNCH_FILES = sorted((PACKAGE / "launch").glob("*.launch.py"))
+
+# ROS packages the code may import: their rosdep key is their name
+ROS_PACKAGES = {"ament_index_python", "builtin_interfaces", "co3sop_msgs", "diagnostic_msgs", "geometry_msgs", "launch", "launch_ros",
+                "rclpy", "rosgraph_msgs", "sensor_msgs", "std_msgs", "tf2_msgs"}
+# Python modules -> rosdep key (what `rosdep install` must provide)
+PYTHON_KEYS = {"numpy": "python3-numpy", "torch": "python3-torch", "yaml": "python3-yaml", "PIL": "python3-pil", "matplotlib": "python3-matplotlib",
+               "tqdm": "python3-tqdm", "rosbags": "python3-rosbags-pip", "trimesh": "python3-trimesh-pip", "embreex": "python3-embreex-pip",
+               "mcap": "python3-mcap-pip", "zstandard": "python3-zstandard-pip"}
+# modules that need another one at run time without naming it: trimesh's Embree ray caster loads embreex
+INDIRECT = {"trimesh.ray.ray_pyembree": "embreex"}
+# keys of rosdistro's rosdep/python.yaml we use (checked in ros/rosdistro at 662921b, 2026-08-22); any other
+# non-ROS key must be defined in the package's rosdep.yaml
+ROSDISTRO_KEYS = {"python3-numpy", "python3-torch", "python3-yaml", "python3-pil", "python3-matplotlib", "python3-tqdm", "python3-pytest",
+                  "python3-rosbags-pip", "python3-trimesh-pip"}
+
+
+def manifest(tag: str) -> set[str]:
+    return {e.text.strip() for e in ET.parse(PACKAGE / "package.xml").getroot().iter(tag)}
+
+
+def imported_modules() -> set[str]:
+    """Dotted names of the absolute imports in the package's modules and launch files."""
+    names = set()
+    for path in [*(PACKAGE / "co3sop_nodes").rglob("*.py"), *LAUNCH_FILES]:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names.add(node.module)
+                names |= {f"{node.module}.{a.name}" for a in node.names}
+    return names
+
+
+def required_keys() -> set[str]:
+    modules = imported_modules()
+    tops = {m.split(".")[0] for m in modules} | {INDIRECT[m] for m in modules if m in INDIRECT}
+    tops -= set(sys.stdlib_module_names) | {"co3sop_nodes", "__future__"}
+    unknown = tops - ROS_PACKAGES - PYTHON_KEYS.keys()
+    assert not unknown, f"imports without a rosdep key here: {sorted(unknown)}: add them to PYTHON_KEYS and package.xml"
+    return {PYTHON_KEYS.get(t, t) for t in tops}
+
+
+def test_package_xml_declares_exactly_what_the_code_imports():
+    assert manifest("exec_depend") == required_keys()
+    assert "python3-pytest" in manifest("test_depend")
+
+
+def test_every_python_key_resolves():
+    own = yaml.safe_load((PACKAGE / "rosdep.yaml").read_text())
+    keys = {k for k in manifest("exec_depend") | manifest("test_depend") if k not in ROS_PACKAGES}
+    assert keys <= ROSDISTRO_KEYS | own.keys(), sorted(keys - ROSDISTRO_KEYS - own.keys())
+    assert own.keys() <= keys, "rosdep.yaml defines keys nothing uses"
+    pinned = {re.split(r"[=<>\[]", line)[0].strip().lower() for line in (REPO / "ros2_ws" / "requirements.txt").read_text().splitlines()
+              if line.strip() and not line.startswith("#")}
+    for key, rule in own.items():
+        packages = rule["ubuntu"]["pip"]["packages"]
+        assert set(packages) <= pinned, f"{key}: {packages} not pinned in ros2_ws/requirements.txt"
+
+
+def test_package_xml_and_rosdep_yaml_are_installed():
+    share = Path(get_package_share_directory("co3sop_nodes"))
+    assert (share / "package.xml").is_file() and (share / "rosdep.yaml").is_file()
+    assert sorted(p.name for p in (share / "launch").glob("*.launch.py")) == [p.name for p in LAUNCH_FILES]
+
+
+# --- launch files (`launch` is not on PyPI: parsed, not run) ---------------------------------------
+
+
+def console_scripts() -> set[str]:
+    return set(re.findall(r'f"(\w+) = \{PACKAGE\}', (PACKAGE / "setup.py").read_text()))
+
+
+def config_parameters(executable: str) -> set[str]:
+    """Every parameter of the node's parameter file, dotted."""
+    def flat(d: dict, prefix: str = "") -> set[str]:
+        return set().union(*(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k} for k, v in d.items()))
+
+    return flat(yaml.safe_load((PACKAGE / "config" / f"{executable}.yaml").read_text())["/**"]["ros__parameters"])
+
+
+def calls(tree: ast.AST, name: str) -> list[ast.Call]:
+    return [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == name]
+
+
+def keyword(call: ast.Call, name: str):
+    return next((k.value for k in call.keywords if k.arg == name), None)
+
+
+def test_there_is_a_launch_file_for_the_graph_a_vehicle_and_the_ego():
+    assert [p.name for p in LAUNCH_FILES] == ["ego.launch.py", "graph.launch.py", "vehicle.launch.py"]
+
+
+@pytest.mark.parametrize("path", LAUNCH_FILES, ids=lambda p: p.name)
+def test_launch_file_references_exist(path):
+    tree = ast.parse(path.read_text(), str(path))
+    assert any(isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description" for n in tree.body)
+    scripts = console_scripts()
+    nodes = calls(tree, "Node")
+    assert nodes
+    for node in nodes:
+        assert ast.literal_eval(keyword(node, "package")) == "co3sop_nodes"
+        executable = ast.literal_eval(keyword(node, "executable"))
+        assert executable in scripts, f"{path.name}: no executable {executable}"
+        params = keyword(node, "parameters")
+        for d in (e for e in (params.elts if params is not None else []) if isinstance(e, ast.Dict)):
+            names = {ast.literal_eval(k) for k in d.keys if k is not None}
+            if any(k is None for k in d.keys):  # **LOSSLESS settings of the ego's own vehicle
+                names |= {p.split(":=")[0] for p in LOSSLESS}
+            assert names <= config_parameters(executable), f"{path.name}: {executable} has no parameters {names - config_parameters(executable)}"
+    declared = {ast.literal_eval(c.args[0]) for c in calls(tree, "DeclareLaunchArgument")}
+    used = {c.args[0].value for c in calls(tree, "LaunchConfiguration") if isinstance(c.args[0], ast.Constant)}
+    used |= {c.args[0].value for c in calls(tree, "arg") if isinstance(c.args[0], ast.Constant)}  # graph: arg(name) performs one
+    assert used <= declared, f"{path.name}: undeclared launch arguments {used - declared}"
+    for join in calls(tree, "PathJoinSubstitution"):  # parameter files: (share, "config", "x.yaml") or (CONFIG, "x.yaml")
+        for part in join.args[0].elts:
+            if isinstance(part, ast.Constant) and part.value.endswith(".yaml"):
+                assert (PACKAGE / "config" / part.value).is_file(), f"{path.name}: no config/{part.value}"
+
+
+def test_graph_launch_runs_what_demo_runs():
+    """Same nodes and arguments: recorder, ego, vehicles, player (the CAVs from the bag, the ego's codec lossless)."""
+    tree = ast.parse((PACKAGE / "launch" / "graph.launch.py").read_text())
+    assert sorted(ast.literal_eval(keyword(n, "executable")) for n in calls(tree, "Node")) == ["ego", "player", "recorder", "vehicle"]
+    text = (PACKAGE / "launch" / "graph.launch.py").read_text()
+    for name in ("bag_contents", "played_topics", "LOSSLESS", "model_path", "--wait-subscribers"):
+        assert name in text
