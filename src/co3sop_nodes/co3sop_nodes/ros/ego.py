@@ -6,10 +6,10 @@ Subscribes to /cav_<ego_id>/voxel_features and to every other
 /cav_<N>/voxel_features as it appears. Each message is checked (valid CDR,
 agent id, pose, grid, payload, finite values, size limit, age) and decoded on
 arrival; a bad one is dropped and counted by reason, with a warning naming the
-topic and the reason once per burst. For each of its own frames the ego waits
-(at most max_wait s) for every live neighbour (one heard from, or discovered,
-within neighbour_timeout s of the later of its discovery and the ego's first own frame) for its frame within `tolerance` s of its stamp, keeps the nearest max_collaborators
-within comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
+topic and the reason once per burst. Each of its own frames waits (at most
+max_wait s) for every live neighbour's frame within `tolerance` s of its stamp
+(the rules: pairing.py); the ego keeps the nearest max_collaborators within
+comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
 runs the model's ego half and publishes /ego/occupancy
 (co3sop_msgs/SemanticOccupancy), /ego/occupancy/points (PointCloud2: x, y, z,
 rgb, label) and its diagnostics on /diagnostics (neighbours used and missing,
@@ -21,7 +21,6 @@ from __future__ import annotations
 import re
 import sys
 import time
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +41,7 @@ from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
+from ..pairing import Pairing, PairingConfig
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
 from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_foreign
 
@@ -70,14 +70,13 @@ class Ego(Node):
         self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
-        self.tolerance_ns = int(p("tolerance", 0.05) * 1e9)
+        self.pairing: Pairing[Received] = Pairing(self.ego_id, PairingConfig(
+            tolerance_ns=int(p("tolerance", 0.05) * 1e9), max_wait_s=p("max_wait", 2.0), neighbour_timeout_ns=int(p("neighbour_timeout", 5.0) * 1e9)))
         self.comm_range = p("comm_range", COMM_RANGE)
         k = p("max_collaborators", -1)
         self.max_collaborators = self.cfg.max_collaborators if k < 0 else min(k, self.cfg.max_collaborators)
         self.mu, self.sigma = p("pose_noise_mu", 0.0), p("pose_noise_sigma", 0.0)
         self.rng = np.random.default_rng(p("seed", 0))
-        self.max_wait = p("max_wait", 2.0)
-        self.neighbour_timeout_ns = int(p("neighbour_timeout", 5.0) * 1e9)
         self.max_raw_bytes = int(p("max_payload_mb", 64.0) * 2**20)
         self.publish_points = p("publish_points", True)
         # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
@@ -87,13 +86,6 @@ class Ego(Node):
         torch.set_num_threads(p("threads", 1))
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
-        self._received: dict[int, deque[Received]] = {}
-        self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last accepted message (or of its discovery)
-        # silence is judged only while the ego's own frames flow: sensors that start long after the graph's
-        # discovery must not make every neighbour look silent at the first frame
-        self._first_own_ns: int | None = None
-        self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
-        self._last_stamp = -1
         self._subs: dict[str, object] = {}
         self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
         self.drops = DropLog(self.get_logger())
@@ -111,9 +103,8 @@ class Ego(Node):
 
     def _subscribe(self, topic: str, agent: int) -> None:
         self._agents[topic] = agent
-        # a neighbour is waited for from its discovery on, and no longer once silent for neighbour_timeout:
-        # a publisher that never sends must not cost every frame max_wait
-        self._last_heard.setdefault(agent, time.time_ns())
+        if agent != self.ego_id:
+            self.pairing.discovered(agent, time.time_ns())
         self._subs[topic] = subscribe_foreign(
             self, VoxelFeatures, topic, lambda msg, raw, t=topic, a=agent: self._on_features(t, a, msg, raw), self._qos, self.drops,
             raw=True)
@@ -135,9 +126,9 @@ class Ego(Node):
             pose.check("lidar_pose")
         except Co3sopError as exc:
             return self.drops(topic, "header", str(exc))
-        if stamp < self._last_stamp - self.tolerance_ns:
-            return self.drops(topic, "stale", f"stamp {stamp} is {(self._last_stamp - stamp) / 1e6:.0f} ms older than the last "
-                                              f"fused frame, more than the tolerance {self.tolerance_ns / 1e6:.0f} ms")
+        if self.pairing.stale(stamp):
+            return self.drops(topic, "stale", f"stamp {stamp} is {(self.pairing.last_fused - stamp) / 1e6:.0f} ms older than the last "
+                                              f"fused frame, more than the tolerance {self.pairing.cfg.tolerance_ns / 1e6:.0f} ms")
         t0 = time.perf_counter()
         try:
             enc = features_from_msg(msg)
@@ -152,47 +143,28 @@ class Ego(Node):
             return self.drops(topic, "non_finite", str(exc))
         except Co3sopError as exc:  # GridError, CodecError: a bad grid or a corrupt / truncated payload
             return self.drops(topic, "payload", str(exc))
-        record = Received(stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
-        self._received.setdefault(agent, deque(maxlen=8)).append(record)
-        self._last_heard[agent] = wall
         if agent == self.ego_id:
-            self._first_own_ns = self._first_own_ns or wall
             self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
-            self._pending.append((stamp, time.monotonic() + self.max_wait))
+        record = Received(stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
+        self.pairing.add(agent, stamp, record, wall, time.monotonic())
         self._fuse_ready()
 
     # --- fusing ------------------------------------------------------------------------------------
 
-    def _match(self, agent: int, stamp: int) -> Received | None:
-        """The agent's frame closest to `stamp`, if within the tolerance."""
-        best = min(self._received.get(agent, ()), key=lambda r: abs(r.stamp - stamp), default=None)
-        return best if best is not None and abs(best.stamp - stamp) <= self.tolerance_ns else None
-
-    def _live_neighbours(self) -> list[int]:
-        """Discovered neighbours with a publisher, heard from within neighbour_timeout (counted from the later of their
-        discovery and the ego's first own frame)."""
-        now = time.time_ns()
-        start = self._first_own_ns or now
-        return [a for a in self._agents.values() if a != self.ego_id and now - max(self._last_heard[a], start) < self.neighbour_timeout_ns
-                and self.count_publishers(topics.voxel_features(a)) > 0]
+    def _has_publisher(self, agent: int) -> bool:
+        return self.count_publishers(topics.voxel_features(agent)) > 0
 
     def _fuse_ready(self) -> None:
-        while self._pending:
-            stamp, deadline = self._pending[0]
-            waiting = [a for a in self._live_neighbours() if self._match(a, stamp) is None
-                       and all(r.stamp < stamp for r in self._received.get(a, ()))]
-            if waiting and time.monotonic() < deadline:
-                return  # a live neighbour's frame may still come
-            self._pending.popleft()
+        while (stamp := self.pairing.next_due(time.time_ns(), time.monotonic(), self._has_publisher)) is not None:
             self._fuse(stamp)
 
     def _fuse(self, stamp: int) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
-        ego = self._match(self.ego_id, stamp)
+        ego = self.pairing.match(self.ego_id, stamp)
         if ego is None:  # evicted by newer own frames while waiting
             return
-        heard = sorted(a for a in self._received if a != self.ego_id)
-        matched = {a: r for a in heard if (r := self._match(a, stamp)) is not None}
+        heard = self.pairing.heard()
+        matched = {a: r for a in heard if (r := self.pairing.match(a, stamp)) is not None}
         pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
                              self.comm_range, self.max_collaborators, self.mu, self.sigma, self.rng, reference=self.reference_paths)
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
@@ -206,10 +178,7 @@ class Ego(Node):
             self._points.publish(cloud_to_msg(cloud, stamp_ns=stamp, frame_id=frame))
         t3 = time.perf_counter()
         self.published += 1
-        self._last_stamp = max(self._last_stamp, stamp)
-        for a, frames in self._received.items():  # what can no longer pair with a future frame
-            while frames and frames[0].stamp < stamp - self.tolerance_ns:
-                frames.popleft()
+        self.pairing.fused(stamp)
         missing = [a for a in heard if a not in matched]
         out_of_range = [a for a in matched if a not in chosen]
         used = [ego, *others]

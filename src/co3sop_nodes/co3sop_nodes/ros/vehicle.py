@@ -30,6 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
 from .. import topics
+from ..assembly import Frame, FrameAssembly
 from ..codec import FeatureCodecConfig
 from ..errors import Co3sopError
 from ..geometry import Pose
@@ -83,8 +84,6 @@ class Vehicle(Node):
         a = self.agent_id
         self.lidar_frame = topics.lidar_frame(a)
         self._tf = StaticTransforms()
-        self._pending: dict[int, dict] = {}  # stamp -> {part: message, "first_wall_ns": int}
-        self._last_stamp = -1
         self.published = 0
         self.drops = DropLog(self.get_logger())
         subscribe_foreign(self, TFMessage, topics.TF_STATIC, self._on_static, STATIC_QOS, self.drops)
@@ -96,6 +95,7 @@ class Vehicle(Node):
                 self._parts[f"info:{cam}"], types[f"info:{cam}"] = topics.camera_info(a, cam), CameraInfo
         else:
             self._parts["points"], types["points"] = topics.lidar_points(a), PointCloud2
+        self._frames = FrameAssembly(self._parts, self.max_pending, self._mounts_known, "camera mounts")
         for key, topic in self._parts.items():
             subscribe_foreign(self, types[key], topic, self._part(key), SENSOR_QOS, self.drops)
         self._pub = self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
@@ -111,33 +111,27 @@ class Vehicle(Node):
             self._tf.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
         self._encode_ready()
 
-    def _ready(self, entry: dict) -> bool:
-        """Every message of the frame is in, and the mounts of its cameras are known (topics carry no order between them)."""
-        return all(k in entry for k in self._parts) and all(
-            entry[f"image:{cam}"].header.frame_id in self._tf for cam in self.cameras if self.cfg.modality == "camera")
+    def _mounts_known(self, parts: dict) -> bool:
+        """The mounts of the frame's cameras are known (topics carry no order between /tf_static and the images)."""
+        return all(parts[f"image:{cam}"].header.frame_id in self._tf for cam in self.cameras if self.cfg.modality == "camera")
 
     def _encode_ready(self) -> None:
-        for stamp in sorted(self._pending):
-            if self._ready(self._pending[stamp]):
-                self._encode(stamp, self._pending.pop(stamp))
+        self._handle(*self._frames.ready())
+
+    def _handle(self, frames: list[Frame], drops) -> None:
+        for drop in drops:
+            self.drops(self._parts.get(drop.part, topics.TF_STATIC), drop.kind, drop.reason)
+        for frame in frames:
+            self._encode(frame)
 
     def _part(self, key: str):
         def callback(msg) -> None:
-            stamp = stamp_to_ns(msg.header.stamp)
-            if stamp <= self._last_stamp:
-                return self.drops(self._parts[key], "stale", f"stamp {stamp} is not newer than the last encoded frame {self._last_stamp}")
-            entry = self._pending.setdefault(stamp, {"first_wall_ns": time.time_ns()})
-            entry[key] = msg
-            self._encode_ready()
-            while len(self._pending) > self.max_pending:  # a frame that never completes must not pile up
-                old = min(self._pending)
-                lacking = [self._parts[k] for k in self._parts if k not in self._pending.pop(old)]
-                self.drops(lacking[0] if lacking else topics.TF_STATIC, "incomplete",
-                           f"frame {old} incomplete (no {', '.join(lacking) or 'camera mounts'}) after {self.max_pending} newer frames")
+            self._handle(*self._frames.add(key, stamp_to_ns(msg.header.stamp), msg, time.time_ns()))
         return callback
 
-    def _encode(self, stamp: int, entry: dict) -> None:
+    def _encode(self, frame: Frame) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
+        stamp, entry = frame.stamp, frame.parts
         try:
             pose = pose_from_msg(entry["pose"].pose)
             pose.check(self._parts["pose"])
@@ -165,9 +159,8 @@ class Vehicle(Node):
         t3 = time.perf_counter()
         self._pub.publish(msg)
         published_wall = time.time_ns()
-        self._last_stamp = stamp
         self.published += 1
-        values = {"stamp": stamp, "first_input_wall_ns": entry["first_wall_ns"], "published_wall_ns": published_wall,
+        values = {"stamp": stamp, "first_input_wall_ns": frame.first_wall_ns, "published_wall_ns": published_wall,
                   "inputs_ms": f"{1e3 * (t1 - t0):.1f}", "encoder_ms": f"{1e3 * (t2 - t1):.1f}", "codec_ms": f"{1e3 * (t3 - t2):.1f}",
                   "payload_bytes": enc.payload_bytes, "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
                   "frames_published": self.published, **self.drops.values()}

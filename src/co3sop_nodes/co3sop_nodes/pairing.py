@@ -1,0 +1,92 @@
+"""The ego's frames paired with its neighbours' by stamp, and how long each waits for them (ROS-free; the
+ego node feeds it and fuses what it hands out).
+
+Each of the ego's own frames waits, at most `max_wait` s after it arrived, for
+every live neighbour whose frame within `tolerance` of its stamp has not come
+yet (a neighbour that already sent a newer frame has skipped it). A neighbour
+is live while it has a publisher and has been heard from within
+`neighbour_timeout`; silence is counted from the later of its discovery and
+the ego's first own frame, so sensors that start long after the graph do not
+make every neighbour look silent, and a publisher that never sends stops
+costing max_wait once the ego's frames have flowed for neighbour_timeout.
+Frames are handed out oldest first; a frame older than the last one fused
+(beyond the tolerance) can no longer pair and is stale.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class PairingConfig:
+    tolerance_ns: int = 50_000_000
+    max_wait_s: float = 2.0
+    neighbour_timeout_ns: int = 5_000_000_000
+    history: int = 8  # frames kept per agent
+
+
+class Pairing(Generic[T]):
+    def __init__(self, ego_id: int, cfg: PairingConfig = PairingConfig()):
+        self.ego_id, self.cfg = ego_id, cfg
+        self._frames: dict[int, deque[tuple[int, T]]] = {}  # agent -> (stamp, item), arrival order
+        self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last frame, or of its discovery
+        self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
+        self._first_own_ns: int | None = None
+        self.last_fused = -1
+
+    def discovered(self, agent: int, wall_ns: int) -> None:
+        """A neighbour's publisher appeared: it is waited for from now on."""
+        self._last_heard.setdefault(agent, wall_ns)
+
+    def stale(self, stamp: int) -> bool:
+        """Too old to pair with any frame still to fuse."""
+        return stamp < self.last_fused - self.cfg.tolerance_ns
+
+    def add(self, agent: int, stamp: int, item: T, wall_ns: int, monotonic: float) -> None:
+        """An accepted frame of `agent` (the ego's own frames are then waiting to be fused)."""
+        self._frames.setdefault(agent, deque(maxlen=self.cfg.history)).append((stamp, item))
+        self._last_heard[agent] = wall_ns
+        if agent == self.ego_id:
+            if self._first_own_ns is None:
+                self._first_own_ns = wall_ns
+            self._pending.append((stamp, monotonic + self.cfg.max_wait_s))
+
+    def match(self, agent: int, stamp: int) -> T | None:
+        """The agent's frame nearest `stamp`, if within the tolerance."""
+        best = min(self._frames.get(agent, ()), key=lambda f: abs(f[0] - stamp), default=None)
+        return best[1] if best is not None and abs(best[0] - stamp) <= self.cfg.tolerance_ns else None
+
+    def heard(self) -> list[int]:
+        """Neighbours that sent at least one accepted frame, by id."""
+        return sorted(a for a in self._frames if a != self.ego_id)
+
+    def live(self, wall_ns: int, has_publisher: Callable[[int], bool]) -> list[int]:
+        """Neighbours still waited for: with a publisher, heard from within neighbour_timeout."""
+        start = wall_ns if self._first_own_ns is None else self._first_own_ns
+        return [a for a, heard in self._last_heard.items() if a != self.ego_id and wall_ns - max(heard, start) < self.cfg.neighbour_timeout_ns
+                and has_publisher(a)]
+
+    def next_due(self, wall_ns: int, monotonic: float, has_publisher: Callable[[int], bool]) -> int | None:
+        """The stamp of the oldest own frame to fuse now (taken off the queue), or None while it still waits."""
+        if not self._pending:
+            return None
+        stamp, deadline = self._pending[0]
+        waiting = [a for a in self.live(wall_ns, has_publisher) if self.match(a, stamp) is None
+                   and all(s < stamp for s, _ in self._frames.get(a, ()))]
+        if waiting and monotonic < deadline:
+            return None
+        self._pending.popleft()
+        return stamp
+
+    def fused(self, stamp: int) -> None:
+        """`stamp` was fused: frames that can no longer pair with a later one are forgotten."""
+        self.last_fused = max(self.last_fused, stamp)
+        for frames in self._frames.values():
+            while frames and frames[0][0] < stamp - self.cfg.tolerance_ns:
+                frames.popleft()
