@@ -401,3 +401,49 @@ def test_no_entry_point_runs_code_from_a_checkpoint(crafted, tmp_path, argv):
     done = subprocess.run([executable(args[0]), *args[1:]], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "crafted.pt: refused" in done.stderr and "Traceback" not in done.stderr, done.stderr
     assert not marker.exists()
+
+
+# --- QoS: drivers that publish best effort ----------------------------------------------------------------------
+
+BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_path, peer):
+    """A LiDAR driver and a ground-truth source that publish best effort (as most drivers do): the vehicle and the
+    recorder subscribe with the QoS offered, so they match and get the messages (a reliable subscription would not
+    match a best-effort publisher at all)."""
+    lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
+    truth_topic = topics.ground_truth(LIDAR_CAV, "51.2m")
+    procs = {
+        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+        "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap"), "--topics", re.escape(truth_topic)),
+    }
+    try:
+        for proc, log in procs.values():
+            wait_for(log, "ready:|recording to", proc)
+        got: list = []
+        peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
+        pose_pub = peer.create_publisher(PoseStamped, topics.lidar_pose(LIDAR_CAV), BEST_EFFORT)
+        points_pub = peer.create_publisher(PointCloud2, topics.lidar_points(LIDAR_CAV), BEST_EFFORT)
+        truth_pub = peer.create_publisher(SemanticOccupancy, truth_topic, BEST_EFFORT)
+        wait_subscribed(peer, [pose_pub, points_pub, truth_pub])
+        wait_for(procs["recorder"][1], rf"recording {re.escape(truth_topic)} \(co3sop_msgs/msg/SemanticOccupancy, best_effort\)", procs["recorder"][0])
+        deadline = time.monotonic() + 60
+        stamp = T0
+        while not got:  # best effort may lose a message: send frames until one is encoded
+            assert time.monotonic() < deadline, procs["lidar"][1].read_text()
+            for msg, pub in zip(lidar_frame(stamp), (pose_pub, points_pub)):
+                pub.publish(msg)
+            truth_pub.publish(occupancy(stamp))
+            stamp += 100_000_000
+            end = time.monotonic() + 1.0
+            while not got and time.monotonic() < end:
+                rclpy.spin_once(peer, timeout_sec=0.1)
+        assert got[0].agent_id == LIDAR_CAV
+    finally:
+        for proc, _ in procs.values():
+            proc.send_signal(signal.SIGINT)
+        for proc, _ in procs.values():
+            assert proc.wait(30) == 0
+    with AnyReader([tmp_path / "rec.mcap"]) as reader:
+        assert sum(c.msgcount for c in reader.connections if c.topic == truth_topic) >= 1

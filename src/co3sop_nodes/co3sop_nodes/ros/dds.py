@@ -91,6 +91,44 @@ def subscribe_foreign(node: Node, msg_type, topic: str, callback: Callable, qos,
     return node.create_subscription(msg_type, topic, on_raw, qos, raw=True)
 
 
+def matching_qos(node: Node, topic: str, depth: int) -> QoSProfile | None:
+    """A subscription QoS every current publisher of `topic` matches, as rosbag2 adapts its own: reliable only
+    when every publisher is, transient local only when every publisher is; None while none publishes."""
+    offered = [info.qos_profile for info in node.get_publishers_info_by_topic(topic)]
+    if not offered:
+        return None
+    reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+    durable = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if durable else DurabilityPolicy.VOLATILE)
+
+
+class SensorSubscriptions:
+    """Subscriptions to sensor topics, each made once the topic has a publisher, with the QoS it offers
+    (matching_qos): a best-effort camera or LiDAR driver matches as well as a reliable bag player, and a reliable
+    publisher keeps its delivery guarantee (a fixed best-effort subscription would lose it)."""
+
+    def __init__(self, node: Node, drops: DropLog, period: float = 0.2):
+        self._node, self._drops = node, drops
+        self._waiting: list[tuple] = []
+        self.subscriptions: dict[str, object] = {}
+        self._timer = node.create_timer(period, self._poll)
+
+    def add(self, msg_type, topic: str, callback: Callable, depth: int) -> None:
+        self._waiting.append((msg_type, topic, callback, depth))
+        self._poll()
+
+    def _poll(self) -> None:
+        still = []
+        for msg_type, topic, callback, depth in self._waiting:
+            qos = matching_qos(self._node, topic, depth)
+            if qos is None:
+                still.append((msg_type, topic, callback, depth))
+                continue
+            self.subscriptions[topic] = subscribe_foreign(self._node, msg_type, topic, callback, qos, self._drops)
+        self._waiting = still
+
 
 def flush_publishers(node: Node, publishers, timeout: float = 5.0) -> None:
     """Waits (at most `timeout` s in all) until reliable subscribers acknowledged everything published:

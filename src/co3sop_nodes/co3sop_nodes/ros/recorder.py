@@ -20,18 +20,17 @@ import time
 from pathlib import Path
 
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 
 from .. import topics
 from ..errors import Co3sopError
 from ..recording import McapRecorder
 from .convert import message_class
-from .dds import spin_node
+from .dds import matching_qos, spin_node
 
 DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), r"/cav_\d+/ground_truth/occupancy_\w+", re.escape(topics.DIAGNOSTICS))
-# Deep reliable queues: the recorder must keep up with bursts rather than lose messages.
-RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE)
+# Deep queues: the recorder must keep up with bursts rather than lose messages.
+RECORD_DEPTH = 200
 
 
 class Recorder(Node):
@@ -50,14 +49,17 @@ class Recorder(Node):
         for topic, types in self.get_topic_names_and_types():
             if topic in self._types or not any(p.match(topic) for p in self._patterns):
                 continue
+            qos = matching_qos(self, topic, RECORD_DEPTH)  # each publisher's QoS adopted, as ros2 bag record does
+            if qos is None:  # only subscribers so far
+                continue
             self._types[topic] = types[0]
             try:
                 cls = message_class(types[0])
             except Co3sopError as exc:
                 self.get_logger().warning(f"{topic} not recorded: {exc}")
                 continue
-            self._subs.append(self.create_subscription(cls, topic, lambda raw, t=topic: self._on_message(t, raw), RECORD_QOS, raw=True))
-            self.get_logger().info(f"recording {topic} ({types[0]})")
+            self._subs.append(self.create_subscription(cls, topic, lambda raw, t=topic: self._on_message(t, raw), qos, raw=True))
+            self.get_logger().info(f"recording {topic} ({types[0]}, {qos.reliability.name.lower()})")
 
     def _on_message(self, topic: str, raw: bytes) -> None:
         self.mcap.write(topic, self._types[topic], raw, time.time_ns())

@@ -24,7 +24,6 @@ from co3sop_msgs.msg import VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
@@ -40,11 +39,9 @@ from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, pose_from_msg, stamp_to_ns
-from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, spin_node, subscribe_foreign
+from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, SensorSubscriptions, spin_node
 
-SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 
 
 def codec_parameters(node: Node) -> FeatureCodecConfig:
@@ -86,7 +83,9 @@ class Vehicle(Node):
         self._tf = StaticTransforms()
         self.published = 0
         self.drops = DropLog(self.get_logger())
-        subscribe_foreign(self, TFMessage, topics.TF_STATIC, self._on_static, STATIC_QOS, self.drops)
+        # every input with the QoS its publisher offers (best-effort drivers, a reliable player, a latched /tf_static)
+        self.inputs = SensorSubscriptions(self, self.drops)
+        self.inputs.add(TFMessage, topics.TF_STATIC, self._on_static, STATIC_DEPTH)
         self._parts = {"pose": topics.lidar_pose(a)}
         types = {"pose": PoseStamped}
         if cfg.modality == "camera":
@@ -97,7 +96,7 @@ class Vehicle(Node):
             self._parts["points"], types["points"] = topics.lidar_points(a), PointCloud2
         self._frames = FrameAssembly(self._parts, self.max_pending, self._mounts_known, "camera mounts")
         for key, topic in self._parts.items():
-            subscribe_foreign(self, types[key], topic, self._part(key), SENSOR_QOS, self.drops)
+            self.inputs.add(types[key], topic, self._part(key), SENSOR_DEPTH)
         self._pub = self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
         self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
