@@ -178,11 +178,14 @@ def test_score_and_recover_explain_bad_files(tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["vehicle"], "vehicle: error: no vehicle id"),
+    (["vehicle"], "vehicle: error: parameter id is required"),
     (["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:=/nowhere/model.pt"], "/nowhere/model.pt: no such checkpoint"),
     (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=lidar"], "pick a checkpoint trained for it"),
     (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
-    (["ego"], "ego: error: no ego id"),
+    (["vehicle", "--id", "3", "--ros-args", "-p", "codec.level:=99"], "codec.level out of range"),
+    (["ego"], "ego: error: parameter ego_id is required"),
+    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_collaborators:=9"], "max_collaborators 9 is above the model's 6"),
+    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_wait:=two"], "parameter max_wait"),
     (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
     (["demo", "--model", "no-such-model"], "no installed checkpoint 'no-such-model.pt'"),
 ])
@@ -434,12 +437,15 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
             assert time.monotonic() < deadline, procs["lidar"][1].read_text()
             for msg, pub in zip(lidar_frame(stamp), (pose_pub, points_pub)):
                 pub.publish(msg)
-            truth_pub.publish(occupancy(stamp))
             stamp += 100_000_000
             end = time.monotonic() + 1.0
             while not got and time.monotonic() < end:
                 rclpy.spin_once(peer, timeout_sec=0.1)
         assert got[0].agent_id == LIDAR_CAV
+        for _ in range(10):  # best effort drops what comes before the receiving side has matched the sender: keep sending
+            truth_pub.publish(occupancy(stamp))
+            stamp += 100_000_000
+            time.sleep(0.2)
     finally:
         for proc, _ in procs.values():
             proc.send_signal(signal.SIGINT)
@@ -447,3 +453,71 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
             assert proc.wait(30) == 0
     with AnyReader([tmp_path / "rec.mcap"]) as reader:
         assert sum(c.msgcount for c in reader.connections if c.topic == truth_topic) >= 1
+
+
+# --- parameters: described, checked, changed at run time ---------------------------------------------------------
+
+
+def call(peer, future):
+    rclpy.spin_until_future_complete(peer, future, timeout_sec=30)
+    assert future.done(), "no answer from the parameter service"
+    return future.result()
+
+
+def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, peer):
+    """`ros2 param describe` shows descriptions, ranges and read-only flags; `ros2 param set` takes a run-time
+    value (the next frame is encoded with it), refuses a bad one with a reason and refuses what needs a restart."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    from co3sop_nodes.ros import ego as ego_node
+
+    lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
+    procs = {
+        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}"),
+        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+    }
+    try:
+        for proc, log in procs.values():
+            wait_for(log, "ready:", proc)
+        ego = AsyncParameterClient(peer, "ego")
+        vehicle = AsyncParameterClient(peer, f"vehicle_{LIDAR_CAV}")
+        assert ego.wait_for_services(30) and vehicle.wait_for_services(30)
+        listed = set(call(peer, ego.list_parameters()).result.names)
+        assert {p.name for p in ego_node.PARAMS} <= listed
+        tolerance, checkpoint = call(peer, ego.describe_parameters(["tolerance", "checkpoint"])).descriptors
+        assert tolerance.description and not tolerance.read_only and tolerance.floating_point_range[0].to_value == 10.0
+        assert checkpoint.read_only
+        assert call(peer, vehicle.describe_parameters(["codec.dtype"])).descriptors[0].additional_constraints.startswith("one of")
+
+        def set_(client, name, value):
+            return call(peer, client.set_parameters([Parameter(name, value=value)])).results[0]
+
+        assert set_(ego, "max_collaborators", 2).successful
+        assert call(peer, ego.get_parameters(["max_collaborators"])).values[0].integer_value == 2
+        refused = set_(ego, "max_collaborators", 9)
+        assert not refused.successful and "above the model's 6" in refused.reason
+        assert not set_(ego, "tolerance", -1.0).successful
+        assert "read-only" in set_(ego, "checkpoint", "/other.pt").reason
+        refused = set_(vehicle, "codec.dtype", "int9")
+        assert not refused.successful and "int9" in refused.reason
+
+        # a changed codec is used from the next frame on
+        assert set_(vehicle, "codec.dtype", "int8").successful
+        got: list = []
+        peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
+        pubs = [peer.create_publisher(m, t, QOS) for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)),
+                                                              (PointCloud2, topics.lidar_points(LIDAR_CAV)))]
+        wait_subscribed(peer, pubs)
+        for msg, pub in zip(lidar_frame(T0), pubs):
+            pub.publish(msg)
+        deadline = time.monotonic() + 60
+        while not got:
+            assert time.monotonic() < deadline, procs["lidar"][1].read_text()
+            rclpy.spin_once(peer, timeout_sec=0.1)
+        assert got[0].dtype == "int8"
+    finally:
+        for proc, _ in procs.values():
+            proc.send_signal(signal.SIGINT)
+        for proc, _ in procs.values():
+            assert proc.wait(30) == 0

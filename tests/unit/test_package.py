@@ -13,6 +13,7 @@ import pytest
 import yaml
 from ament_index_python.packages import get_package_share_directory
 
+from co3sop_nodes.ros import ego, vehicle
 from co3sop_nodes.ros.demo import LOSSLESS
 
 REPO = Path(__file__).resolve().parents[2]
@@ -20,7 +21,7 @@ PACKAGE = REPO / "src" / "co3sop_nodes"
 LAUNCH_FILES = sorted((PACKAGE / "launch").glob("*.launch.py"))
 
 # ROS packages the code may import: their rosdep key is their name
-ROS_PACKAGES = {"ament_index_python", "builtin_interfaces", "co3sop_msgs", "diagnostic_msgs", "geometry_msgs", "launch", "launch_ros",
+ROS_PACKAGES = {"ament_index_python", "builtin_interfaces", "co3sop_msgs", "diagnostic_msgs", "geometry_msgs", "launch", "launch_ros", "rcl_interfaces",
                 "rclpy", "rosgraph_msgs", "sensor_msgs", "std_msgs", "tf2_msgs"}
 # Python modules -> rosdep key (what `rosdep install` must provide)
 PYTHON_KEYS = {"numpy": "python3-numpy", "torch": "python3-torch", "yaml": "python3-yaml", "PIL": "python3-pil", "matplotlib": "python3-matplotlib",
@@ -98,6 +99,16 @@ def config_parameters(executable: str) -> set[str]:
     return flat(yaml.safe_load((PACKAGE / "config" / f"{executable}.yaml").read_text())["/**"]["ros__parameters"])
 
 
+NODE_PARAMS = {"ego": ego.PARAMS, "vehicle": vehicle.PARAMS}
+
+
+@pytest.mark.parametrize("executable", sorted(NODE_PARAMS))
+def test_parameter_files_list_every_optional_parameter(executable):
+    params = NODE_PARAMS[executable]
+    assert config_parameters(executable) == {p.name for p in params if p.default is not None}
+    assert all(p.description for p in params)
+
+
 def calls(tree: ast.AST, name: str) -> list[ast.Call]:
     return [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == name]
 
@@ -126,7 +137,8 @@ def test_launch_file_references_exist(path):
             names = {ast.literal_eval(k) for k in d.keys if k is not None}
             if any(k is None for k in d.keys):  # **LOSSLESS settings of the ego's own vehicle
                 names |= {p.split(":=")[0] for p in LOSSLESS}
-            assert names <= config_parameters(executable), f"{path.name}: {executable} has no parameters {names - config_parameters(executable)}"
+            declared = {p.name for p in NODE_PARAMS[executable]}
+            assert names <= declared, f"{path.name}: {executable} has no parameters {names - declared}"
     declared = {ast.literal_eval(c.args[0]) for c in calls(tree, "DeclareLaunchArgument")}
     used = {c.args[0].value for c in calls(tree, "LaunchConfiguration") if isinstance(c.args[0], ast.Constant)}
     used |= {c.args[0].value for c in calls(tree, "arg") if isinstance(c.args[0], ast.Constant)}  # graph: arg(name) performs one

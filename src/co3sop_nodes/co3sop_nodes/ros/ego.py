@@ -21,7 +21,7 @@ from __future__ import annotations
 import re
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,10 +41,32 @@ from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
-from ..pairing import Pairing, PairingConfig
+from ..pairing import Pairing
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
+from .params import Param, Parameters
 from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_foreign
 
+PARAMS = (
+    Param("ego_id", int, "the CAV this ego runs on: its own features come on /cav_<ego_id>/voxel_features", range=(0, 2**31 - 1)),
+    Param("checkpoint", str, "model checkpoint, the vehicles' model; empty: the shipped tiny one", ""),
+    Param("tolerance", float, "s: a neighbour's frame pairs with the ego's within this; older ones are dropped", 0.05, True, (0.0, 10.0)),
+    Param("comm_range", float, "m: neighbours farther away are not used", COMM_RANGE, True, (0.0, 10_000.0)),
+    Param("max_collaborators", int, "the nearest neighbours used, at most the model's maximum", 6, True, (0, 64)),
+    Param("max_wait", float, "s: how long a frame waits for live neighbours", 2.0, True, (0.0, 600.0)),
+    Param("neighbour_timeout", float, "s: a neighbour silent this long (while the ego's frames flow) is not waited for", 5.0, True,
+          (0.0, 3600.0)),
+    Param("pose_noise_mu", float, "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)", 0.0, True, (-100.0, 100.0)),
+    Param("pose_noise_sigma", float, "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)", 0.0, True, (0.0, 100.0)),
+    Param("seed", int, "seed of the pose noise", 0),
+    Param("max_payload_mb", float, "declared uncompressed payloads above this are refused before decompressing", 64.0, True,
+          (0.001, 65536.0)),
+    Param("publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True),
+    Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
+    Param("queue_depth", int, "frames per neighbour queued while one is fused", 10, range=(1, 1000)),
+    Param("discovery_period", float, "s between looks for new /cav_N/voxel_features topics", 0.5, range=(0.01, 60.0)),
+    Param("reference_paths", bool, "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)", False),
+)
+RUNTIME = [p.name for p in PARAMS if p.runtime]
 FEATURES_TOPIC = re.compile(r"^/cav_(\d+)/voxel_features$")
 FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
 
@@ -62,30 +84,23 @@ class Received:
 class Ego(Node):
     def __init__(self):
         super().__init__("ego")
-        p = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
-        self.ego_id = p("ego_id", -1)
-        if self.ego_id < 0:
-            raise Co3sopError("no ego id: pass -p ego_id:=N")
-        checkpoint = p("checkpoint", "")
-        self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        self.params = Parameters(self, PARAMS)
+        p = self.params
+        self.ego_id = p["ego_id"]
+        self.model, _ = load_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
-        self.pairing: Pairing[Received] = Pairing(self.ego_id, PairingConfig(
-            tolerance_ns=int(p("tolerance", 0.05) * 1e9), max_wait_s=p("max_wait", 2.0), neighbour_timeout_ns=int(p("neighbour_timeout", 5.0) * 1e9)))
-        self.comm_range = p("comm_range", COMM_RANGE)
-        k = p("max_collaborators", -1)
-        self.max_collaborators = self.cfg.max_collaborators if k < 0 else min(k, self.cfg.max_collaborators)
-        self.mu, self.sigma = p("pose_noise_mu", 0.0), p("pose_noise_sigma", 0.0)
-        self.rng = np.random.default_rng(p("seed", 0))
-        self.max_raw_bytes = int(p("max_payload_mb", 64.0) * 2**20)
-        self.publish_points = p("publish_points", True)
+        self.pairing: Pairing[Received] = Pairing(self.ego_id)
+        self._apply({name: p[name] for name in RUNTIME})
+        p.on_change(self._apply)
+        self.rng = np.random.default_rng(p["seed"])
         # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
         # for bench_graph's same-run ratios
-        self.reference_paths = p("reference_paths", False)
+        self.reference_paths = p["reference_paths"]
         native.ENABLED = native.ENABLED and not self.reference_paths
-        torch.set_num_threads(p("threads", 1))
+        torch.set_num_threads(p["threads"])
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
-        self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p("queue_depth", 10), reliability=ReliabilityPolicy.RELIABLE)
+        self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["queue_depth"], reliability=ReliabilityPolicy.RELIABLE)
         self._subs: dict[str, object] = {}
         self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
         self.drops = DropLog(self.get_logger())
@@ -94,10 +109,24 @@ class Ego(Node):
         self._points = self.create_publisher(PointCloud2, topics.EGO_POINTS, OCCUPANCY_QOS)
         self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self._subscribe(topics.voxel_features(self.ego_id), self.ego_id)
-        self.create_timer(p("discovery_period", 0.5), self._discover)
+        self.create_timer(p["discovery_period"], self._discover)
         self.create_timer(0.05, self._fuse_ready)
         self.get_logger().info(f"ready: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
                                f"{self.max_collaborators} collaborators within {self.comm_range:g} m; compiled kernels: {', '.join(self.kernels) or 'none'}")
+
+    def _apply(self, values: dict) -> None:
+        """Takes the run-time parameters in `values` (at start, and on `ros2 param set`), after checking them."""
+        if values.get("max_collaborators", 0) > self.cfg.max_collaborators:
+            raise Co3sopError(f"max_collaborators {values['max_collaborators']} is above the model's {self.cfg.max_collaborators}")
+        cfg = self.pairing.cfg
+        self.pairing.cfg = replace(cfg, tolerance_ns=int(values.get("tolerance", cfg.tolerance_ns / 1e9) * 1e9),
+                                   max_wait_s=values.get("max_wait", cfg.max_wait_s),
+                                   neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9))
+        for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points"):
+            if name in values:
+                setattr(self, name, values[name])
+        if "max_payload_mb" in values:
+            self.max_raw_bytes = int(values["max_payload_mb"] * 2**20)
 
     # --- receiving ---------------------------------------------------------------------------------
 
@@ -166,7 +195,7 @@ class Ego(Node):
         heard = self.pairing.heard()
         matched = {a: r for a in heard if (r := self.pairing.match(a, stamp)) is not None}
         pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
-                             self.comm_range, self.max_collaborators, self.mu, self.sigma, self.rng, reference=self.reference_paths)
+                             self.comm_range, self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng, reference=self.reference_paths)
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
         t2 = time.perf_counter()
         frame = topics.lidar_frame(self.ego_id)

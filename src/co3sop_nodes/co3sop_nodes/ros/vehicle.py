@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +31,9 @@ from tf2_msgs.msg import TFMessage
 
 from .. import topics
 from ..assembly import Frame, FrameAssembly
-from ..codec import FeatureCodecConfig
-from ..errors import Co3sopError
+from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig
+from ..errors import CodecError, Co3sopError
+from ..grid import BENCHMARK_RANGES
 from ..geometry import Pose
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.predict import compile_kernels
@@ -39,45 +41,51 @@ from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, pose_from_msg, stamp_to_ns
+from .params import Param, Parameters
 from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, SensorSubscriptions, spin_node
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 
 
-def codec_parameters(node: Node) -> FeatureCodecConfig:
-    p = lambda name, default: node.declare_parameter(f"codec.{name}", default).value  # noqa: E731
-    return FeatureCodecConfig(dtype=p("dtype", "float16"), selection=p("selection", "dense"), topk=p("topk", 4096),
-                              threshold=p("threshold", 0.5), codec=p("compression", "zstd"), level=p("level", 3))
-
-
-def rgb_of(msg: Image, topic: str) -> np.ndarray:
-    if msg.encoding != "rgb8":
-        raise Co3sopError(f"{topic}: encoding {msg.encoding!r}, expected rgb8")
-    data = np.frombuffer(msg.data, np.uint8)
-    if msg.step < 3 * msg.width or len(data) < msg.step * msg.height:
-        raise Co3sopError(f"{topic}: {len(data)} bytes do not hold {msg.height} rows of {msg.step} bytes")
-    return data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, : 3 * msg.width].reshape(msg.height, msg.width, 3)
+PARAMS = (
+    Param("id", int, "this vehicle's CAV id: it reads /cav_<id>/... and publishes /cav_<id>/voxel_features", range=(0, 2**31 - 1)),
+    Param("checkpoint", str, "model checkpoint; empty: the shipped tiny one", ""),
+    Param("modality", str, "camera or lidar, checked against the checkpoint's; empty: the checkpoint's", "", choices=("", "camera", "lidar")),
+    Param("range", str, "benchmark range, checked against the checkpoint's; empty: the checkpoint's", "",
+          choices=("", *BENCHMARK_RANGES)),
+    Param("cameras", list, "camera names of a camera model's frame", ["camera0", "camera1", "camera2", "camera3"]),
+    Param("threads", int, "torch CPU threads (several vehicles share a machine in the demo)", 1, range=(1, 256)),
+    Param("max_pending", int, "incomplete frames kept while waiting for their last message", 10, range=(1, 1000)),
+    Param("codec.dtype", str, "feature precision on the wire", "float16", True, choices=tuple(FEATURE_DTYPES)),
+    Param("codec.selection", str, "which voxels are sent: dense, topk (highest confidence) or threshold", "dense", True, choices=SELECTIONS),
+    Param("codec.topk", int, "voxels kept by topk", 4096, True, (1, 2**31 - 1)),
+    Param("codec.threshold", float, "confidence kept by threshold", 0.5, True, (0.0, 1.0)),
+    Param("codec.compression", str, "payload compression", "zstd", True, choices=CODECS),
+    Param("codec.level", int, "zstd level", 3, True, (1, 22)),
+)
+CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.topk": "topk", "codec.threshold": "threshold",
+                "codec.compression": "codec", "codec.level": "level"}
 
 
 class Vehicle(Node):
-    def __init__(self, agent_id: int | None):
-        super().__init__(f"vehicle_{agent_id}" if agent_id is not None else "vehicle")
-        p = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
-        self.agent_id = agent_id if agent_id is not None else p("id", -1)
-        if self.agent_id < 0:
-            raise Co3sopError("no vehicle id: pass --id N (or -p id:=N)")
-        checkpoint = p("checkpoint", "")
+    def __init__(self, name: str = "vehicle"):
+        super().__init__(name)
+        self.params = p = Parameters(self, PARAMS)
+        self.agent_id = p["id"]
+        checkpoint = p["checkpoint"]
         self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
-            wanted = p(name, "")
+            wanted = p[name]
             if wanted and wanted != have:
                 raise Co3sopError(f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it")
-        self.codec = codec_parameters(self)
-        torch.set_num_threads(p("threads", 1))
-        self.cameras = list(p("cameras", ["camera0", "camera1", "camera2", "camera3"]))
-        self.max_pending = p("max_pending", 10)
+        self.codec = FeatureCodecConfig()
+        self._apply({name: p[name] for name in CODEC_FIELDS})
+        p.on_change(self._apply)
+        torch.set_num_threads(p["threads"])
+        self.cameras = p["cameras"]
+        self.max_pending = p["max_pending"]
         a = self.agent_id
         self.lidar_frame = topics.lidar_frame(a)
         self._tf = StaticTransforms()
@@ -109,6 +117,13 @@ class Vehicle(Node):
             tr, q = t.transform.translation, t.transform.rotation
             self._tf.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
         self._encode_ready()
+
+    def _apply(self, values: dict) -> None:
+        """The codec parameters in `values` (at start, and on `ros2 param set`): the next frame is encoded with them."""
+        try:
+            self.codec = replace(self.codec, **{CODEC_FIELDS[k]: v for k, v in values.items()})
+        except CodecError as exc:
+            raise Co3sopError(str(exc)) from None
 
     def _mounts_known(self, parts: dict) -> bool:
         """The mounts of the frame's cameras are known (topics carry no order between /tf_static and the images)."""
@@ -169,10 +184,12 @@ class Vehicle(Node):
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="vehicle", description=__doc__.split("\n\n")[1])
-    parser.add_argument("--id", type=int, help="this vehicle's CAV id (default: parameter id)")
-    argv = sys.argv if args is None else args
+    parser.add_argument("--id", type=int, help="this vehicle's CAV id: sets parameter id and names the node vehicle_<id>")
+    argv = list(sys.argv if args is None else args)
     opts = parser.parse_args(remove_ros_args(argv)[1:])
-    return spin_node(lambda: Vehicle(opts.id), argv, "vehicle")
+    if opts.id is not None:  # one source: the parameter (as the launch files set it)
+        argv += ["--ros-args", "-p", f"id:={opts.id}"]
+    return spin_node(lambda: Vehicle(f"vehicle_{opts.id}" if opts.id is not None else "vehicle"), argv, "vehicle")
 
 
 if __name__ == "__main__":
