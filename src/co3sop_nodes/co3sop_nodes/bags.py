@@ -345,30 +345,30 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
     by_stamp: dict[int, dict[int, dict]] = defaultdict(lambda: defaultdict(lambda: {"cameras": {}, "labels": {}}))
     with open_reader(path) as reader:
         for conn, log_stamp, raw in reader.messages():
-            parts = conn.topic.strip("/").split("/")
-            if not parts[0].startswith("cav_"):
+            cav = topics.split_cav_topic(conn.topic)
+            if cav is None:
                 continue
             msg = reader.deserialize(raw, conn, log_stamp)
             with reader.about(conn, log_stamp):
-                _read_part(by_stamp[header_stamp_ns(msg.header)][int(parts[0][4:])], parts, msg)
+                _read_part(by_stamp[header_stamp_ns(msg.header)][cav[0]], cav[1].split("/"), msg)
     for stamp in sorted(by_stamp):
         yield stamp, {cav: dict(v) for cav, v in by_stamp[stamp].items()}
 
 
 def _read_part(entry: dict, parts: list[str], msg) -> None:
-    """One CAV message into its frame's entry (read_frames)."""
-    if parts[1:] == ["lidar", "pose"]:
+    """One CAV message into its frame's entry (read_frames); parts: its topic relative to the CAV's namespace."""
+    if parts == ["lidar", "pose"]:
         p, o = msg.pose.position, msg.pose.orientation
         entry["pose"] = Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w)).matrix()
-    elif parts[1:] == ["lidar", "points"]:
+    elif parts == ["lidar", "points"]:
         cloud = msg.data.view(np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4"] * 4 + ["u1"],
                                         "offsets": [0, 4, 8, 12, 16], "itemsize": msg.point_step}))
         entry["points"] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
         entry["intensity"] = cloud["intensity"].copy()
-    elif parts[1] == "ground_truth":
-        entry["labels"][_RANGE_OF_SUFFIX[parts[2].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
+    elif parts[0] == "ground_truth":
+        entry["labels"][_RANGE_OF_SUFFIX[parts[1].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
     elif parts[-1] == "image_raw":
-        entry["cameras"][parts[1]] = msg.data.reshape(msg.height, msg.width, 3)
-        entry.setdefault("optical_frames", {})[parts[1]] = msg.header.frame_id
+        entry["cameras"][parts[0]] = msg.data.reshape(msg.height, msg.width, 3)
+        entry.setdefault("optical_frames", {})[parts[0]] = msg.header.frame_id
     elif parts[-1] == "camera_info":
-        entry.setdefault("intrinsics", {})[parts[1]] = msg.k.reshape(3, 3)
+        entry.setdefault("intrinsics", {})[parts[0]] = msg.k.reshape(3, 3)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 EGO_OCCUPANCY = "/ego/occupancy"  # co3sop_msgs/SemanticOccupancy: the ego's fused prediction
 EGO_POINTS = "/ego/occupancy/points"  # sensor_msgs/PointCloud2: the same, as coloured points
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray: per-frame status of the ego and each vehicle
@@ -10,6 +12,16 @@ TF_STATIC = "/tf_static"
 WORLD_FRAME = "map"
 # Benchmark range -> topic suffix (as Co3SOP's label folders: additional_25m, ...)
 RANGE_SUFFIX = {"25.6m": "25m", "51.2m": "50m", "76.8m": "76m"}
+
+
+_CAV_TOPIC = re.compile(r"^/cav_(\d+)/(.+)$")
+
+
+def split_cav_topic(topic: str) -> tuple[int, str] | None:
+    """(vehicle id, topic relative to its namespace) of a per-vehicle topic, None for any other:
+    split_cav_topic("/cav_3/lidar/pose") == (3, "lidar/pose"). The one inverse of the builders below."""
+    m = _CAV_TOPIC.match(topic)
+    return (int(m.group(1)), m.group(2)) if m else None
 
 
 def namespace(agent_id: int) -> str:

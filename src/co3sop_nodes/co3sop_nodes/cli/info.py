@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import opv2v
+from .. import opv2v, topics
 from ..bags import occupancy_labels, open_reader
 from ..classes import CLASS_NAMES, NUM_CLASSES
 from ..errors import DatasetError
@@ -41,13 +41,13 @@ def _count(labels: np.ndarray) -> np.ndarray:
 
 
 def bag_info(path: Path, counts: bool) -> str:
-    topics, cavs, stamps = [], set(), set()
+    rows, cavs, stamps = [], set(), set()
     class_counts: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(NUM_CLASSES + 1, np.int64))
     with open_reader(path) as reader:
         for conn in sorted(reader.connections, key=lambda c: c.topic):
-            topics.append(f"| {conn.topic} | {conn.msgtype} | {conn.msgcount} |")
-            if conn.topic.startswith("/cav_"):
-                cavs.add(int(conn.topic.split("/")[1][4:]))
+            rows.append(f"| {conn.topic} | {conn.msgtype} | {conn.msgcount} |")
+            if (cav := topics.split_cav_topic(conn.topic)) is not None:
+                cavs.add(cav[0])
         messages = reader.message_count
         duration = (reader.end_time - reader.start_time) / 1e9 if messages else 0.0
         for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic.endswith("/lidar/pose")]):
@@ -60,7 +60,7 @@ def bag_info(path: Path, counts: bool) -> str:
                     labels, grid = occupancy_labels(msg)
                 class_counts[f"{grid.extent[0]:.1f}m"] += _count(labels)
     out = [f"# {path}", f"bag: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}; {len(stamps)} frames", "",
-           "| topic | type | messages |", "|---|---|---:|", *topics]
+           "| topic | type | messages |", "|---|---|---:|", *rows]
     if class_counts:
         out += ["", "Ground-truth voxels per class:", "", class_table(class_counts)]
     return "\n".join(out)

@@ -102,11 +102,11 @@ def bag_contents(bag: Path) -> tuple[list[int], int]:
     """(CAV ids, frames) of a bag."""
     reader = open_reader(bag)
     with reader:
-        poses = {c.topic: c.msgcount for c in reader.connections if re.fullmatch(r"/cav_\d+/lidar/pose", c.topic)}
+        poses = {cav[0]: c.msgcount for c in reader.connections if (cav := topics.split_cav_topic(c.topic)) is not None
+                 and c.topic == topics.lidar_pose(cav[0])}
     if not poses:
         raise Co3sopError(f"{bag}: no /cav_N/lidar/pose topic: not a CAV bag")
-    cavs = sorted(int(t.split("/")[1][4:]) for t in poses)
-    return cavs, max(poses.values())
+    return sorted(poses), max(poses.values())
 
 
 def bag_period(bag: Path, frames: int) -> float:

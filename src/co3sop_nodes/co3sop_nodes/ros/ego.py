@@ -18,7 +18,6 @@ their age, bytes received, time per stage, drops by reason).
 
 from __future__ import annotations
 
-import re
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -67,7 +66,6 @@ PARAMS = (
     Param("reference_paths", bool, "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)", False),
 )
 RUNTIME = [p.name for p in PARAMS if p.runtime]
-FEATURES_TOPIC = re.compile(r"^/cav_(\d+)/voxel_features$")
 FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
 
 
@@ -140,9 +138,9 @@ class Ego(Node):
 
     def _discover(self) -> None:
         for name, types in self.get_topic_names_and_types():
-            m = FEATURES_TOPIC.match(name)
-            if m and FEATURES_TYPE in types and name not in self._subs:
-                self._subscribe(name, int(m.group(1)))
+            cav = topics.split_cav_topic(name)
+            if cav is not None and name == topics.voxel_features(cav[0]) and FEATURES_TYPE in types and name not in self._subs:
+                self._subscribe(name, cav[0])
                 self.get_logger().info(f"neighbour discovered: {name}")
 
     def _on_features(self, topic: str, agent: int, msg: VoxelFeatures, raw: bytes) -> None:
