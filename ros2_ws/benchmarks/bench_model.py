@@ -21,7 +21,6 @@ import resource
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from co3sop_nodes import native

@@ -43,6 +43,8 @@ class Graph:
         deadline = time.monotonic() + timeout
         while len(re.findall(pattern, self.log(name))) < n:
             assert self.procs[name].poll() is None, f"{name} exited:\n{self.log(name)}"
+            for other, proc in self.procs.items():  # a node that crashed fails the test now, not at the timeout
+                assert proc.poll() in (None, 0, -signal.SIGKILL), f"{other} failed ({proc.returncode}):\n{self.log(other)}"
             assert time.monotonic() < deadline, f"{name}: fewer than {n} '{pattern}' in {timeout} s:\n{self.log(name)}"
             time.sleep(0.2)
 

@@ -681,7 +681,7 @@ def test_confidence_payload_without_has_confidence(small, codec_name):
 
 def _forge(enc: EncodedFeatures, field: str, fill) -> EncodedFeatures:
     """`enc` with the decompressed array of `field` rewritten by `fill` (what a faulty sender would encode)."""
-    n, dtype = enc.num_voxels, FEATURE_DTYPES[enc.dtype]
+    dtype = FEATURE_DTYPES[enc.dtype]
     if field in ("quant_scale", "quant_offset"):
         return dataclasses.replace(enc, **{field: tuple(fill(np.asarray(getattr(enc, field), np.float32)))})
     cdtype = codec._confidence_dtype(enc.dtype) if field == "confidence" else dtype

@@ -48,8 +48,8 @@ def _load(folder: Path, kind: str) -> dict | None:
 def recipe(report: dict) -> str:
     """The training steps per stage behind an evaluation (from the train commands its JSON records)."""
     steps: dict[str, int] = {}
-    for run in report.get("trained", []):
-        steps[run["stage"]] = run["steps"]  # a resumed or extended run: its last command's total
+    for trained in report.get("trained", []):
+        steps[trained["stage"]] = trained["steps"]  # a resumed or extended run: its last command's total
     return " + ".join(f"{stage} {n}" for stage, n in steps.items()) + " steps" if steps else "steps not recorded"
 
 

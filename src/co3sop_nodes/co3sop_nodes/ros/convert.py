@@ -10,11 +10,11 @@ from co3sop_msgs.msg import GridSpec as GridSpecMsg
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from ..cloud import CLOUD_DTYPE, cloud_xyz
 from ..codec import EncodedFeatures, EncodedLabels
-from ..errors import DatasetError
+from ..errors import Co3sopError, DatasetError
 from ..geometry import Pose
 from ..grid import GridSpec
 
@@ -150,6 +150,16 @@ def cloud_points(msg: PointCloud2) -> np.ndarray:
     """(N, 3) float32 x, y, z of a PointCloud2; raises DatasetError on a layout without them."""
     fields = [(f.name, f.offset, f.datatype) for f in msg.fields]
     return cloud_xyz(bytes(msg.data), fields, msg.point_step, msg.width, msg.height)
+
+
+def image_rgb(msg: Image, topic: str) -> np.ndarray:
+    """(H, W, 3) uint8 view of an rgb8 Image (rows may be padded to `step`); raises Co3sopError naming the topic otherwise."""
+    if msg.encoding != "rgb8":
+        raise Co3sopError(f"{topic}: encoding {msg.encoding!r}, expected rgb8")
+    data = np.frombuffer(msg.data, np.uint8)
+    if msg.step < 3 * msg.width or len(data) < msg.step * msg.height:
+        raise Co3sopError(f"{topic}: {len(data)} bytes do not hold {msg.height} rows of {msg.step} bytes")
+    return data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, : 3 * msg.width].reshape(msg.height, msg.width, 3)
 
 
 def diagnostics_msg(stamp_ns: int, name: str, hardware_id: str, level: bytes, message: str, values: dict) -> DiagnosticArray:

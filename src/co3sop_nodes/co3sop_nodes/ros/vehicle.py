@@ -40,7 +40,7 @@ from ..model.predict import compile_kernels
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
-from .convert import cloud_points, diagnostics_msg, features_to_msg, pose_from_msg, stamp_to_ns
+from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, stamp_to_ns
 from .params import Param, Parameters
 from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, SensorSubscriptions, spin_node
 
@@ -155,7 +155,7 @@ class Vehicle(Node):
                 for cam in self.cameras:
                     image, info = entry[f"image:{cam}"], entry[f"info:{cam}"]
                     k = np.array(info.k, np.float64).reshape(3, 3)
-                    cameras.append((cam, rgb_of(image, self._parts[f"image:{cam}"]), k, self._tf.lookup(self.lidar_frame, image.header.frame_id)))
+                    cameras.append((cam, image_rgb(image, self._parts[f"image:{cam}"]), k, self._tf.lookup(self.lidar_frame, image.header.frame_id)))
             else:
                 points = cloud_points(entry["points"])
             inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
