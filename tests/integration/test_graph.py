@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import os
-import re
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
@@ -14,22 +12,26 @@ import pytest
 import torch
 from conftest import executable
 
+from co3sop_nodes import topics
 from co3sop_nodes.codec import FeatureCodecConfig
 from co3sop_nodes.learn.bag_eval import predict_bag
 from co3sop_nodes.model.checkpoint import export_model, load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.model import build_model
+from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.scoring import read_recording
 
 FRAMES = 4
 
 
 class Graph:
-    """Node processes with their output in files (a full pipe would stall a node)."""
+    """Node processes with their output in files (a full pipe would stall a node), watched by a Supervisor:
+    lifecycle states, graph events and /diagnostics decide, never the logs."""
 
     def __init__(self, folder: Path):
         self.folder = folder
         self.procs: dict[str, subprocess.Popen] = {}
+        self.supervisor = Supervisor("graph_test", alive=self.crashed)
 
     def start(self, name: str, *argv: str) -> subprocess.Popen:
         log = open(self.folder / f"{name}.log", "w")
@@ -39,19 +41,25 @@ class Graph:
     def log(self, name: str) -> str:
         return (self.folder / f"{name}.log").read_text()
 
-    def wait_for(self, name: str, pattern: str, n: int = 1, timeout: float = 120) -> None:
-        deadline = time.monotonic() + timeout
-        while len(re.findall(pattern, self.log(name))) < n:
-            assert self.procs[name].poll() is None, f"{name} exited:\n{self.log(name)}"
-            for other, proc in self.procs.items():  # a node that crashed fails the test now, not at the timeout
-                assert proc.poll() in (None, 0, -signal.SIGKILL), f"{other} failed ({proc.returncode}):\n{self.log(other)}"
-            assert time.monotonic() < deadline, f"{name}: fewer than {n} '{pattern}' in {timeout} s:\n{self.log(name)}"
-            time.sleep(0.2)
+    def crashed(self) -> str | None:
+        """Why the graph cannot go on: a node that failed (a test's own kill -9 excepted), with its log."""
+        for name, proc in self.procs.items():
+            if proc.poll() not in (None, 0, -signal.SIGKILL):
+                return f"{name} failed ({proc.returncode}):\n{self.log(name)}"
+        return None
 
-    def wait_discovered(self, ego: str, neighbours: list[int]) -> None:
-        """The ego knows every neighbour (as the demo waits before playing): otherwise it fuses a first frame alone."""
+    def wait_active(self, *nodes: str) -> None:
+        for node in nodes:
+            self.supervisor.wait_state(f"/{node}", "active", timeout=180)
+
+    def wait_discovered(self, neighbours: list[int]) -> None:
+        """The ego subscribes to every neighbour (as the demo waits before playing): otherwise it fuses a first frame alone."""
         for c in neighbours:
-            self.wait_for(ego, rf"neighbour discovered: /cav_{c}/voxel_features", timeout=60)
+            self.supervisor.wait_subscribed("ego", topics.voxel_features(c))
+
+    def wait_fused(self, n: int, where=lambda report: True, timeout: float = 180) -> list[dict]:
+        """The ego's /diagnostics reports once `n` of them satisfy `where`."""
+        return self.supervisor.wait_reports("ego", n, timeout, where)
 
     def stop(self, name: str, sig=signal.SIGINT, timeout: float = 30) -> int:
         proc = self.procs[name]
@@ -68,6 +76,7 @@ class Graph:
                 proc.wait(20)
             except subprocess.TimeoutExpired:
                 proc.kill()
+        self.supervisor.close()
 
 
 @pytest.fixture
@@ -97,15 +106,14 @@ def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0", *ego_params)
     for c in cavs:
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *[x for p in vehicle_params for x in ("-p", p)])
-    for name in ["ego", *(f"vehicle{c}" for c in cavs)]:
-        graph.wait_for(name, "ready:")
-    graph.wait_discovered("ego", cavs[1:])
-    graph.wait_for("recorder", "recording /ego/occupancy")
+    graph.wait_active("ego", *(f"vehicle_{c}" for c in cavs))
+    graph.wait_discovered(cavs[1:])
+    graph.supervisor.wait_subscribed("recorder", topics.EGO_OCCUPANCY)
     played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in cavs for s in
                                ["lidar/pose", "ground_truth/occupancy_50m", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
     player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
     assert player.wait(120) == 0, graph.log("player")
-    graph.wait_for("ego", r"published #", n=FRAMES, timeout=180)
+    graph.wait_fused(FRAMES)
     for c in cavs:
         graph.stop(f"vehicle{c}")
     graph.stop("ego")
@@ -121,7 +129,7 @@ def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
               f"codec.compression:={codec.codec}"]
     mcap = run_graph(graph, bag, cavs, params)
     rec = read_recording(mcap)
-    published = len(re.findall(r"published #", graph.log("ego")))
+    published = len(graph.supervisor.reports("ego"))
     assert len(rec.predictions) == published == FRAMES  # the recording holds every prediction the ego published
     assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics  # collaboration really ran
 
@@ -144,17 +152,16 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=8.0")
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
-    for name in ("ego", f"vehicle{ego}", f"vehicle{neighbour}"):
-        graph.wait_for(name, "ready:")
-    graph.wait_discovered("ego", [neighbour])
+    graph.wait_active("ego", f"vehicle_{ego}", f"vehicle_{neighbour}")
+    graph.wait_discovered([neighbour])
     for topic in ("/diagnostics", "/ego/occupancy"):  # recorded from the first frame on, as the demo makes sure
-        graph.wait_for("recorder", rf"recording {topic} ")
+        graph.supervisor.wait_subscribed("recorder", topic)
     played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in (ego, neighbour) for s in
                                ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
     graph.start("player", executable("player"), str(bag), "--rate", "0.02", "--wait-subscribers", "30", "--topics", *played)
-    graph.wait_for("ego", r"published #\d+, 1 neighbours used", timeout=180)
+    graph.wait_fused(1, lambda r: r["neighbours_used"] == "1")
     graph.procs[f"vehicle{neighbour}"].kill()  # no goodbye: as a crash
-    graph.wait_for("ego", rf"published #\d+, 0 neighbours used; no frame from cav {neighbour}", timeout=180)
+    graph.wait_fused(1, lambda r: r["neighbours_used"] == "0" and r["neighbours_missing"] == str(neighbour))
     assert graph.procs["ego"].poll() is None
     graph.stop("player")
     graph.stop("ego")
@@ -174,11 +181,56 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0")
     graph.start("camera", executable("vehicle"), "--id", str(ego))
     graph.start("lidar", executable("vehicle"), "--id", str(neighbour), "--ros-args", "-p", f"checkpoint:={lidar}", "-p", "modality:=lidar")
-    for name in ("ego", "camera", "lidar"):
-        graph.wait_for(name, "ready:")
-    graph.wait_discovered("ego", [neighbour])
+    graph.wait_active("ego", f"vehicle_{ego}", f"vehicle_{neighbour}")
+    graph.wait_discovered([neighbour])
     assert "tiny-lmscnet (lidar" in graph.log("lidar")
     played = ["/tf_static", f"/cav_{neighbour}/lidar/pose", f"/cav_{neighbour}/lidar/points", f"/cav_{ego}/lidar/pose",
               *(f"/cav_{ego}/camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]
     graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
-    graph.wait_for("ego", r"published #\d+, 1 neighbours used", n=2, timeout=180)
+    graph.wait_fused(2, lambda r: r["neighbours_used"] == "1")
+
+
+def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
+    """With autostart:=false nothing is loaded, published or subscribed until a manager configures and activates;
+    deactivate stops the work, cleanup releases the publishers (and configure loads again), shutdown finalises;
+    a configure that fails says why and leaves the node unconfigured."""
+    bag, cavs = scenario
+    ego, neighbour = cavs[0], cavs[-1]
+    sup, manual = graph.supervisor, ["-p", "autostart:=false"]
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *manual)
+    for c in (ego, neighbour):
+        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *manual)
+    graph.start("broken", executable("vehicle"), "--id", "99", "--ros-args", *manual, "-p", f"checkpoint:={graph.folder / 'missing.pt'}")
+    nodes = ["/ego", f"/vehicle_{ego}", f"/vehicle_{neighbour}"]
+    for node in [*nodes, "/vehicle_99"]:
+        sup.wait_state(node, "unconfigured")
+    assert sup.node.count_publishers(topics.EGO_OCCUPANCY) == sup.node.count_publishers(topics.voxel_features(ego)) == 0
+
+    assert not sup.change("/vehicle_99", "configure")
+    assert sup.state("/vehicle_99") == "unconfigured" and "missing.pt" in graph.log("broken")
+    for node in nodes:
+        assert sup.change(node, "configure") and sup.state(node) == "inactive"
+    sup.wait("the publishers made by configure", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 1
+             and sup.node.count_publishers(topics.voxel_features(neighbour)) == 1, 30)
+    assert not sup.subscribes("ego", topics.voxel_features(ego))  # an inactive ego listens to nothing
+
+    for node in nodes:
+        assert sup.change(node, "activate") and sup.state(node) == "active"
+    graph.wait_discovered([ego, neighbour])
+    played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in (ego, neighbour) for s in
+                               ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
+    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    assert player.wait(120) == 0, graph.log("player")
+    graph.wait_fused(FRAMES, lambda r: r["neighbours_used"] == "1")
+
+    assert sup.change(f"/vehicle_{ego}", "deactivate") and sup.state(f"/vehicle_{ego}") == "inactive"
+    sup.wait("the inactive vehicle to drop its sensor subscriptions", lambda: not sup.subscribes(f"vehicle_{ego}", topics.lidar_pose(ego)), 30)
+    assert sup.change("/ego", "deactivate")
+    sup.wait("the inactive ego to unsubscribe", lambda: not sup.subscribes("ego", topics.voxel_features(neighbour)), 30)
+    assert sup.change("/ego", "cleanup") and sup.state("/ego") == "unconfigured"
+    sup.wait("cleanup to release the ego's publishers", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0, 30)
+    assert sup.change("/ego", "configure") and sup.change("/ego", "activate")  # loads again after a cleanup
+    sup.wait_subscribed("ego", topics.voxel_features(neighbour))
+    for node in [*nodes, "/vehicle_99"]:
+        assert sup.change(node, "shutdown") and sup.state(node) == "finalized"
+    assert len(graph.supervisor.reports("ego")) == FRAMES  # nothing fused while inactive or after

@@ -31,6 +31,7 @@ from co3sop_nodes.geometry import Pose
 from co3sop_nodes.grid import BENCHMARK_RANGES
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.convert import cloud_to_msg, features_to_msg, labels_to_msg, ns_to_stamp
+from co3sop_nodes.ros.supervisor import Supervisor
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 EGO, OTHER = 1, 7
@@ -60,6 +61,27 @@ def wait_for(log: Path, pattern: str, proc: subprocess.Popen, timeout: float = 1
     return log.read_text()
 
 
+@pytest.fixture
+def sup():
+    with Supervisor("fault_test") as supervisor:
+        yield supervisor
+
+
+def wait_ready(sup: Supervisor, node: str, proc: subprocess.Popen, log: Path, timeout: float = 120) -> None:
+    """`node` is up: a lifecycle node (ego, vehicle_N) in state active, any other present in the graph."""
+    def up() -> bool:
+        assert proc.poll() is None, log.read_text()
+        if node == "recorder":
+            return node in sup.node.get_node_names()
+        return f"/{node}/get_state" in dict(sup.node.get_service_names_and_types()) and sup.state(f"/{node}") == "active"
+    sup.wait(f"{node} up", up, timeout)
+
+
+def fused(sup: Supervisor, n: int, neighbours: int, timeout: float = 120) -> None:
+    """The ego reported its n-th frame on /diagnostics, fused with `neighbours` neighbours."""
+    sup.wait_reports("ego", 1, timeout, lambda r: r["frames_published"] == str(n) and r["neighbours_used"] == str(neighbours))
+
+
 def features(agent: int, stamp: int, pose=Pose((10.0, 5.0, 1.8)), grid=None, channels=32) -> VoxelFeatures:
     grid = grid or preset("tiny").feature_grid
     volume = np.random.default_rng(agent).normal(size=(channels, *grid.dims)).astype(np.float32)
@@ -79,18 +101,18 @@ def wait_subscribed(peer, pubs) -> None:
         rclpy.spin_once(peer, timeout_sec=0.1)
 
 
-def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer):
+def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, sup):
     ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=0.5",
                      "-p", "max_payload_mb:=4.0", "-p", "publish_points:=false")
     try:
-        wait_for(log, "ready:", ego)
+        wait_ready(sup, "ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
         other = peer.create_publisher(VoxelFeatures, f"/cav_{OTHER}/voxel_features", QOS)
         wait_subscribed(peer, [own, other])  # the ego finds /cav_7 in the graph
         other.publish(features(OTHER, T0))
         acked(other)
         own.publish(features(EGO, T0))
-        wait_for(log, r"published #1, 1 neighbours used", ego)
+        fused(sup, 1, 1)
 
         stamp = T0 + 100_000_000
         bad = []
@@ -118,8 +140,8 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer):
         other.publish(features(OTHER, stamp))
         acked(other)
         own.publish(features(EGO, stamp))
-        text = wait_for(log, r"published #2, 1 neighbours used", ego)
-        assert ego.poll() is None and "Traceback" not in text
+        fused(sup, 2, 1)
+        assert ego.poll() is None and "Traceback" not in log.read_text()
     finally:
         ego.send_signal(signal.SIGINT)
         ego.wait(30)
@@ -194,13 +216,14 @@ def test_nodes_explain_bad_parameters(argv, message):
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr
 
 
-def test_vehicle_takes_the_installed_parameter_file(tmp_path):
+def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
     """The shipped YAML (every parameter with its default) loads; -p after it overrides."""
     params = Path(get_package_share_directory("co3sop_nodes"), "config", "vehicle.yaml")
     proc, log = start(tmp_path, "vehicle", executable("vehicle"), "--id", "3", "--ros-args", "--params-file", str(params),
                       "-p", "codec.dtype:=int8", "-p", "codec.selection:=topk", "-p", "codec.topk:=1024")
     try:
-        assert "as int8-topk1024-zstd" in wait_for(log, "ready:", proc)
+        wait_ready(sup, "vehicle_3", proc, log)
+        assert "as int8-topk1024-zstd" in log.read_text()
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(30) == 0
@@ -211,6 +234,7 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path):
 STATIC = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 CAMERA_CAV, LIDAR_CAV = 3, 4
+NODES = {"ego": "ego", "camera": f"vehicle_{CAMERA_CAV}", "lidar": f"vehicle_{LIDAR_CAV}", "recorder": "recorder"}  # process -> node
 
 
 def malformed(msg_type) -> dict[str, bytes]:
@@ -255,7 +279,7 @@ def lidar_frame(stamp: int) -> tuple[PoseStamped, PointCloud2]:
     return pose, cloud_to_msg(occupancy_cloud(labels, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(LIDAR_CAV))
 
 
-def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, peer):
+def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, peer, sup):
     """Raw malformed CDR on each topic of the ego, a camera and a LiDAR vehicle, and the recorder: every node keeps
     running, names the topic and the reason, counts the drops in /diagnostics and still does its job."""
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
@@ -267,8 +291,8 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
         "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap")),
     }
     try:
-        for proc, log in procs.values():
-            wait_for(log, "ready:|recording to", proc)
+        for name, (proc, log) in procs.items():
+            wait_ready(sup, NODES[name], proc, log)
         targets = {  # topic -> (type, QoS, the node that must name it)
             topics.voxel_features(EGO): (VoxelFeatures, QOS, "ego"), topics.voxel_features(OTHER): (VoxelFeatures, QOS, "ego"),
             topics.TF_STATIC: (TFMessage, STATIC, "camera"),
@@ -297,7 +321,7 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
         pubs[topics.voxel_features(OTHER)].publish(features(OTHER, T0))
         acked(pubs[topics.voxel_features(OTHER)])
         pubs[topics.voxel_features(EGO)].publish(features(EGO, T0))
-        wait_for(procs["ego"][1], r"published #1, 1 neighbours used", procs["ego"][0])
+        fused(sup, 1, 1)
         assert status_values(seen, "ego", peer)["dropped_malformed"] == "6"
         for msg, topic in zip(lidar_frame(T0), (topics.lidar_pose(LIDAR_CAV), topics.lidar_points(LIDAR_CAV))):
             pubs[topic].publish(msg)
@@ -341,13 +365,13 @@ def spoiled(field: str, stamp: int) -> VoxelFeatures:
     return msg
 
 
-def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(tmp_path, peer):
+def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(tmp_path, peer, sup):
     """NaN or inf in any payload field is dropped with the field named; a neighbour whose publisher exists but has not
     sent within neighbour_timeout of the ego's first frame is no longer waited for (it would cost every frame max_wait)."""
     ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=6.0",
                      "-p", "neighbour_timeout:=1.0", "-p", "publish_points:=false")
     try:
-        wait_for(log, "ready:", ego)
+        wait_ready(sup, "ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
         other = peer.create_publisher(VoxelFeatures, topics.voxel_features(OTHER), QOS)
         silent = peer.create_publisher(VoxelFeatures, topics.voxel_features(9), QOS)  # exists, never sends
@@ -362,13 +386,13 @@ def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(
         # neighbour_timeout (1 s) after it arrived, not max_wait (6 s)
         t0 = time.monotonic()
         own.publish(features(EGO, T0))
-        wait_for(log, r"published #1, 0 neighbours used", ego)
+        fused(sup, 1, 0)
         assert time.monotonic() - t0 < 3.0, "the ego waited for a neighbour that never sent (max_wait is 6 s)"
 
         other.publish(features(OTHER, T0 + 100_000_000))  # speaks again: live, waited for, fused
         acked(other)
         own.publish(features(EGO, T0 + 100_000_000))
-        wait_for(log, r"published #2, 1 neighbours used", ego)
+        fused(sup, 2, 1)
         assert ego.poll() is None and "Traceback" not in log.read_text()
     finally:
         ego.send_signal(signal.SIGINT)
@@ -411,7 +435,7 @@ def test_no_entry_point_runs_code_from_a_checkpoint(crafted, tmp_path, argv):
 BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
-def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_path, peer):
+def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_path, peer, sup):
     """A LiDAR driver and a ground-truth source that publish best effort (as most drivers do): the vehicle and the
     recorder subscribe with the QoS offered, so they match and get the messages (a reliable subscription would not
     match a best-effort publisher at all)."""
@@ -422,8 +446,8 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
         "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap"), "--topics", re.escape(truth_topic)),
     }
     try:
-        for proc, log in procs.values():
-            wait_for(log, "ready:|recording to", proc)
+        for name, (proc, log) in procs.items():
+            wait_ready(sup, NODES[name], proc, log)
         got: list = []
         peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
         pose_pub = peer.create_publisher(PoseStamped, topics.lidar_pose(LIDAR_CAV), BEST_EFFORT)
@@ -464,7 +488,7 @@ def call(peer, future):
     return future.result()
 
 
-def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, peer):
+def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, peer, sup):
     """`ros2 param describe` shows descriptions, ranges and read-only flags; `ros2 param set` takes a run-time
     value (the next frame is encoded with it), refuses a bad one with a reason and refuses what needs a restart."""
     from rclpy.parameter import Parameter
@@ -478,8 +502,8 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
         "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
     }
     try:
-        for proc, log in procs.values():
-            wait_for(log, "ready:", proc)
+        for name, (proc, log) in procs.items():
+            wait_ready(sup, NODES[name], proc, log)
         ego = AsyncParameterClient(peer, "ego")
         vehicle = AsyncParameterClient(peer, f"vehicle_{LIDAR_CAV}")
         assert ego.wait_for_services(30) and vehicle.wait_for_services(30)

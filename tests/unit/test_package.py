@@ -15,13 +15,14 @@ from ament_index_python.packages import get_package_share_directory
 
 from co3sop_nodes.ros import ego, vehicle
 from co3sop_nodes.ros.demo import LOSSLESS
+from co3sop_nodes.ros.lifecycle import AUTOSTART
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "src" / "co3sop_nodes"
 LAUNCH_FILES = sorted((PACKAGE / "launch").glob("*.launch.py"))
 
 # ROS packages the code may import: their rosdep key is their name
-ROS_PACKAGES = {"ament_index_python", "builtin_interfaces", "co3sop_msgs", "diagnostic_msgs", "geometry_msgs", "launch", "launch_ros", "rcl_interfaces",
+ROS_PACKAGES = {"ament_index_python", "builtin_interfaces", "co3sop_msgs", "diagnostic_msgs", "geometry_msgs", "launch", "launch_ros", "lifecycle_msgs", "rcl_interfaces",
                 "rclpy", "rosgraph_msgs", "sensor_msgs", "std_msgs", "tf2_msgs"}
 # Python modules -> rosdep key (what `rosdep install` must provide)
 PYTHON_KEYS = {"numpy": "python3-numpy", "torch": "python3-torch", "yaml": "python3-yaml", "PIL": "python3-pil", "matplotlib": "python3-matplotlib",
@@ -99,7 +100,7 @@ def config_parameters(executable: str) -> set[str]:
     return flat(yaml.safe_load((PACKAGE / "config" / f"{executable}.yaml").read_text())["/**"]["ros__parameters"])
 
 
-NODE_PARAMS = {"ego": ego.PARAMS, "vehicle": vehicle.PARAMS}
+NODE_PARAMS = {"ego": (*ego.PARAMS, AUTOSTART), "vehicle": (*vehicle.PARAMS, AUTOSTART)}  # lifecycle nodes: autostart too
 
 
 @pytest.mark.parametrize("executable", sorted(NODE_PARAMS))

@@ -129,6 +129,13 @@ class SensorSubscriptions:
             self.subscriptions[topic] = subscribe_foreign(self._node, msg_type, topic, callback, qos, self._drops)
         self._waiting = still
 
+    def close(self) -> None:
+        """Unsubscribes from everything and stops looking for publishers."""
+        self._node.destroy_timer(self._timer)
+        for sub in self.subscriptions.values():
+            self._node.destroy_subscription(sub)
+        self.subscriptions, self._waiting = {}, []
+
 
 def flush_publishers(node: Node, publishers, timeout: float = 5.0) -> None:
     """Waits (at most `timeout` s in all) until reliable subscribers acknowledged everything published:

@@ -4,11 +4,16 @@
 
 Without --bag it generates one scenario with three CAVs (once; kept in
 data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
-(at most --vehicles) as separate processes, plays the bag once at --rate
+(at most --vehicles) as separate processes, drives the ego and vehicles
+through their lifecycle as a lifecycle manager does (configure, then
+activate), waits until the ego subscribes to every vehicle and the recorder
+to the ego's outputs (graph events), plays the bag once at --rate
 (default: the rate this machine keeps up with, from the model's CPU time per
-frame measured before the nodes start, model.pace), waits until the ego has fused every frame, stops everything with SIGINT,
+frame measured before the nodes start, model.pace), waits until the ego has
+reported every frame fused on /diagnostics, stops everything with SIGINT,
 scores the MCAP (table printed, pictures beside it) and checks the recording
-holds every /ego/occupancy message the ego published.
+holds every /ego/occupancy message the ego published. Nothing is decided from
+the nodes' logs.
 """
 
 from __future__ import annotations
@@ -16,7 +21,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import re
 import signal
 import subprocess
 import threading
@@ -32,6 +36,8 @@ from ..cli.common import run
 from ..errors import Co3sopError
 from ..model import pace
 from ..model.checkpoint import load_model, read_checkpoint, shipped_checkpoint
+from ..scoring import read_recording
+from .supervisor import Supervisor
 
 # A scene whose CAVs can help each other: seed 11 is the first base seed (counting from 1) whose three CAVs all
 # stay within 30 m of the ego over the 10 frames (most seeds spread them 50-100 m apart, where a 51.2 m grid
@@ -56,11 +62,10 @@ def executable(name: str) -> str:
 
 
 class Process:
-    """A child process whose output is echoed with a prefix and searched for markers."""
+    """A child process whose output is echoed with a prefix (or swallowed)."""
 
     def __init__(self, label: str, argv: list[str], echo: bool = True):
         self.label = label
-        self.lines: list[str] = []
         self._echo = echo
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ),
                                      start_new_session=True)  # Ctrl-C on the demo reaches the demo only; it stops the children
@@ -69,22 +74,8 @@ class Process:
 
     def _read(self) -> None:
         for line in self.proc.stdout:
-            line = line.rstrip()
-            self.lines.append(line)
             if self._echo:
-                print(f"  [{self.label}] {line}", flush=True)
-
-    def count(self, pattern: str) -> int:
-        return sum(1 for line in list(self.lines) if re.search(pattern, line))
-
-    def wait_for(self, pattern: str, timeout: float, n: int = 1) -> None:
-        deadline = time.monotonic() + timeout
-        while self.count(pattern) < n:
-            if self.proc.poll() is not None:
-                raise Co3sopError(f"{self.label} exited with code {self.proc.returncode} before '{pattern}'")
-            if time.monotonic() > deadline:
-                raise Co3sopError(f"{self.label}: no '{pattern}' within {timeout:.0f} s")
-            time.sleep(0.1)
+                print(f"  [{self.label}] {line.rstrip()}", flush=True)
 
     def stop(self, timeout: float = 30) -> int:
         if self.proc.poll() is None:
@@ -189,44 +180,45 @@ def main(args: list[str] | None = None) -> int:
     say(f"model {checkpoint} ({sensors})")
     if opts.rate is None:
         opts.rate = measured_rate(checkpoint, len(cavs), bag_period(bag, frames))
-    model = ["-p", f"checkpoint:={checkpoint}"]
+    model = ["-p", f"checkpoint:={checkpoint}", "-p", "autostart:=false"]  # the demo drives the lifecycle
     ros_params = [x for p in opts.params for x in ("-p", p)]
     echo = not opts.quiet
-    recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
     ego_params = [x for p in opts.ego_params for x in ("-p", p)]
-    nodes = [Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params], echo)]
+    recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
+    nodes = {"/ego": Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params], echo)}
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
-    nodes += [Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)], echo)
-              for c in cavs]
+    for c in cavs:
+        nodes[f"/vehicle_{c}"] = Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model,
+                                                          *(lossless if c == ego else ros_params)], echo)
     player = None
+    supervisor = Supervisor("demo", alive=lambda: next((f"{p.label} exited with code {p.proc.returncode}" for p in [recorder, *nodes.values()]
+                                                        if p.proc.poll() is not None), None))
     try:
-        say("waiting for the nodes to load the model")
-        for node in nodes:
-            node.wait_for(r"ready:", timeout=180)
+        say("configuring the nodes (each loads the model), then activating them")
+        supervisor.bring_up(list(nodes))
         for c in cavs:  # the ego knows every neighbour before the first frame, or fuses it alone
-            if c != ego:
-                nodes[0].wait_for(rf"neighbour discovered: {re.escape(topics.voxel_features(c))}", timeout=60)
+            supervisor.wait_subscribed("ego", topics.voxel_features(c))
         for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS):  # the nodes' outputs are recorded from their first frame on
-            recorder.wait_for(rf"recording {re.escape(topic)} ", timeout=60)
+            supervisor.wait_subscribed("recorder", topic)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable("player"), str(bag), "--rate", str(opts.rate), "--wait-subscribers", "30",
                                     "--topics", *played_topics(cavs, sensors)], echo)
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say("bag played; waiting for the ego to fuse the last frames")
-        nodes[0].wait_for(r"published #", timeout=120, n=frames)
+        supervisor.wait_reports("ego", frames, timeout=120)
     finally:
-        for p in [player, *nodes, recorder]:  # the recorder last, so it sees everything
+        for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
             if p is not None:
                 p.stop()
-    published = nodes[0].count(r"published #")
-    recorder_line = next((line for line in recorder.lines if "finalised" in line), "")
-    say(f"graph stopped after {time.monotonic() - t0:.0f} s; ego published {published} predictions; {recorder_line.strip()}")
+        supervisor.close()
+    published = len(supervisor.reports("ego"))
+    say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames")
     code = score.main([str(mcap), "--out", str(opts.out)])
-    recorded = re.search(rf"{re.escape(topics.EGO_OCCUPANCY)} (\d+)", recorder_line)
-    if recorded is None or int(recorded.group(1)) != published:
-        say(f"error: the recording holds {recorded.group(1) if recorded else 0} of the {published} /ego/occupancy messages published")
+    recorded = len(read_recording(mcap).predictions)
+    if recorded != published:
+        say(f"error: the recording holds {recorded} of the {published} /ego/occupancy messages published")
         return 1
     say(f"the recording holds all {published} /ego/occupancy messages; done in {time.monotonic() - t0:.0f} s")
     return code

@@ -27,7 +27,6 @@ import numpy as np
 import torch
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
@@ -42,8 +41,9 @@ from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
 from ..pairing import Pairing
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
-from .params import Param, Parameters
+from .params import Param
 from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_foreign
+from .lifecycle import ManagedNode
 
 PARAMS = (
     Param("ego_id", int, "the CAV this ego runs on: its own features come on /cav_<ego_id>/voxel_features", range=(0, 2**31 - 1)),
@@ -79,15 +79,25 @@ class Received:
     decode_ms: float
 
 
-class Ego(Node):
+class Ego(ManagedNode):
+    """A lifecycle node (ros/lifecycle.py): configure loads the checkpoint and creates the publishers,
+    activate subscribes to the vehicles' features and starts fusing; an inactive ego fuses nothing."""
+
     def __init__(self):
-        super().__init__("ego")
-        self.params = Parameters(self, PARAMS)
+        super().__init__("ego", PARAMS)
+        self.ego_id = self.params["ego_id"]
+        self.drops = DropLog(self.get_logger())
+        self.published = 0
+        self._subs: dict[str, object] = {}
+        self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
+        self._timers: list = []
+        self.model = None
+
+    def configure(self) -> None:
         p = self.params
-        self.ego_id = p["ego_id"]
         self.model, _ = load_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
         self.cfg = self.model.cfg
-        self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
+        self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.pairing: Pairing[Received] = Pairing(self.ego_id)
         self._apply({name: p[name] for name in RUNTIME})
         p.on_change(self._apply)
@@ -99,18 +109,32 @@ class Ego(Node):
         torch.set_num_threads(p["threads"])
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["queue_depth"], reliability=ReliabilityPolicy.RELIABLE)
-        self._subs: dict[str, object] = {}
-        self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
-        self.drops = DropLog(self.get_logger())
-        self.published = 0
-        self._occupancy = self.create_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
-        self._points = self.create_publisher(PointCloud2, topics.EGO_POINTS, OCCUPANCY_QOS)
-        self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
-        self._subscribe(topics.voxel_features(self.ego_id), self.ego_id)
-        self.create_timer(p["discovery_period"], self._discover)
-        self.create_timer(0.05, self._fuse_ready)
-        self.get_logger().info(f"ready: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
+        self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
+        self._points = self.create_lifecycle_publisher(PointCloud2, topics.EGO_POINTS, OCCUPANCY_QOS)
+        self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
+        self.get_logger().info(f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
                                f"{self.max_collaborators} collaborators within {self.comm_range:g} m; compiled kernels: {', '.join(self.kernels) or 'none'}")
+
+    def activate(self) -> None:
+        self.pairing = Pairing(self.ego_id, self.pairing.cfg)  # nothing waits from before a deactivation
+        self._subscribe(topics.voxel_features(self.ego_id), self.ego_id)
+        self._timers = [self.create_timer(self.params["discovery_period"], self._discover), self.create_timer(0.05, self._fuse_ready)]
+        self._discover()
+
+    def deactivate(self) -> None:
+        for timer in self._timers:
+            self.destroy_timer(timer)
+        for sub in self._subs.values():
+            self.destroy_subscription(sub)
+        self._timers, self._subs, self._agents = [], {}, {}
+
+    def release(self) -> None:
+        self.params.on_change(None)
+        for pub in ("_occupancy", "_points", "_diag"):
+            if hasattr(self, pub):
+                self.destroy_lifecycle_publisher(getattr(self, pub))
+                delattr(self, pub)
+        self.model = None
 
     def _apply(self, values: dict) -> None:
         """Takes the run-time parameters in `values` (at start, and on `ros2 param set`), after checking them."""
@@ -227,7 +251,7 @@ class Ego(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return spin_node(Ego, sys.argv if args is None else args, "ego")
+    return spin_node(lambda: Ego().start(), sys.argv if args is None else args, "ego")
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ import torch
 from co3sop_msgs.msg import VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
-from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
@@ -41,8 +40,9 @@ from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, stamp_to_ns
-from .params import Param, Parameters
+from .params import Param
 from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, SensorSubscriptions, spin_node
+from .lifecycle import ManagedNode
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 
@@ -67,50 +67,70 @@ CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.t
                 "codec.compression": "codec", "codec.level": "level"}
 
 
-class Vehicle(Node):
+class Vehicle(ManagedNode):
+    """A lifecycle node (ros/lifecycle.py): configure loads the checkpoint and creates the publishers,
+    activate subscribes to the sensors; an inactive vehicle encodes nothing."""
+
     def __init__(self, name: str = "vehicle"):
-        super().__init__(name)
-        self.params = p = Parameters(self, PARAMS)
-        self.agent_id = p["id"]
+        super().__init__(name, PARAMS)
+        self.agent_id = self.params["id"]
+        self.lidar_frame = topics.lidar_frame(self.agent_id)
+        self.drops = DropLog(self.get_logger())
+        self.published = 0
+        self.inputs: SensorSubscriptions | None = None
+        self.model = None
+
+    def configure(self) -> None:
+        p, a = self.params, self.agent_id
         checkpoint = p["checkpoint"]
         self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = cfg = self.model.cfg
-        self.kernels = compile_kernels(self.model)  # before 'ready': no frame waits for a compiler
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
             wanted = p[name]
             if wanted and wanted != have:
                 raise Co3sopError(f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it")
+        self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.codec = FeatureCodecConfig()
         self._apply({name: p[name] for name in CODEC_FIELDS})
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
         self.cameras = p["cameras"]
-        self.max_pending = p["max_pending"]
-        a = self.agent_id
-        self.lidar_frame = topics.lidar_frame(a)
+        self._parts = {"pose": topics.lidar_pose(a)}
+        self._types = {"pose": PoseStamped}
+        if cfg.modality == "camera":
+            for cam in self.cameras:
+                self._parts[f"image:{cam}"], self._types[f"image:{cam}"] = topics.camera_image(a, cam), Image
+                self._parts[f"info:{cam}"], self._types[f"info:{cam}"] = topics.camera_info(a, cam), CameraInfo
+        else:
+            self._parts["points"], self._types["points"] = topics.lidar_points(a), PointCloud2
+        self._pub = self.create_lifecycle_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
+        self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
+        self.get_logger().info(
+            f"configured: cav {a}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
+            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}; "
+            f"compiled kernels: {', '.join(self.kernels) or 'none'}")
+
+    def activate(self) -> None:
         self._tf = StaticTransforms()
-        self.published = 0
-        self.drops = DropLog(self.get_logger())
+        self._frames = FrameAssembly(self._parts, self.params["max_pending"], self._mounts_known, "camera mounts")
         # every input with the QoS its publisher offers (best-effort drivers, a reliable player, a latched /tf_static)
         self.inputs = SensorSubscriptions(self, self.drops)
         self.inputs.add(TFMessage, topics.TF_STATIC, self._on_static, STATIC_DEPTH)
-        self._parts = {"pose": topics.lidar_pose(a)}
-        types = {"pose": PoseStamped}
-        if cfg.modality == "camera":
-            for cam in self.cameras:
-                self._parts[f"image:{cam}"], types[f"image:{cam}"] = topics.camera_image(a, cam), Image
-                self._parts[f"info:{cam}"], types[f"info:{cam}"] = topics.camera_info(a, cam), CameraInfo
-        else:
-            self._parts["points"], types["points"] = topics.lidar_points(a), PointCloud2
-        self._frames = FrameAssembly(self._parts, self.max_pending, self._mounts_known, "camera mounts")
         for key, topic in self._parts.items():
-            self.inputs.add(types[key], topic, self._part(key), SENSOR_DEPTH)
-        self._pub = self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
-        self._diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
-        self.get_logger().info(
-            f"ready: cav {a}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
-            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}; "
-            f"compiled kernels: {', '.join(self.kernels) or 'none'}")
+            self.inputs.add(self._types[key], topic, self._part(key), SENSOR_DEPTH)
+
+    def deactivate(self) -> None:
+        if self.inputs is not None:
+            self.inputs.close()  # half-received frames go with the assembly; mounts come again on /tf_static
+            self.inputs = None
+
+    def release(self) -> None:
+        self.params.on_change(None)
+        for pub in ("_pub", "_diag"):
+            if hasattr(self, pub):
+                self.destroy_lifecycle_publisher(getattr(self, pub))
+                delattr(self, pub)
+        self.model = None
 
     def _on_static(self, msg: TFMessage) -> None:
         for t in msg.transforms:
@@ -189,7 +209,7 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.id is not None:  # one source: the parameter (as the launch files set it)
         argv += ["--ros-args", "-p", f"id:={opts.id}"]
-    return spin_node(lambda: Vehicle(f"vehicle_{opts.id}" if opts.id is not None else "vehicle"), argv, "vehicle")
+    return spin_node(lambda: Vehicle(f"vehicle_{opts.id}" if opts.id is not None else "vehicle").start(), argv, "vehicle")
 
 
 if __name__ == "__main__":
