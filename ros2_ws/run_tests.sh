@@ -5,6 +5,14 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 "$ROOT/ros2_ws/bootstrap.sh"
+# Foxglove's own readers (npm) for the test that every recording and bag decodes as Foxglove decodes it
+FOX="$ROOT/tests/foxglove"
+if [ "$(cat "$FOX/node_modules/.co3sop-lock" 2>/dev/null)" != "$(sha256sum "$FOX/package-lock.json" | cut -c1-16)" ]; then
+  command -v npm >/dev/null || { echo "run_tests: error: npm (Node.js 18 or newer) is needed for Foxglove's readers: apt-get install nodejs npm" >&2; exit 2; }
+  echo "[bootstrap] npm ci in tests/foxglove (Foxglove's MCAP and ROS 2 readers)"
+  npm ci --prefix "$FOX" --no-audit --no-fund --loglevel=error
+  sha256sum "$FOX/package-lock.json" | cut -c1-16 > "$FOX/node_modules/.co3sop-lock"
+fi
 # shellcheck disable=SC1091
 . "$ROOT/ros2_ws/env.sh"
 cd "$ROOT"

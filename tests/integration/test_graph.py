@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from mcap.reader import make_reader
 from conftest import executable
 
 from co3sop_nodes import topics
@@ -234,3 +237,37 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     for node in [*nodes, "/vehicle_99"]:
         assert sup.change(node, "shutdown") and sup.state(node) == "finalized"
     assert len(graph.supervisor.reports("ego")) == FRAMES  # nothing fused while inactive or after
+
+
+def foxglove_decode(*paths: Path) -> dict:
+    """Per file and topic: what Foxglove's own readers (npm: @mcap/core, @foxglove/rosmsg2-serialization) decode."""
+    script = Path(__file__).resolve().parents[1] / "foxglove" / "decode.mjs"
+    done = subprocess.run(["node", str(script), *map(str, paths)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def mcap_counts(path: Path) -> dict[str, int]:
+    with open(path, "rb") as f:
+        return dict(Counter(channel.topic for _, channel, _ in make_reader(f).iter_messages()))
+
+
+def test_recordings_and_bags_decode_with_foxglove_readers_and_draw_in_3d(graph, scenario):
+    """Every message of a graph recording and of a generated bag decodes with Foxglove's own readers, and the
+    recording holds the ego's prediction and its ground truth as coloured points in the ego's LiDAR frame."""
+    bag, cavs = scenario
+    mcap = run_graph(graph, bag, cavs, [])
+    files = [mcap, *bag.glob("*.mcap")]
+    decoded = foxglove_decode(*files)
+    for path in files:
+        topics_ = decoded[str(path)]
+        assert "error" not in topics_, topics_
+        failed = {t: e for t, e in topics_.items() if e["failed"] or e["error"]}
+        assert not failed, failed
+        assert {t: e["decoded"] for t, e in topics_.items()} == mcap_counts(path)  # every message, as the mcap library counts
+    rec = decoded[str(mcap)]
+    for topic in (topics.EGO_POINTS, topics.EGO_TRUTH_POINTS):
+        assert rec[topic]["decoded"] == FRAMES and rec[topic]["schema"] == "sensor_msgs/msg/PointCloud2"
+        sample = rec[topic]["sample"]
+        assert sample["frame_id"] == topics.lidar_frame(cavs[0]) and sample["fields"] == ["x", "y", "z", "rgb", "label"]
+        assert sample["width"] > 1000, sample

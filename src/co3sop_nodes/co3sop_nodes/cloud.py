@@ -11,6 +11,8 @@ from .grid import GridSpec
 # x, y, z (float32, m), rgb (float32 holding 0x00RRGGBB, the PCL / RViz convention), label (uint8)
 CLOUD_DTYPE = np.dtype({"names": ["x", "y", "z", "rgb", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
                         "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
+# the same layout as sensor_msgs/PointField (name, offset, datatype: FLOAT32 = 7, UINT8 = 2)
+CLOUD_FIELDS = [(name, CLOUD_DTYPE.fields[name][1], 7 if CLOUD_DTYPE.fields[name][0].kind == "f" else 2) for name in CLOUD_DTYPE.names]
 
 
 # per label value: shown as a point (neither empty nor ignored), and its packed 0x00RRGGBB colour

@@ -6,6 +6,7 @@ import re
 
 EGO_OCCUPANCY = "/ego/occupancy"  # co3sop_msgs/SemanticOccupancy: the ego's fused prediction
 EGO_POINTS = "/ego/occupancy/points"  # sensor_msgs/PointCloud2: the same, as coloured points
+EGO_TRUTH_POINTS = "/ego/ground_truth/points"  # sensor_msgs/PointCloud2: the ego's ground truth at its range (recordings only)
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray: per-frame status of the ego and each vehicle
 TF = "/tf"
 TF_STATIC = "/tf_static"

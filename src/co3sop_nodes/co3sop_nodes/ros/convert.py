@@ -12,7 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
-from ..cloud import CLOUD_DTYPE, cloud_xyz
+from ..cloud import CLOUD_DTYPE, CLOUD_FIELDS, cloud_xyz
 from ..codec import EncodedFeatures, EncodedLabels
 from ..errors import Co3sopError, DatasetError
 from ..geometry import Pose
@@ -139,9 +139,7 @@ def cloud_to_msg(cloud: np.ndarray, *, stamp_ns: int, frame_id: str) -> PointClo
                       row_step=CLOUD_DTYPE.itemsize * len(cloud), is_dense=True)
     msg.header.stamp = ns_to_stamp(stamp_ns)
     msg.header.frame_id = frame_id
-    types = {"<f4": PointField.FLOAT32, "u1": PointField.UINT8}
-    msg.fields = [PointField(name=name, offset=CLOUD_DTYPE.fields[name][1], datatype=types[CLOUD_DTYPE.fields[name][0].str.lstrip("|")], count=1)
-                  for name in CLOUD_DTYPE.names]
+    msg.fields = [PointField(name=name, offset=offset, datatype=datatype, count=1) for name, offset, datatype in CLOUD_FIELDS]
     msg.data = cloud.tobytes()
     return msg
 

@@ -11,7 +11,8 @@ to the ego's outputs (graph events), plays the bag once at --rate
 (default: the rate this machine keeps up with, from the model's CPU time per
 frame measured before the nodes start, model.pace), waits until the ego has
 reported every frame fused on /diagnostics, stops everything with SIGINT,
-scores the MCAP (table printed, pictures beside it) and checks the recording
+scores the MCAP (table printed, pictures beside it, and a Foxglove layout
+for the recording: prediction | ground truth in 3D, the ego's cameras) and checks the recording
 holds every /ego/occupancy message the ego published. Nothing is decided from
 the nodes' logs.
 """
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import signal
 import subprocess
 import threading
@@ -34,9 +36,11 @@ from ..bags import open_reader
 from ..cli import generate, score
 from ..cli.common import run
 from ..errors import Co3sopError
+from ..foxglove import CAMERAS, write_layout
 from ..model import pace
 from ..model.checkpoint import load_model, read_checkpoint, shipped_checkpoint
 from ..scoring import read_recording
+from .recorder import DEFAULT_TOPICS
 from .supervisor import Supervisor
 
 # A scene whose CAVs can help each other: seed 11 is the first base seed (counting from 1) whose three CAVs all
@@ -129,16 +133,17 @@ def model_path(model: str) -> Path:
 
 
 def played_topics(cavs: list[int], sensors: str) -> list[str]:
-    """What the graph listens to (so the player waits for exactly those subscribers): sensors, mounts, ground truth."""
+    """What the graph listens to (so the player waits for exactly those subscribers): sensors, mounts, ground truth,
+    and the ego's camera images (recorded for the Foxglove layout, whatever the model's sensors)."""
     played = [topics.TF_STATIC]
     for c in cavs:
         played.append(topics.lidar_pose(c))
         if sensors == "lidar":
             played.append(topics.lidar_points(c))
         else:
-            played += [f(c, f"camera{i}") for i in range(4) for f in (topics.camera_image, topics.camera_info)]
+            played += [f(c, cam) for cam in CAMERAS for f in (topics.camera_image, topics.camera_info)]
         played += [topics.ground_truth(c, r) for r in topics.RANGE_SUFFIX]
-    return played
+    return played + [t for cam in CAMERAS if (t := topics.camera_image(cavs[0], cam)) not in played]
 
 
 def ensure_scenario(opts) -> Path:
@@ -184,7 +189,8 @@ def main(args: list[str] | None = None) -> int:
     ros_params = [x for p in opts.params for x in ("-p", p)]
     echo = not opts.quiet
     ego_params = [x for p in opts.ego_params for x in ("-p", p)]
-    recorder = Process("recorder", [executable("recorder"), "--out", str(mcap)], echo)
+    shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]  # the layout's camera panels
+    recorder = Process("recorder", [executable("recorder"), "--out", str(mcap), "--topics", *DEFAULT_TOPICS, *shown], echo)
     nodes = {"/ego": Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params], echo)}
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
@@ -216,6 +222,8 @@ def main(args: list[str] | None = None) -> int:
     published = len(supervisor.reports("ego"))
     say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames")
     code = score.main([str(mcap), "--out", str(opts.out)])
+    layout = write_layout(opts.out / "foxglove_layout.json", ego)
+    say(f"to see it in 3D: open {mcap} in Foxglove and import the layout {layout} (prediction | ground truth, cameras)")
     recorded = len(read_recording(mcap).predictions)
     if recorded != published:
         say(f"error: the recording holds {recorded} of the {published} /ego/occupancy messages published")

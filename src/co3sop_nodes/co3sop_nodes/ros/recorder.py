@@ -3,10 +3,13 @@
     ros2 run co3sop_nodes recorder --out results/demo/demo.mcap [--topics REGEX ...] [--flush-period 1.0]
 
 Subscribes raw (the CDR bytes as they arrived) to every topic whose name
-matches one of the patterns, as topics appear (default: /ego/occupancy, the
-ground truth of every CAV, /diagnostics), and writes them to an MCAP file in
-the ros2 profile with their schemas embedded (rosbags, `ros2 bag` and
-Foxglove read it). Chunks are flushed as they fill and at least every
+matches one of the patterns, as topics appear (default: /ego/occupancy and
+its coloured points, the ground truth of every CAV, /diagnostics), and writes
+them to an MCAP file in the ros2 profile with their schemas embedded
+(rosbags, `ros2 bag` and Foxglove read it). The ego's ground truth at its
+prediction's range is also written as coloured points on
+/ego/ground_truth/points (truth_points.py), so a viewer draws prediction and
+truth side by side. Chunks are flushed as they fill and at least every
 --flush-period s; SIGINT or SIGTERM finalises the file. After a crash, at
 most the last chunk is lost and `recover` makes the file readable again.
 """
@@ -25,10 +28,12 @@ from rclpy.utilities import remove_ros_args
 from .. import topics
 from ..errors import Co3sopError
 from ..recording import McapRecorder
+from ..truth_points import POINTS, TruthPoints
 from .convert import message_class
-from .dds import matching_qos, spin_node
+from .dds import DropLog, matching_qos, spin_node
 
-DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), r"/cav_\d+/ground_truth/occupancy_\w+", re.escape(topics.DIAGNOSTICS))
+DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), re.escape(topics.EGO_POINTS), r"/cav_\d+/ground_truth/occupancy_\w+",
+                  re.escape(topics.DIAGNOSTICS))
 # Deep queues: the recorder must keep up with bursts rather than lose messages.
 RECORD_DEPTH = 200
 
@@ -40,6 +45,8 @@ class Recorder(Node):
         self._types: dict[str, str] = {}
         self._subs = []
         self.mcap = McapRecorder(opts.out, chunk_size=opts.chunk_size)
+        self.truth_points = TruthPoints()
+        self.drops = DropLog(self.get_logger())
         self.create_timer(0.2, self._discover)
         self.create_timer(opts.flush_period, self.mcap.flush)
         self._discover()
@@ -62,7 +69,14 @@ class Recorder(Node):
             self.get_logger().info(f"recording {topic} ({types[0]}, {qos.reliability.name.lower()})")
 
     def _on_message(self, topic: str, raw: bytes) -> None:
-        self.mcap.write(topic, self._types[topic], raw, time.time_ns())
+        now = time.time_ns()
+        self.mcap.write(topic, self._types[topic], raw, now)
+        try:
+            clouds = self.truth_points.prediction(raw) if topic == topics.EGO_OCCUPANCY else self.truth_points.truth(topic, raw)
+        except Co3sopError as exc:  # recorded as it came; only its picture is missing
+            return self.drops(topic, "not drawn", str(exc))
+        for cloud in clouds:
+            self.mcap.write(topics.EGO_TRUTH_POINTS, POINTS, cloud, now)
 
     def close(self) -> None:
         self.mcap.close()
