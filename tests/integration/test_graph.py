@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from mcap.reader import make_reader
+from ament_index_python.packages import get_package_share_directory
 from conftest import executable
 
 from co3sop_nodes import topics
@@ -53,12 +54,12 @@ class Graph:
 
     def wait_active(self, *nodes: str) -> None:
         for node in nodes:
-            self.supervisor.wait_state(f"/{node}", "active", timeout=180)
+            self.supervisor.wait_state(node, "active", timeout=180)
 
     def wait_discovered(self, neighbours: list[int]) -> None:
         """The ego subscribes to every neighbour (as the demo waits before playing): otherwise it fuses a first frame alone."""
         for c in neighbours:
-            self.supervisor.wait_subscribed("ego", topics.voxel_features(c))
+            self.supervisor.wait_subscribed("/ego", topics.voxel_features(c))
 
     def wait_fused(self, n: int, where=lambda report: True, timeout: float = 180) -> list[dict]:
         """The ego's /diagnostics reports once `n` of them satisfy `where`."""
@@ -109,9 +110,9 @@ def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0", *ego_params)
     for c in cavs:
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *[x for p in vehicle_params for x in ("-p", p)])
-    graph.wait_active("ego", *(f"vehicle_{c}" for c in cavs))
+    graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
     graph.wait_discovered(cavs[1:])
-    graph.supervisor.wait_subscribed("recorder", topics.EGO_OCCUPANCY)
+    graph.supervisor.wait_subscribed("/recorder", topics.EGO_OCCUPANCY)
     played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in cavs for s in
                                ["lidar/pose", "ground_truth/occupancy_50m", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
     player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
@@ -155,10 +156,10 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=8.0")
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
-    graph.wait_active("ego", f"vehicle_{ego}", f"vehicle_{neighbour}")
+    graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
     graph.wait_discovered([neighbour])
     for topic in ("/diagnostics", "/ego/occupancy"):  # recorded from the first frame on, as the demo makes sure
-        graph.supervisor.wait_subscribed("recorder", topic)
+        graph.supervisor.wait_subscribed("/recorder", topic)
     played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in (ego, neighbour) for s in
                                ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
     graph.start("player", executable("player"), str(bag), "--rate", "0.02", "--wait-subscribers", "30", "--topics", *played)
@@ -184,7 +185,7 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0")
     graph.start("camera", executable("vehicle"), "--id", str(ego))
     graph.start("lidar", executable("vehicle"), "--id", str(neighbour), "--ros-args", "-p", f"checkpoint:={lidar}", "-p", "modality:=lidar")
-    graph.wait_active("ego", f"vehicle_{ego}", f"vehicle_{neighbour}")
+    graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
     graph.wait_discovered([neighbour])
     assert "tiny-lmscnet (lidar" in graph.log("lidar")
     played = ["/tf_static", f"/cav_{neighbour}/lidar/pose", f"/cav_{neighbour}/lidar/points", f"/cav_{ego}/lidar/pose",
@@ -204,18 +205,19 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *manual)
     graph.start("broken", executable("vehicle"), "--id", "99", "--ros-args", *manual, "-p", f"checkpoint:={graph.folder / 'missing.pt'}")
-    nodes = ["/ego", f"/vehicle_{ego}", f"/vehicle_{neighbour}"]
-    for node in [*nodes, "/vehicle_99"]:
+    broken = topics.vehicle_node(99)
+    nodes = ["/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour)]
+    for node in [*nodes, broken]:
         sup.wait_state(node, "unconfigured")
     assert sup.node.count_publishers(topics.EGO_OCCUPANCY) == sup.node.count_publishers(topics.voxel_features(ego)) == 0
 
-    assert not sup.change("/vehicle_99", "configure")
-    assert sup.state("/vehicle_99") == "unconfigured" and "missing.pt" in graph.log("broken")
+    assert not sup.change(broken, "configure")
+    assert sup.state(broken) == "unconfigured" and "missing.pt" in graph.log("broken")
     for node in nodes:
         assert sup.change(node, "configure") and sup.state(node) == "inactive"
     sup.wait("the publishers made by configure", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 1
              and sup.node.count_publishers(topics.voxel_features(neighbour)) == 1, 30)
-    assert not sup.subscribes("ego", topics.voxel_features(ego))  # an inactive ego listens to nothing
+    assert not sup.subscribes("/ego", topics.voxel_features(ego))  # an inactive ego listens to nothing
 
     for node in nodes:
         assert sup.change(node, "activate") and sup.state(node) == "active"
@@ -226,15 +228,16 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     assert player.wait(120) == 0, graph.log("player")
     graph.wait_fused(FRAMES, lambda r: r["neighbours_used"] == "1")
 
-    assert sup.change(f"/vehicle_{ego}", "deactivate") and sup.state(f"/vehicle_{ego}") == "inactive"
-    sup.wait("the inactive vehicle to drop its sensor subscriptions", lambda: not sup.subscribes(f"vehicle_{ego}", topics.lidar_pose(ego)), 30)
+    vehicle = topics.vehicle_node(ego)
+    assert sup.change(vehicle, "deactivate") and sup.state(vehicle) == "inactive"
+    sup.wait("the inactive vehicle to drop its sensor subscriptions", lambda: not sup.subscribes(vehicle, topics.lidar_pose(ego)), 30)
     assert sup.change("/ego", "deactivate")
-    sup.wait("the inactive ego to unsubscribe", lambda: not sup.subscribes("ego", topics.voxel_features(neighbour)), 30)
+    sup.wait("the inactive ego to unsubscribe", lambda: not sup.subscribes("/ego", topics.voxel_features(neighbour)), 30)
     assert sup.change("/ego", "cleanup") and sup.state("/ego") == "unconfigured"
     sup.wait("cleanup to release the ego's publishers", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0, 30)
     assert sup.change("/ego", "configure") and sup.change("/ego", "activate")  # loads again after a cleanup
-    sup.wait_subscribed("ego", topics.voxel_features(neighbour))
-    for node in [*nodes, "/vehicle_99"]:
+    sup.wait_subscribed("/ego", topics.voxel_features(neighbour))
+    for node in [*nodes, broken]:
         assert sup.change(node, "shutdown") and sup.state(node) == "finalized"
     assert len(graph.supervisor.reports("ego")) == FRAMES  # nothing fused while inactive or after
 
@@ -271,3 +274,29 @@ def test_recordings_and_bags_decode_with_foxglove_readers_and_draw_in_3d(graph, 
         sample = rec[topic]["sample"]
         assert sample["frame_id"] == topics.lidar_frame(cavs[0]) and sample["fields"] == ["x", "y", "z", "rgb", "label"]
         assert sample["width"] > 1000, sample
+
+
+def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
+    """Nodes name their topics relative to their namespace: the ego under /fleet, its own encoder under /fleet/car_a
+    reading the bag's topics through remapping, a neighbour publishing on a name of its own; the ego finds that
+    neighbour in the graph by message type, and fuses it."""
+    bag, cavs = scenario
+    ego, neighbour = cavs[0], cavs[-1]
+    lidar = ["-p", f"checkpoint:={Path(get_package_share_directory('co3sop_nodes'), 'checkpoints', 'tiny-lidar.pt')}"]
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *lidar,
+                "-r", "__ns:=/fleet", "-r", f"cav_{ego}/voxel_features:=/fleet/car_a/voxel_features")
+    graph.start("own", executable("vehicle"), "--id", str(ego), "--ros-args", *lidar, "-r", "__ns:=/fleet/car_a",
+                "-r", f"lidar/pose:={topics.lidar_pose(ego)}", "-r", f"lidar/points:={topics.lidar_points(ego)}")
+    graph.start("neighbour", executable("vehicle"), "--id", str(neighbour), "--ros-args", *lidar, "-r", "voxel_features:=/v2x/any_name")
+    graph.wait_active("/fleet/ego", "/fleet/car_a/vehicle", topics.vehicle_node(neighbour))
+    sup = graph.supervisor
+    for topic in ("/fleet/car_a/voxel_features", "/v2x/any_name"):
+        sup.wait_subscribed("/fleet/ego", topic)
+    assert sup.node.count_publishers("/fleet/ego/occupancy") == 1 and sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
+    assert sup.node.count_publishers(topics.voxel_features(ego)) == sup.node.count_publishers(topics.voxel_features(neighbour)) == 0
+    played = ["/tf_static", *(t for c in (ego, neighbour) for t in (topics.lidar_pose(c), topics.lidar_points(c)))]
+    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    assert player.wait(120) == 0, graph.log("player")
+    reports = graph.wait_fused(FRAMES, lambda r: r["neighbours"] == str(neighbour))
+    assert all(r["neighbours_missing"] == "" for r in reports), reports
+    assert "/fleet/car_a/voxel_features" in graph.log("own") and "neighbour discovered: /v2x/any_name" in graph.log("ego")

@@ -68,12 +68,12 @@ def sup():
 
 
 def wait_ready(sup: Supervisor, node: str, proc: subprocess.Popen, log: Path, timeout: float = 120) -> None:
-    """`node` is up: a lifecycle node (ego, vehicle_N) in state active, any other present in the graph."""
+    """`node` (fully qualified) is up: a lifecycle node (ego, a vehicle) in state active, the recorder present in the graph."""
     def up() -> bool:
         assert proc.poll() is None, log.read_text()
-        if node == "recorder":
-            return node in sup.node.get_node_names()
-        return f"/{node}/get_state" in dict(sup.node.get_service_names_and_types()) and sup.state(f"/{node}") == "active"
+        if node == "/recorder":
+            return "recorder" in sup.node.get_node_names()
+        return f"{node}/get_state" in dict(sup.node.get_service_names_and_types()) and sup.state(node) == "active"
     sup.wait(f"{node} up", up, timeout)
 
 
@@ -105,7 +105,7 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
     ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=0.5",
                      "-p", "max_payload_mb:=4.0", "-p", "publish_points:=false")
     try:
-        wait_ready(sup, "ego", ego, log)
+        wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
         other = peer.create_publisher(VoxelFeatures, f"/cav_{OTHER}/voxel_features", QOS)
         wait_subscribed(peer, [own, other])  # the ego finds /cav_7 in the graph
@@ -222,7 +222,7 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
     proc, log = start(tmp_path, "vehicle", executable("vehicle"), "--id", "3", "--ros-args", "--params-file", str(params),
                       "-p", "codec.dtype:=int8", "-p", "codec.selection:=topk", "-p", "codec.topk:=1024")
     try:
-        wait_ready(sup, "vehicle_3", proc, log)
+        wait_ready(sup, topics.vehicle_node(3), proc, log)
         assert "as int8-topk1024-zstd" in log.read_text()
     finally:
         proc.send_signal(signal.SIGINT)
@@ -234,7 +234,7 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
 STATIC = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 CAMERA_CAV, LIDAR_CAV = 3, 4
-NODES = {"ego": "ego", "camera": f"vehicle_{CAMERA_CAV}", "lidar": f"vehicle_{LIDAR_CAV}", "recorder": "recorder"}  # process -> node
+NODES = {"ego": "/ego", "camera": topics.vehicle_node(CAMERA_CAV), "lidar": topics.vehicle_node(LIDAR_CAV), "recorder": "/recorder"}  # process -> node
 
 
 def malformed(msg_type) -> dict[str, bytes]:
@@ -371,7 +371,7 @@ def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(
     ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=6.0",
                      "-p", "neighbour_timeout:=1.0", "-p", "publish_points:=false")
     try:
-        wait_ready(sup, "ego", ego, log)
+        wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
         other = peer.create_publisher(VoxelFeatures, topics.voxel_features(OTHER), QOS)
         silent = peer.create_publisher(VoxelFeatures, topics.voxel_features(9), QOS)  # exists, never sends
@@ -505,7 +505,7 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
         for name, (proc, log) in procs.items():
             wait_ready(sup, NODES[name], proc, log)
         ego = AsyncParameterClient(peer, "ego")
-        vehicle = AsyncParameterClient(peer, f"vehicle_{LIDAR_CAV}")
+        vehicle = AsyncParameterClient(peer, topics.vehicle_node(LIDAR_CAV))
         assert ego.wait_for_services(30) and vehicle.wait_for_services(30)
         listed = set(call(peer, ego.list_parameters()).result.names)
         assert {p.name for p in ego_node.PARAMS} <= listed

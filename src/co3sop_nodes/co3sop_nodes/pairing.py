@@ -10,7 +10,9 @@ the ego's first own frame, so sensors that start long after the graph do not
 make every neighbour look silent, and a publisher that never sends stops
 costing max_wait once the ego's frames have flowed for neighbour_timeout.
 Frames are handed out oldest first; a frame older than the last one fused
-(beyond the tolerance) can no longer pair and is stale.
+(beyond the tolerance) can no longer pair and is stale. Sources are keyed by
+anything hashable and ordered (the ego node keys them by topic, as it knows a
+neighbour's topic before its vehicle id).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
+K = TypeVar("K")  # a source's key: vehicle id or topic
 
 
 @dataclass(frozen=True)
@@ -31,16 +34,16 @@ class PairingConfig:
     history: int = 8  # frames kept per agent
 
 
-class Pairing(Generic[T]):
-    def __init__(self, ego_id: int, cfg: PairingConfig = PairingConfig()):
-        self.ego_id, self.cfg = ego_id, cfg
-        self._frames: dict[int, deque[tuple[int, T]]] = {}  # agent -> (stamp, item), arrival order
-        self._last_heard: dict[int, int] = {}  # agent -> wall ns of its last frame, or of its discovery
+class Pairing(Generic[K, T]):
+    def __init__(self, ego: K, cfg: PairingConfig = PairingConfig()):
+        self.ego, self.cfg = ego, cfg
+        self._frames: dict[K, deque[tuple[int, T]]] = {}  # agent -> (stamp, item), arrival order
+        self._last_heard: dict[K, int] = {}  # agent -> wall ns of its last frame, or of its discovery
         self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
         self._first_own_ns: int | None = None
         self.last_fused = -1
 
-    def discovered(self, agent: int, wall_ns: int) -> None:
+    def discovered(self, agent: K, wall_ns: int) -> None:
         """A neighbour's publisher appeared: it is waited for from now on."""
         self._last_heard.setdefault(agent, wall_ns)
 
@@ -48,31 +51,31 @@ class Pairing(Generic[T]):
         """Too old to pair with any frame still to fuse."""
         return stamp < self.last_fused - self.cfg.tolerance_ns
 
-    def add(self, agent: int, stamp: int, item: T, wall_ns: int, monotonic: float) -> None:
+    def add(self, agent: K, stamp: int, item: T, wall_ns: int, monotonic: float) -> None:
         """An accepted frame of `agent` (the ego's own frames are then waiting to be fused)."""
         self._frames.setdefault(agent, deque(maxlen=self.cfg.history)).append((stamp, item))
         self._last_heard[agent] = wall_ns
-        if agent == self.ego_id:
+        if agent == self.ego:
             if self._first_own_ns is None:
                 self._first_own_ns = wall_ns
             self._pending.append((stamp, monotonic + self.cfg.max_wait_s))
 
-    def match(self, agent: int, stamp: int) -> T | None:
+    def match(self, agent: K, stamp: int) -> T | None:
         """The agent's frame nearest `stamp`, if within the tolerance."""
         best = min(self._frames.get(agent, ()), key=lambda f: abs(f[0] - stamp), default=None)
         return best[1] if best is not None and abs(best[0] - stamp) <= self.cfg.tolerance_ns else None
 
-    def heard(self) -> list[int]:
+    def heard(self) -> list[K]:
         """Neighbours that sent at least one accepted frame, by id."""
-        return sorted(a for a in self._frames if a != self.ego_id)
+        return sorted(a for a in self._frames if a != self.ego)
 
-    def live(self, wall_ns: int, has_publisher: Callable[[int], bool]) -> list[int]:
+    def live(self, wall_ns: int, has_publisher: Callable[[K], bool]) -> list[K]:
         """Neighbours still waited for: with a publisher, heard from within neighbour_timeout."""
         start = wall_ns if self._first_own_ns is None else self._first_own_ns
-        return [a for a, heard in self._last_heard.items() if a != self.ego_id and wall_ns - max(heard, start) < self.cfg.neighbour_timeout_ns
+        return [a for a, heard in self._last_heard.items() if a != self.ego and wall_ns - max(heard, start) < self.cfg.neighbour_timeout_ns
                 and has_publisher(a)]
 
-    def next_due(self, wall_ns: int, monotonic: float, has_publisher: Callable[[int], bool]) -> int | None:
+    def next_due(self, wall_ns: int, monotonic: float, has_publisher: Callable[[K], bool]) -> int | None:
         """The stamp of the oldest own frame to fuse now (taken off the queue), or None while it still waits."""
         if not self._pending:
             return None

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+# Nodes name their topics relative to their namespace (so `__ns` and remapping work); the absolute names
+# below are what they resolve to in the default namespaces, as bags, recordings and tools name them.
 EGO_OCCUPANCY = "/ego/occupancy"  # co3sop_msgs/SemanticOccupancy: the ego's fused prediction
 EGO_POINTS = "/ego/occupancy/points"  # sensor_msgs/PointCloud2: the same, as coloured points
 EGO_TRUTH_POINTS = "/ego/ground_truth/points"  # sensor_msgs/PointCloud2: the ego's ground truth at its range (recordings only)
@@ -15,53 +17,69 @@ WORLD_FRAME = "map"
 RANGE_SUFFIX = {"25.6m": "25m", "51.2m": "50m", "76.8m": "76m"}
 
 
+def relative(absolute: str) -> str:
+    """The name a node in the root namespace uses for an absolute one ("/ego/occupancy" -> "ego/occupancy")."""
+    return absolute.lstrip("/")
+
+
 _CAV_TOPIC = re.compile(r"^/cav_(\d+)/(.+)$")
 
 
 def split_cav_topic(topic: str) -> tuple[int, str] | None:
-    """(vehicle id, topic relative to its namespace) of a per-vehicle topic, None for any other:
+    """(vehicle id, topic relative to its namespace) of a per-vehicle topic in a bag or recording, None for any other:
     split_cav_topic("/cav_3/lidar/pose") == (3, "lidar/pose"). The one inverse of the builders below."""
     m = _CAV_TOPIC.match(topic)
     return (int(m.group(1)), m.group(2)) if m else None
 
 
 def namespace(agent_id: int) -> str:
-    """Every topic of vehicle `agent_id` lies under this namespace."""
+    """The default namespace of vehicle `agent_id` (`vehicle --id N` runs in it): bags put its topics under it."""
     return f"/cav_{agent_id}"
 
 
-def voxel_features(agent_id: int) -> str:
-    """co3sop_msgs/VoxelFeatures published by vehicle `agent_id`'s encoder."""
-    return f"{namespace(agent_id)}/voxel_features"
+def vehicle_node(agent_id: int) -> str:
+    """Fully qualified name of vehicle `agent_id`'s node in its default namespace (lifecycle and parameter services)."""
+    return f"{namespace(agent_id)}/vehicle"
 
 
-def camera_image(agent_id: int, camera: str) -> str:
+def _under(agent_id: int | None, name: str) -> str:
+    """`name` (relative to a vehicle's namespace) under vehicle `agent_id`'s default namespace; as is for None,
+    which is how the vehicle node itself names it."""
+    return name if agent_id is None else f"{namespace(agent_id)}/{name}"
+
+
+def voxel_features(agent_id: int | None = None) -> str:
+    """co3sop_msgs/VoxelFeatures published by a vehicle's encoder."""
+    return _under(agent_id, "voxel_features")
+
+
+def camera_image(agent_id: int | None, camera: str) -> str:
     """sensor_msgs/Image (rgb8) of camera0..3 (front, right, left, back)."""
-    return f"{namespace(agent_id)}/{camera}/image_raw"
+    return _under(agent_id, f"{camera}/image_raw")
 
 
-def camera_info(agent_id: int, camera: str) -> str:
-    return f"{namespace(agent_id)}/{camera}/camera_info"
+def camera_info(agent_id: int | None, camera: str) -> str:
+    return _under(agent_id, f"{camera}/camera_info")
 
 
-def camera_depth(agent_id: int, camera: str) -> str:
+def camera_depth(agent_id: int | None, camera: str) -> str:
     """sensor_msgs/Image (32FC1, m) from simulated bags only."""
-    return f"{namespace(agent_id)}/{camera}/depth"
+    return _under(agent_id, f"{camera}/depth")
 
 
-def camera_semantic(agent_id: int, camera: str) -> str:
+def camera_semantic(agent_id: int | None, camera: str) -> str:
     """sensor_msgs/Image (mono8 labels) from simulated bags only."""
-    return f"{namespace(agent_id)}/{camera}/semantic"
+    return _under(agent_id, f"{camera}/semantic")
 
 
-def lidar_points(agent_id: int) -> str:
+def lidar_points(agent_id: int | None = None) -> str:
     """sensor_msgs/PointCloud2: x, y, z, intensity (float32), label (uint8, simulated bags)."""
-    return f"{namespace(agent_id)}/lidar/points"
+    return _under(agent_id, "lidar/points")
 
 
-def lidar_pose(agent_id: int) -> str:
+def lidar_pose(agent_id: int | None = None) -> str:
     """geometry_msgs/PoseStamped: the LiDAR's pose in the world frame."""
-    return f"{namespace(agent_id)}/lidar/pose"
+    return _under(agent_id, "lidar/pose")
 
 
 def ground_truth(agent_id: int, range_name: str) -> str:

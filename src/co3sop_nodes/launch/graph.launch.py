@@ -17,6 +17,7 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
+from co3sop_nodes import topics
 from co3sop_nodes.model.checkpoint import read_checkpoint
 from co3sop_nodes.ros.demo import DEFAULT_MODEL, LOSSLESS, bag_contents, model_path, played_topics
 
@@ -36,7 +37,7 @@ def nodes(context) -> list[Node]:
         Node(package="co3sop_nodes", executable="recorder", name="recorder", output="screen", arguments=["--out", str(out / "graph.mcap")]),
         Node(package="co3sop_nodes", executable="ego", name="ego", output="screen",
              parameters=[arg("ego_params_file"), {"ego_id": ego, "checkpoint": checkpoint}]),
-        *(Node(package="co3sop_nodes", executable="vehicle", name=f"vehicle_{c}", output="screen",
+        *(Node(package="co3sop_nodes", executable="vehicle", namespace=topics.namespace(c), name="vehicle", output="screen",
                parameters=[arg("vehicle_params_file"), {"id": c, "checkpoint": checkpoint, **(lossless if c == ego else {})}])
           for c in cavs),
         Node(package="co3sop_nodes", executable="player", name="player", output="screen",

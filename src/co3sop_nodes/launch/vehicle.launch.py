@@ -1,4 +1,4 @@
-"""One vehicle: its encoder publishing /cav_<id>/voxel_features.
+"""One vehicle in namespace /cav_<id>: its encoder publishing /cav_<id>/voxel_features.
 
     ros2 launch co3sop_nodes vehicle.launch.py id:=3 [checkpoint:=CKPT] [params_file:=vehicle.yaml]
 """
@@ -18,7 +18,7 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("params_file", default_value=PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config", "vehicle.yaml"]),
                               description="the vehicle's parameters"),
         Node(
-            package="co3sop_nodes", executable="vehicle", name=["vehicle_", LaunchConfiguration("id")], output="screen",
+            package="co3sop_nodes", executable="vehicle", namespace=["cav_", LaunchConfiguration("id")], name="vehicle", output="screen",
             parameters=[LaunchConfiguration("params_file"),
                         {"id": ParameterValue(LaunchConfiguration("id"), value_type=int), "checkpoint": LaunchConfiguration("checkpoint")}],
         ),

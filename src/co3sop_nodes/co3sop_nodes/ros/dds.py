@@ -81,11 +81,13 @@ def subscribe_foreign(node: Node, msg_type, topic: str, callback: Callable, qos,
     `callback(msg)` gets the message, or `callback(msg, raw)` when `raw`.
     """
 
+    name = node.resolve_topic_name(topic)  # as the graph shows it: after namespace and remapping
+
     def on_raw(data: bytes) -> None:
         try:
             msg = deserialize_message(data, msg_type)
         except Exception as exc:  # noqa: BLE001 - RMWError, UnicodeDecodeError...: any failure is the sender's
-            return drops(topic, "malformed", f"{len(data)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})")
+            return drops(name, "malformed", f"{len(data)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})")
         return callback(msg, data) if raw else callback(msg)
 
     return node.create_subscription(msg_type, topic, on_raw, qos, raw=True)

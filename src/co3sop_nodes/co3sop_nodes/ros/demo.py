@@ -195,7 +195,7 @@ def main(args: list[str] | None = None) -> int:
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
     for c in cavs:
-        nodes[f"/vehicle_{c}"] = Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model,
+        nodes[topics.vehicle_node(c)] = Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model,
                                                           *(lossless if c == ego else ros_params)], echo)
     player = None
     supervisor = Supervisor("demo", alive=lambda: next((f"{p.label} exited with code {p.proc.returncode}" for p in [recorder, *nodes.values()]
@@ -204,9 +204,9 @@ def main(args: list[str] | None = None) -> int:
         say("configuring the nodes (each loads the model), then activating them")
         supervisor.bring_up(list(nodes))
         for c in cavs:  # the ego knows every neighbour before the first frame, or fuses it alone
-            supervisor.wait_subscribed("ego", topics.voxel_features(c))
+            supervisor.wait_subscribed("/ego", topics.voxel_features(c))
         for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS):  # the nodes' outputs are recorded from their first frame on
-            supervisor.wait_subscribed("recorder", topic)
+            supervisor.wait_subscribed("/recorder", topic)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable("player"), str(bag), "--rate", str(opts.rate), "--wait-subscribers", "30",
                                     "--topics", *played_topics(cavs, sensors)], echo)

@@ -2,18 +2,22 @@
 
     ros2 run co3sop_nodes ego --ros-args -p ego_id:=1 [--params-file ego.yaml]
 
-Subscribes to /cav_<ego_id>/voxel_features and to every other
-/cav_<N>/voxel_features as it appears. Each message is checked (valid CDR,
-agent id, pose, grid, payload, finite values, size limit, age) and decoded on
+Subscribes to its own encoder's cav_<ego_id>/voxel_features (a name relative
+to its namespace, so remapping works) and to every other topic of type
+co3sop_msgs/VoxelFeatures as it appears in the graph, whatever its name; a
+neighbour's vehicle id is the one its first message carries. Each message is
+checked (valid CDR, agent id, pose, grid, payload, finite values, size limit,
+age) and decoded on
 arrival; a bad one is dropped and counted by reason, with a warning naming the
 topic and the reason once per burst. Each of its own frames waits (at most
 max_wait s) for every live neighbour's frame within `tolerance` s of its stamp
 (the rules: pairing.py); the ego keeps the nearest max_collaborators within
 comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
-runs the model's ego half and publishes /ego/occupancy
-(co3sop_msgs/SemanticOccupancy), /ego/occupancy/points (PointCloud2: x, y, z,
+runs the model's ego half and publishes ego/occupancy
+(co3sop_msgs/SemanticOccupancy), ego/occupancy/points (PointCloud2: x, y, z,
 rgb, label) and its diagnostics on /diagnostics (neighbours used and missing,
-their age, bytes received, time per stage, drops by reason).
+their age, bytes received, time per stage, drops by reason). A lifecycle node
+(ros/lifecycle.py).
 """
 
 from __future__ import annotations
@@ -46,7 +50,8 @@ from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_f
 from .lifecycle import ManagedNode
 
 PARAMS = (
-    Param("ego_id", int, "the CAV this ego runs on: its own features come on /cav_<ego_id>/voxel_features", range=(0, 2**31 - 1)),
+    Param("ego_id", int, "the CAV this ego runs on: its own features come on cav_<ego_id>/voxel_features (relative: remap it "
+                         "where its encoder publishes elsewhere)", range=(0, 2**31 - 1)),
     Param("checkpoint", str, "model checkpoint, the vehicles' model; empty: the shipped tiny one", ""),
     Param("tolerance", float, "s: a neighbour's frame pairs with the ego's within this; older ones are dropped", 0.05, True, (0.0, 10.0)),
     Param("comm_range", float, "m: neighbours farther away are not used", COMM_RANGE, True, (0.0, 10_000.0)),
@@ -62,7 +67,7 @@ PARAMS = (
     Param("publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
     Param("queue_depth", int, "frames per neighbour queued while one is fused", 10, range=(1, 1000)),
-    Param("discovery_period", float, "s between looks for new /cav_N/voxel_features topics", 0.5, range=(0.01, 60.0)),
+    Param("discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)),
     Param("reference_paths", bool, "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)", False),
 )
 RUNTIME = [p.name for p in PARAMS if p.runtime]
@@ -71,6 +76,7 @@ FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
 
 @dataclass
 class Received:
+    agent: int
     stamp: int
     out: VehicleOutput
     world_from_lidar: np.ndarray  # (4, 4)
@@ -86,10 +92,12 @@ class Ego(ManagedNode):
     def __init__(self):
         super().__init__("ego", PARAMS)
         self.ego_id = self.params["ego_id"]
+        # its own encoder's features: cav_<ego_id>/voxel_features, relative (remap it to where that encoder publishes)
+        self.own_topic = self.resolve_topic_name(topics.relative(topics.voxel_features(self.ego_id)))
         self.drops = DropLog(self.get_logger())
         self.published = 0
         self._subs: dict[str, object] = {}
-        self._agents: dict[str, int] = {}  # subscribed topic -> its vehicle
+        self._agents: dict[str, int] = {}  # a neighbour's topic -> its vehicle, from its first accepted message
         self._timers: list = []
         self.model = None
 
@@ -98,7 +106,7 @@ class Ego(ManagedNode):
         self.model, _ = load_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
-        self.pairing: Pairing[Received] = Pairing(self.ego_id)
+        self.pairing: Pairing[str, Received] = Pairing(self.own_topic)
         self._apply({name: p[name] for name in RUNTIME})
         p.on_change(self._apply)
         self.rng = np.random.default_rng(p["seed"])
@@ -109,15 +117,16 @@ class Ego(ManagedNode):
         torch.set_num_threads(p["threads"])
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["queue_depth"], reliability=ReliabilityPolicy.RELIABLE)
-        self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
-        self._points = self.create_lifecycle_publisher(PointCloud2, topics.EGO_POINTS, OCCUPANCY_QOS)
+        # names relative to the node's namespace: `__ns` and remapping apply
+        self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.relative(topics.EGO_OCCUPANCY), OCCUPANCY_QOS)
+        self._points = self.create_lifecycle_publisher(PointCloud2, topics.relative(topics.EGO_POINTS), OCCUPANCY_QOS)
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
                                f"{self.max_collaborators} collaborators within {self.comm_range:g} m; compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     def activate(self) -> None:
-        self.pairing = Pairing(self.ego_id, self.pairing.cfg)  # nothing waits from before a deactivation
-        self._subscribe(topics.voxel_features(self.ego_id), self.ego_id)
+        self.pairing = Pairing(self.own_topic, self.pairing.cfg)  # nothing waits from before a deactivation
+        self._subscribe(self.own_topic)
         self._timers = [self.create_timer(self.params["discovery_period"], self._discover), self.create_timer(0.05, self._fuse_ready)]
         self._discover()
 
@@ -152,27 +161,43 @@ class Ego(ManagedNode):
 
     # --- receiving ---------------------------------------------------------------------------------
 
-    def _subscribe(self, topic: str, agent: int) -> None:
-        self._agents[topic] = agent
-        if agent != self.ego_id:
-            self.pairing.discovered(agent, time.time_ns())
+    def _subscribe(self, topic: str) -> None:
+        if topic != self.own_topic:
+            self.pairing.discovered(topic, time.time_ns())
         self._subs[topic] = subscribe_foreign(
-            self, VoxelFeatures, topic, lambda msg, raw, t=topic, a=agent: self._on_features(t, a, msg, raw), self._qos, self.drops,
-            raw=True)
+            self, VoxelFeatures, topic, lambda msg, raw, t=topic: self._on_features(t, msg, raw), self._qos, self.drops, raw=True)
 
     def _discover(self) -> None:
+        """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace."""
         for name, types in self.get_topic_names_and_types():
-            cav = topics.split_cav_topic(name)
-            if cav is not None and name == topics.voxel_features(cav[0]) and FEATURES_TYPE in types and name not in self._subs:
-                self._subscribe(name, cav[0])
+            if FEATURES_TYPE in types and name not in self._subs:
+                self._subscribe(name)
                 self.get_logger().info(f"neighbour discovered: {name}")
 
-    def _on_features(self, topic: str, agent: int, msg: VoxelFeatures, raw: bytes) -> None:
+    def _agent_of(self, topic: str, msg: VoxelFeatures) -> int:
+        """The vehicle behind `topic`: the ego's own on its own topic; a neighbour's id is fixed by its first message."""
+        agent = msg.agent_id
+        if topic == self.own_topic:
+            if agent != self.ego_id:
+                raise Co3sopError(f"agent_id {agent} on the ego's own features, expected {self.ego_id}")
+            return agent
+        known = self._agents.get(topic)
+        if known is not None and agent != known:
+            raise Co3sopError(f"agent_id {agent} does not match the vehicle {known} this topic carried so far")
+        if known is None:
+            if agent == self.ego_id:
+                raise Co3sopError(f"agent_id {agent} is the ego's, on another topic than {self.own_topic}")
+            other = next((t for t, a in self._agents.items() if a == agent), None)
+            if other is not None:
+                raise Co3sopError(f"agent_id {agent} is already published on {other}")
+            self._agents[topic] = agent
+        return agent
+
+    def _on_features(self, topic: str, msg: VoxelFeatures, raw: bytes) -> None:
         wall = time.time_ns()
         stamp = stamp_to_ns(msg.header.stamp)
         try:
-            if msg.agent_id != agent:
-                raise Co3sopError(f"agent_id {msg.agent_id} does not match the topic's vehicle {agent}")
+            agent = self._agent_of(topic, msg)
             pose = pose_from_msg(msg.lidar_pose)
             pose.check("lidar_pose")
         except Co3sopError as exc:
@@ -194,16 +219,16 @@ class Ego(ManagedNode):
             return self.drops(topic, "non_finite", str(exc))
         except Co3sopError as exc:  # GridError, CodecError: a bad grid or a corrupt / truncated payload
             return self.drops(topic, "payload", str(exc))
-        if agent == self.ego_id:
+        if topic == self.own_topic:
             self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
-        record = Received(stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
-        self.pairing.add(agent, stamp, record, wall, time.monotonic())
+        record = Received(agent, stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
+        self.pairing.add(topic, stamp, record, wall, time.monotonic())
         self._fuse_ready()
 
     # --- fusing ------------------------------------------------------------------------------------
 
-    def _has_publisher(self, agent: int) -> bool:
-        return self.count_publishers(topics.voxel_features(agent)) > 0
+    def _has_publisher(self, topic: str) -> bool:
+        return self.count_publishers(topic) > 0
 
     def _fuse_ready(self) -> None:
         while (stamp := self.pairing.next_due(time.time_ns(), time.monotonic(), self._has_publisher)) is not None:
@@ -211,11 +236,11 @@ class Ego(ManagedNode):
 
     def _fuse(self, stamp: int) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
-        ego = self.pairing.match(self.ego_id, stamp)
+        ego = self.pairing.match(self.own_topic, stamp)
         if ego is None:  # evicted by newer own frames while waiting
             return
         heard = self.pairing.heard()
-        matched = {a: r for a in heard if (r := self.pairing.match(a, stamp)) is not None}
+        matched = {r.agent: r for t in heard if (r := self.pairing.match(t, stamp)) is not None}
         pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
                              self.comm_range, self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng, reference=self.reference_paths)
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
@@ -230,7 +255,7 @@ class Ego(ManagedNode):
         t3 = time.perf_counter()
         self.published += 1
         self.pairing.fused(stamp)
-        missing = [a for a in heard if a not in matched]
+        missing = sorted(self._agents[t] for t in heard if self._agents[t] not in matched)
         out_of_range = [a for a in matched if a not in chosen]
         used = [ego, *others]
         values = {

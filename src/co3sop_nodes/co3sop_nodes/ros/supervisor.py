@@ -23,6 +23,10 @@ from .. import topics
 from ..errors import Co3sopError
 from .dds import DIAGNOSTICS_QOS, configure_environment
 
+def _qualified(namespace: str, name: str) -> str:
+    return f"{namespace.rstrip('/')}/{name}"
+
+
 TRANSITIONS = {"configure": Transition.TRANSITION_CONFIGURE, "activate": Transition.TRANSITION_ACTIVATE,
                "deactivate": Transition.TRANSITION_DEACTIVATE, "cleanup": Transition.TRANSITION_CLEANUP}
 SHUTDOWN = {"unconfigured": Transition.TRANSITION_UNCONFIGURED_SHUTDOWN, "inactive": Transition.TRANSITION_INACTIVE_SHUTDOWN,
@@ -114,8 +118,8 @@ class Supervisor:
     # --- graph events ---
 
     def subscribes(self, node: str, topic: str) -> bool:
-        """`node` (its name, without namespace) has a subscription on `topic`."""
-        return any(info.node_name == node for info in self.node.get_subscriptions_info_by_topic(topic))
+        """`node` (fully qualified: /ego, /cav_3/vehicle) has a subscription on `topic`."""
+        return any(_qualified(info.node_namespace, info.node_name) == node for info in self.node.get_subscriptions_info_by_topic(topic))
 
     def wait_subscribed(self, node: str, topic: str, timeout: float = 60) -> None:
         self.wait(f"{node} subscribed to {topic}", lambda: self.subscribes(node, topic), timeout)

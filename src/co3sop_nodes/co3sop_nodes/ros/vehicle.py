@@ -2,13 +2,15 @@
 
     ros2 run co3sop_nodes vehicle --id 3 [--ros-args --params-file vehicle.yaml -p codec.dtype:=int8]
 
-Subscribes to /cav_<id>/camera0..3/image_raw + camera_info and
-/cav_<id>/lidar/pose (or /cav_<id>/lidar/points with a LiDAR checkpoint) and
-the camera mounts on /tf_static; groups each frame by its header stamp, runs
-the vehicle half of the checkpoint (default: the shipped tiny one), encodes
-the feature volume and confidence with the codec parameters and publishes
-co3sop_msgs/VoxelFeatures on /cav_<id>/voxel_features (reliable), plus its
-per-frame timings on /diagnostics. Parameters: see config/vehicle.yaml.
+Runs in the namespace /cav_<id> (unless --ros-args -r __ns:=... says
+otherwise; its topics are relative to it, so remapping works), subscribes to
+camera0..3/image_raw + camera_info and lidar/pose (or lidar/points with a
+LiDAR checkpoint) and the camera mounts on /tf_static; groups each frame by
+its header stamp, runs the vehicle half of the checkpoint (default: the
+shipped tiny one), encodes the feature volume and confidence with the codec
+parameters and publishes co3sop_msgs/VoxelFeatures on voxel_features
+(reliable), plus its per-frame timings on /diagnostics. A lifecycle node
+(ros/lifecycle.py). Parameters: see config/vehicle.yaml.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and fo
 
 
 PARAMS = (
-    Param("id", int, "this vehicle's CAV id: it reads /cav_<id>/... and publishes /cav_<id>/voxel_features", range=(0, 2**31 - 1)),
+    Param("id", int, "this vehicle's CAV id, carried in its messages (--id N also puts the node in namespace /cav_<id>)",
+          range=(0, 2**31 - 1)),
     Param("checkpoint", str, "model checkpoint; empty: the shipped tiny one", ""),
     Param("modality", str, "camera or lidar, checked against the checkpoint's; empty: the checkpoint's", "", choices=("", "camera", "lidar")),
     Param("range", str, "benchmark range, checked against the checkpoint's; empty: the checkpoint's", "",
@@ -71,8 +74,8 @@ class Vehicle(ManagedNode):
     """A lifecycle node (ros/lifecycle.py): configure loads the checkpoint and creates the publishers,
     activate subscribes to the sensors; an inactive vehicle encodes nothing."""
 
-    def __init__(self, name: str = "vehicle"):
-        super().__init__(name, PARAMS)
+    def __init__(self):
+        super().__init__("vehicle", PARAMS)
         self.agent_id = self.params["id"]
         self.lidar_frame = topics.lidar_frame(self.agent_id)
         self.drops = DropLog(self.get_logger())
@@ -81,7 +84,7 @@ class Vehicle(ManagedNode):
         self.model = None
 
     def configure(self) -> None:
-        p, a = self.params, self.agent_id
+        p = self.params
         checkpoint = p["checkpoint"]
         self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = cfg = self.model.cfg
@@ -95,19 +98,21 @@ class Vehicle(ManagedNode):
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
         self.cameras = p["cameras"]
-        self._parts = {"pose": topics.lidar_pose(a)}
+        # names relative to the node's namespace (/cav_<id> by default): `__ns` and remapping apply
+        self._parts = {"pose": topics.lidar_pose()}
         self._types = {"pose": PoseStamped}
         if cfg.modality == "camera":
             for cam in self.cameras:
-                self._parts[f"image:{cam}"], self._types[f"image:{cam}"] = topics.camera_image(a, cam), Image
-                self._parts[f"info:{cam}"], self._types[f"info:{cam}"] = topics.camera_info(a, cam), CameraInfo
+                self._parts[f"image:{cam}"], self._types[f"image:{cam}"] = topics.camera_image(None, cam), Image
+                self._parts[f"info:{cam}"], self._types[f"info:{cam}"] = topics.camera_info(None, cam), CameraInfo
         else:
-            self._parts["points"], self._types["points"] = topics.lidar_points(a), PointCloud2
-        self._pub = self.create_lifecycle_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS)
+            self._parts["points"], self._types["points"] = topics.lidar_points(), PointCloud2
+        self._parts = {k: self.resolve_topic_name(name) for k, name in self._parts.items()}  # full names in logs and drops
+        self._pub = self.create_lifecycle_publisher(VoxelFeatures, topics.voxel_features(), FEATURES_QOS)
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
-            f"configured: cav {a}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
-            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {topics.voxel_features(a)} as {self.codec.name}; "
+            f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
+            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}; "
             f"compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     def activate(self) -> None:
@@ -180,7 +185,7 @@ class Vehicle(ManagedNode):
                 points = cloud_points(entry["points"])
             inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
         except Co3sopError as exc:
-            return self.drops(topics.namespace(self.agent_id), "input", f"frame {stamp}: {exc}")
+            return self.drops(self.get_namespace(), "input", f"frame {stamp}: {exc}")
         t1 = time.perf_counter()
         with torch.inference_mode():
             out = self.model.vehicle(**to_batch(inputs))
@@ -188,7 +193,7 @@ class Vehicle(ManagedNode):
         try:
             enc = encode_output(out, self.cfg.feature_grid, self.codec)
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
-            return self.drops(topics.namespace(self.agent_id), "encode", f"frame {stamp}: {exc}")
+            return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
         msg = features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose)
         t3 = time.perf_counter()
         self._pub.publish(msg)
@@ -204,12 +209,14 @@ class Vehicle(ManagedNode):
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="vehicle", description=__doc__.split("\n\n")[1])
-    parser.add_argument("--id", type=int, help="this vehicle's CAV id: sets parameter id and names the node vehicle_<id>")
+    parser.add_argument("--id", type=int, help="this vehicle's CAV id: sets parameter id and, unless __ns is given, the namespace /cav_<id>")
     argv = list(sys.argv if args is None else args)
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.id is not None:  # one source: the parameter (as the launch files set it)
         argv += ["--ros-args", "-p", f"id:={opts.id}"]
-    return spin_node(lambda: Vehicle(f"vehicle_{opts.id}" if opts.id is not None else "vehicle").start(), argv, "vehicle")
+        if not any(a.startswith("__ns:=") for a in argv):
+            argv += ["-r", f"__ns:={topics.namespace(opts.id)}"]
+    return spin_node(lambda: Vehicle().start(), argv, "vehicle")
 
 
 if __name__ == "__main__":
