@@ -308,3 +308,23 @@ def test_score_explains_a_malformed_message_and_damaged_recordings(tmp_path):
         failed = tool("recover", str(tmp_path / name))
         assert failed.returncode in (0, 2) and "Traceback" not in failed.stderr, failed.stderr
         assert not list(tmp_path.glob(".*.recovering")), "recover left its temporary file behind"
+
+
+def test_generate_shards_are_disjoint_parts_of_one_dataset(tmp_path):
+    """`generate --shard I/N` on N machines: each writes its share, the shares are disjoint and together the dataset."""
+    from co3sop_nodes.cli.generate import scenario_name
+
+    common = ["--splits", "train=2", "test=1", "--frames", "1", "--cavs", "1", "--image-size", "32x24", "--lidar-steps", "64",
+              "--vehicles", "2", "--workers", "1", "--seed", "5"]
+    written = {}
+    for shard in ("1/2", "2/2"):
+        done = tool("generate", "--out", str(tmp_path / shard.replace("/", "of")), *common, "--shard", shard)
+        assert done.returncode == 0, done.stderr
+        written[shard] = {(split.name, s.name) for split in (tmp_path / shard.replace("/", "of")).iterdir() if split.name in ("train", "test")
+                          for s in split.iterdir()}
+    assert written["1/2"] and written["2/2"] and written["1/2"].isdisjoint(written["2/2"])
+    assert written["1/2"] | written["2/2"] == {("train", scenario_name("train", 0, 5)), ("train", scenario_name("train", 1, 5)),
+                                               ("test", scenario_name("test", 0, 5))}
+    for bad in ("3/2", "0/2", "half"):
+        done = tool("generate", "--out", str(tmp_path / "bad"), *common, "--shard", bad)
+        assert done.returncode == 2 and f"--shard {bad!r}" in done.stderr and "Traceback" not in done.stderr

@@ -6,6 +6,7 @@ import csv
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -196,3 +197,48 @@ def test_fast_paths_equal_their_references_on_real_samples(street_split, model):
             labels, conf = net.ego.head.labels(fused, compiled=compiled)
             assert_labels_equal(labels.numpy(), want_labels, net.ego.head, fused)
             assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1
+
+
+def trained_parameters(run: Path) -> dict[str, torch.Tensor]:
+    """The float32 parameters a run's training state holds (buffers aside: DDP keeps rank 0's batch-norm statistics)."""
+    model, _ = load_model(run / "state.pt")
+    return {name: p.detach() for name, p in model.named_parameters()}
+
+
+def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_split, tmp_path):
+    """`train` under `torchrun --nproc-per-node 2` (gloo on CPU, DistributedDataParallel) gives the weights one process
+    gets with the same --batch, writes from rank 0 only, and resumes; the fusion stage too."""
+    data = str(small_split / "data")
+    common = ["--data", data, "--threads", "1", "--sample-fraction", "0.05", "--device", "cpu", "--batch", "2", "--seed", "3"]
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", executable("train")]
+    runs = {"one": [executable("train")], "two": torchrun}
+    for name, launcher in runs.items():
+        done = subprocess.run([*launcher, *common, "--preset", "tiny", "--stage", "ego", "--steps", "2", "--out", str(tmp_path / name)],
+                              capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr
+    one, two = trained_parameters(tmp_path / "one"), trained_parameters(tmp_path / "two")
+    torch.manual_seed(3)  # train's initial weights (seed 3): training moved them
+    initial = dict(build_model(preset("tiny")).named_parameters())
+    assert any(not torch.allclose(one[n], initial[n]) for n in one)
+    assert one.keys() == two.keys()
+    for name in one:
+        torch.testing.assert_close(two[name], one[name], rtol=1e-4, atol=1e-5, msg=name)
+    rows = {name: list(csv.DictReader((tmp_path / name / "log.csv").open())) for name in runs}
+    assert len(rows["two"]) == 2  # rank 0 alone wrote: one row per step, one header
+    for a, b in zip(rows["one"], rows["two"]):
+        assert abs(float(a["loss"]) - float(b["loss"])) < 1e-4  # the global batch's mean loss, logged by both
+    history = torch.load(tmp_path / "two" / "model.pt", weights_only=True)["meta"]["history"]
+    assert (history[-1]["batch"], history[-1]["processes"]) == (2, 2)
+
+    # resumed for one more step; a fusion step from one exported model (float16: the runs' last-bit differences may round apart)
+    for name, launcher in runs.items():
+        for extra in (["--stage", "ego", "--steps", "3", "--resume"], ["--stage", "fusion", "--init", str(tmp_path / "one" / "model.pt"),
+                                                                      "--steps", "1"]):
+            out = tmp_path / (name if "--resume" in extra else f"{name}-fusion")
+            done = subprocess.run([*launcher, *common, *extra, "--out", str(out)], capture_output=True, text=True, timeout=600)
+            assert done.returncode == 0, done.stderr
+    for suffix in ("", "-fusion"):
+        one, two = trained_parameters(tmp_path / f"one{suffix}"), trained_parameters(tmp_path / f"two{suffix}")
+        for name in one:
+            torch.testing.assert_close(two[name], one[name], rtol=1e-4, atol=1e-5, msg=name)
+    assert len((tmp_path / "two" / "log.csv").read_text().splitlines()) == 4  # header + 3 steps

@@ -28,5 +28,5 @@ def run(main: Callable[[list[str] | None], int]) -> Callable[[], None]:
     return entry
 
 
-def progress(total: int, desc: str, unit: str) -> tqdm:
-    return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, file=sys.stderr)
+def progress(total: int, desc: str, unit: str, disable: bool = False) -> tqdm:
+    return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, file=sys.stderr, disable=disable)

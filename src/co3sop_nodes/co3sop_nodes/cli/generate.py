@@ -149,6 +149,18 @@ def parse_splits(items: list[str]) -> dict[str, int]:
 RECIPE_KEYS = ("splits", "frames", "seed", "cavs", "vehicles", "image_size", "lidar_steps")
 
 
+def parse_shard(text: str) -> tuple[int, int]:
+    """"I/N" -> (I, N), 1 <= I <= N."""
+    i, _, n = text.partition("/")
+    try:
+        shard, shards = int(i), int(n)
+    except ValueError:
+        raise DatasetError(f"--shard {text!r}: expected I/N, e.g. 2/4") from None
+    if not 1 <= shard <= shards:
+        raise DatasetError(f"--shard {text!r}: I must be between 1 and N")
+    return shard, shards
+
+
 def read_recipe(path: Path) -> dict:
     """A dataset recipe's `dataset` section (config/benchmark.yaml) as generate's option defaults."""
     try:
@@ -175,6 +187,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=20, help="10 Hz frames per scenario")
     parser.add_argument("--seed", type=int, default=0, help="base seed: the same seed gives the same dataset")
     parser.add_argument("--workers", type=int, default=2, help="scenarios simulated in parallel")
+    parser.add_argument("--shard", default="1/1", help="I/N: only the I-th of N disjoint shares of the scenarios (1 <= I <= N), so N "
+                                                      "machines generate one dataset; copy their OUT folders together")
     parser.add_argument("--cavs", default="2-4", help="CAVs per scenario: N or MIN-MAX (OPV2V: 2-7)")
     parser.add_argument("--vehicles", type=int, default=30, help="other moving vehicles per town")
     parser.add_argument("--image-size", default="400x300", help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it")
@@ -197,24 +211,25 @@ def main(args: list[str] | None = None) -> int:
         raise DatasetError(f"--cavs {opts.cavs!r} / --image-size {opts.image_size!r}: expected N or MIN-MAX / WIDTHxHEIGHT") from None
     if not 1 <= cav_range[0] <= cav_range[1] <= 7:
         raise DatasetError(f"--cavs {opts.cavs!r}: between 1 and 7 CAVs")
+    shard, shards = parse_shard(opts.shard)
     jobs, skipped = [], 0
-    for split, count in splits.items():
-        for index in range(count):
-            seed = scenario_seed(split, index, opts.seed)
-            name = scenario_name(split, index, opts.seed)
-            if (opts.out / split / name).is_dir() and (not opts.bags or (opts.bags / split / name / "metadata.yaml").exists()):
-                skipped += 1
-                continue
-            cavs = int(np.random.default_rng(seed).integers(cav_range[0], cav_range[1] + 1))
-            cfg = ScenarioConfig(
-                town=TownConfig(), traffic=TrafficConfig(cavs=cavs, vehicles=opts.vehicles), frames=opts.frames,
-                image_size=(width, height), lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
-                extra_images=opts.extras, workers=1,
-            )
-            if (opts.out / split / name).is_dir():  # folder complete, only the bag is missing: redo both
-                shutil.rmtree(opts.out / split / name)
-            jobs.append(dict(out=str(opts.out), split=split, name=name, seed=seed, config=cfg, bags=opts.bags and str(opts.bags),
-                             pictures=opts.pictures, picture_range=opts.picture_range))
+    every = [(split, index) for split, count in splits.items() for index in range(count)]
+    for split, index in every[shard - 1 :: shards]:  # a scenario's seed and name do not depend on the shard
+        seed = scenario_seed(split, index, opts.seed)
+        name = scenario_name(split, index, opts.seed)
+        if (opts.out / split / name).is_dir() and (not opts.bags or (opts.bags / split / name / "metadata.yaml").exists()):
+            skipped += 1
+            continue
+        cavs = int(np.random.default_rng(seed).integers(cav_range[0], cav_range[1] + 1))
+        cfg = ScenarioConfig(
+            town=TownConfig(), traffic=TrafficConfig(cavs=cavs, vehicles=opts.vehicles), frames=opts.frames,
+            image_size=(width, height), lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
+            extra_images=opts.extras, workers=1,
+        )
+        if (opts.out / split / name).is_dir():  # folder complete, only the bag is missing: redo both
+            shutil.rmtree(opts.out / split / name)
+        jobs.append(dict(out=str(opts.out), split=split, name=name, seed=seed, config=cfg, bags=opts.bags and str(opts.bags),
+                         pictures=opts.pictures, picture_range=opts.picture_range))
     print(f"generate: {len(jobs)} scenario(s) to simulate, {skipped} already complete", flush=True)
     if not jobs:
         return 0

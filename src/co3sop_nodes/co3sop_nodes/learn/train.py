@@ -10,13 +10,19 @@ at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
 (log.csv), loss plot (loss.png), resumable training state (state.pt, written
 atomically every --save-every steps; --resume continues it) and the exported
 model (model.pt, float16 weights + config + the command that made it).
-`--device` picks CPU (the default without a GPU) or a CUDA GPU.
+`--device` picks CPU (the default without a GPU) or a CUDA GPU. `--batch B`
+averages the gradients of B samples per step; under `torchrun
+--nproc-per-node N` the same command trains data-parallel (each process takes
+B/N of every step's samples, DistributedDataParallel averages the gradients,
+only rank 0 writes), and gives the weights one process gets with the same B.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import os
 import math
 import random
 import shlex
@@ -35,7 +41,8 @@ from ..model.losses import confidence_loss, downsample_labels, occupancy_loss
 from ..model.model import VehicleOutput, build_model
 from ..cli.common import progress, run
 from .dataset import OccupancyDataset
-from .device import add_device_argument, select_device
+from . import distributed
+from .device import add_device_argument
 
 
 def learning_rate(lr: float, schedule: str, step: int, steps: int) -> float:
@@ -76,12 +83,31 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+class _Forward(torch.nn.Module):
+    """One sample's training forward (its vehicle halves, then the ego half) as one module call, so that
+    DistributedDataParallel sees every parameter a step uses."""
+
+    def __init__(self, trainer: "Trainer"):
+        super().__init__()
+        self.model, self._trainer = trainer.model, [trainer]  # a list: not registered as a submodule
+
+    def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
+        trainer = self._trainer[0]
+        sample = trainer.dataset.sample(i, 0 if trainer.stage == "ego" else None)
+        f, _ = trainer.dataset.index[i]
+        ego = trainer._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
+        others = [trainer._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
+        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(trainer.device) if others else None
+        return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels
+
+
 class Trainer:
-    """One optimisation step per sample; the frozen vehicle half's outputs are cached in the fusion stage."""
+    """One optimisation step per global batch of samples (one sample by default), spread over the processes of a
+    torchrun world; the frozen vehicle half's outputs are cached in the fusion stage."""
 
     def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float,
-                 device: torch.device = torch.device("cpu")):
-        self.model, self.dataset, self.stage, self.device = model, dataset, stage, device
+                 device: torch.device = torch.device("cpu"), world: distributed.World = distributed.World()):
+        self.model, self.dataset, self.stage, self.device, self.world = model, dataset, stage, device, world
         self.sample_fraction = sample_fraction
         self.cache: dict[tuple[int, int], VehicleOutput] = {}
         if stage == "fusion":
@@ -91,6 +117,10 @@ class Trainer:
                 p.requires_grad_(False)
         params = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
+        self.forward = _Forward(self)
+        if world.size > 1:  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
+            self.forward = torch.nn.parallel.DistributedDataParallel(
+                self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
 
     def _vehicle(self, record_key, inputs) -> VehicleOutput:
         if self.stage != "fusion":
@@ -102,30 +132,37 @@ class Trainer:
         out = self.cache[record_key]
         return VehicleOutput(out.features.float(), out.confidence.float())
 
-    def step(self, i: int, rng: np.random.Generator) -> dict[str, float]:
-        self.model.train()
-        if self.stage == "fusion":
-            self.model.vehicle.eval()
-        sample = self.dataset.sample(i, 0 if self.stage == "ego" else None)
-        f, _ = self.dataset.index[i]
-        ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
-        others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
-        labels = torch.from_numpy(sample.ego.labels).long()[None].to(self.device)  # (1, X, Y, Z)
-        n = labels[0].numel()
+    def _loss(self, i: int, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        n = self.model.cfg.grid.num_voxels
         index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(self.device)
-        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None
-        logits = self.model.ego(ego, others, rel, sample_index=index)
+        logits, confidence, labels = self.forward(i, index)
+        labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
         k = self.model.cfg.num_classes
         targets = [downsample_labels(labels, 4, k), downsample_labels(labels, 2, k), torch.gather(labels.flatten(1), 1, index)]
         parts = occupancy_loss(logits, targets)
         if self.stage != "fusion":
-            parts["confidence"] = confidence_loss(ego.confidence, logits[0], targets[0])
-        loss = sum(parts.values())
+            parts["confidence"] = confidence_loss(confidence, logits[0], targets[0])
+        return sum(parts.values()), parts
+
+    def step(self, samples: list[int], rngs: list[np.random.Generator]) -> dict[str, float]:
+        """One optimisation step on this process's share of the global batch (samples[j] drawing its loss voxels
+        with rngs[j]); the gradient is the mean over the global batch. Returns the batch's mean losses."""
+        self.model.train()
+        if self.stage == "fusion":
+            self.model.vehicle.eval()
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        logged: dict[str, float] = {}
+        for j, (i, rng) in enumerate(zip(samples, rngs)):
+            last = j == len(samples) - 1  # DDP averages over processes once, after a process's last sample
+            sync = self.forward.no_sync() if self.world.size > 1 and not last else contextlib.nullcontext()
+            with sync:
+                loss, parts = self._loss(i, rng)
+                (loss / len(samples)).backward()
+            for k, v in {"loss": loss, **parts}.items():
+                logged[k] = logged.get(k, 0.0) + v.item() / len(samples)
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), 5.0)
         self.optimizer.step()
-        return {"loss": loss.item(), **{k: v.item() for k, v in parts.items()}}
+        return distributed.mean_over_world(self.world, logged, self.device)
 
 
 def plot_losses(csv_path: Path, png_path: Path) -> None:
@@ -164,23 +201,36 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
     parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
     parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
-    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one sample each)")
+    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (--batch samples each)")
+    parser.add_argument("--batch", type=int, default=1, help="samples per step, in all processes together (a multiple of torchrun's)")
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
                         help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")
     parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=2, help="CPU threads for torch")
+    parser.add_argument("--threads", type=int, help="CPU threads for torch (default 2; under torchrun the cores shared by its processes)")
     add_device_argument(parser)
     parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")
     parser.add_argument("--save-every", type=int, default=200)
     opts = parser.parse_args(args)
-    torch.set_num_threads(opts.threads)
-    device = select_device(opts.device)
+    world = distributed.world_from_env()
+    if opts.batch < 1 or opts.batch % world.size:
+        raise Co3sopError(f"--batch {opts.batch}: must be a positive multiple of the {world.size} torchrun processes")
+    torch.set_num_threads(opts.threads or (2 if world.size == 1 else max(1, (os.cpu_count() or 1) // world.local_size)))
+    device = distributed.device_for(world, opts.device)
     seed_everything(opts.seed)
     if opts.stage == "fusion" and not (opts.init or opts.resume):
         raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
+    distributed.start(world, device)
+    try:
+        return _train(opts, args, world, device)
+    finally:
+        distributed.stop(world)
+
+
+def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.World, device: torch.device) -> int:
+    say = print if world.main else (lambda *a, **k: None)
 
     start, state = 0, None
     if opts.resume:
@@ -194,32 +244,40 @@ def main(args: list[str] | None = None) -> int:
         model = build_model(preset(opts.preset, **overrides))
     model.to(device)  # before the optimizer exists: a resumed optimizer state follows its parameters' device
     cfg = model.cfg
-    print(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
-          f"on {device}", flush=True)
+    say(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
+        f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""), flush=True)
     dataset = OccupancyDataset(opts.data, opts.splits, cfg)
-    print(f"train: {len(dataset)} samples from {len(dataset.frames)} frames", flush=True)
-    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device)
+    say(f"train: {len(dataset)} samples from {len(dataset.frames)} frames, {opts.batch} per step", flush=True)
+    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device, world)
     if state is not None:
         trainer.optimizer.load_state_dict(state["optimizer"])
-    opts.out.mkdir(parents=True, exist_ok=True)
+    if world.main:
+        opts.out.mkdir(parents=True, exist_ok=True)
     # how the weights were made: the commands before this one (the run's own when resumed, else the --init's), then this
     command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
     history = previous_history(opts.out, state, opts.init) + [
         {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
-         "splits": opts.splits}]
+         "splits": opts.splits, "batch": opts.batch, "processes": world.size}]
     log_path = opts.out / "log.csv"
     fields = None
+    # one sample per step in one process: the voxels of the loss drawn from one stream (as every earlier run);
+    # otherwise each sample's from its place in the order, whichever process takes it
     rng = np.random.default_rng(opts.seed + start)
-    order = sample_order(len(dataset), opts.seed, opts.steps)
-    bar = progress(opts.steps, f"train {opts.stage}", "step")
+    share = opts.batch // world.size
+    order = sample_order(len(dataset), opts.seed, opts.steps * opts.batch)
+    bar = progress(opts.steps, f"train {opts.stage}", "step", disable=not world.main)
     bar.update(start)
     t0 = time.time()
-    with open(log_path, "a", newline="") as log:
+    with open(log_path, "a", newline="") if world.main else contextlib.nullcontext() as log:
         for step in range(start, opts.steps):
             lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
             for group in trainer.optimizer.param_groups:
                 group["lr"] = lr
-            parts = trainer.step(int(order[step]), rng)
+            places = range(step * opts.batch + world.rank * share, step * opts.batch + (world.rank + 1) * share)
+            rngs = [rng] if opts.batch == 1 else [np.random.default_rng([opts.seed, p]) for p in places]
+            parts = trainer.step([int(order[p]) for p in places], rngs)
+            if not world.main:
+                continue
             row = {"step": step + 1, "stage": opts.stage, **parts, "lr": lr, "seconds": round(time.time() - t0, 2)}
             if fields is None:
                 fields = list(row)
@@ -234,10 +292,10 @@ def main(args: list[str] | None = None) -> int:
                 save_training_state(opts.out / "state.pt", model, trainer.optimizer, step + 1, opts.stage,
                                     {"seed": opts.seed, "history": history})
     bar.close()
-    meta = {"history": history}
-    export_model(opts.out / "model.pt", model, meta)
-    plot_losses(log_path, opts.out / "loss.png")
-    print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
+    if world.main:
+        export_model(opts.out / "model.pt", model, {"history": history})
+        plot_losses(log_path, opts.out / "loss.png")
+        print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
     return 0
 
 
