@@ -11,8 +11,6 @@ from .grid import GridSpec
 # x, y, z (float32, m), rgb (float32 holding 0x00RRGGBB, the PCL / RViz convention), label (uint8)
 CLOUD_DTYPE = np.dtype({"names": ["x", "y", "z", "rgb", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
                         "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
-# the same layout as sensor_msgs/PointField (name, offset, datatype: FLOAT32 = 7, UINT8 = 2)
-CLOUD_FIELDS = [(name, CLOUD_DTYPE.fields[name][1], 7 if CLOUD_DTYPE.fields[name][0].kind == "f" else 2) for name in CLOUD_DTYPE.names]
 
 
 # per label value: shown as a point (neither empty nor ignored), and its packed 0x00RRGGBB colour
@@ -58,6 +56,9 @@ def occupancy_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
 
 # sensor_msgs/PointField datatypes -> numpy
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+# CLOUD_DTYPE as sensor_msgs/PointField entries: (name, offset, datatype)
+CLOUD_FIELDS = [(name, offset, next(d for d, t in _POINT_FIELD_TYPES.items() if np.dtype(t) == dtype))
+                for name, (dtype, offset) in CLOUD_DTYPE.fields.items()]
 
 
 def cloud_xyz(data: bytes, fields: list[tuple[str, int, int]], point_step: int, width: int, height: int = 1) -> np.ndarray:

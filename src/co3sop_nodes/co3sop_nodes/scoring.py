@@ -50,6 +50,15 @@ def _messages(reader: BagReader, connections: list):
         yield conn, stamp, reader.deserialize(raw, conn, stamp)
 
 
+def message_counts(path: Path) -> dict[str, int]:
+    """Messages per topic of a recording, from its index (nothing is decoded)."""
+    reader = _open(path)
+    try:
+        return {c.topic: c.msgcount for c in reader.connections}
+    finally:
+        reader.close()
+
+
 def read_recording(path: Path, range_name: str | None = None) -> Recording:
     """Predictions, the ego agents' ground truth at the predictions' range, and the ego's diagnostics."""
     reader = _open(path)

@@ -22,8 +22,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
-import os
 import math
+import os
 import random
 import shlex
 import sys
@@ -85,42 +85,13 @@ def seed_everything(seed: int) -> None:
 
 class _Forward(torch.nn.Module):
     """One sample's training forward (its vehicle halves, then the ego half) as one module call, so that
-    DistributedDataParallel sees every parameter a step uses."""
+    DistributedDataParallel sees every parameter a step uses; the frozen vehicle half's outputs are cached in
+    the fusion stage."""
 
-    def __init__(self, trainer: "Trainer"):
+    def __init__(self, model, dataset: OccupancyDataset, stage: str, device: torch.device):
         super().__init__()
-        self.model, self._trainer = trainer.model, [trainer]  # a list: not registered as a submodule
-
-    def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
-        trainer = self._trainer[0]
-        sample = trainer.dataset.sample(i, 0 if trainer.stage == "ego" else None)
-        f, _ = trainer.dataset.index[i]
-        ego = trainer._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
-        others = [trainer._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
-        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(trainer.device) if others else None
-        return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels
-
-
-class Trainer:
-    """One optimisation step per global batch of samples (one sample by default), spread over the processes of a
-    torchrun world; the frozen vehicle half's outputs are cached in the fusion stage."""
-
-    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float,
-                 device: torch.device = torch.device("cpu"), world: distributed.World = distributed.World()):
-        self.model, self.dataset, self.stage, self.device, self.world = model, dataset, stage, device, world
-        self.sample_fraction = sample_fraction
+        self.model, self.dataset, self.stage, self.device = model, dataset, stage, device
         self.cache: dict[tuple[int, int], VehicleOutput] = {}
-        if stage == "fusion":
-            if model.ego.fusion is None:
-                raise Co3sopError("--stage fusion needs a model with fusion (e.g. preset tiny, not tiny-single)")
-            for p in model.vehicle.parameters():
-                p.requires_grad_(False)
-        params = [p for p in model.parameters() if p.requires_grad]
-        self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
-        self.forward = _Forward(self)
-        if world.size > 1:  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
-            self.forward = torch.nn.parallel.DistributedDataParallel(
-                self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
 
     def _vehicle(self, record_key, inputs) -> VehicleOutput:
         if self.stage != "fusion":
@@ -131,6 +102,35 @@ class Trainer:
             self.cache[record_key] = VehicleOutput(out.features.half(), out.confidence.half())
         out = self.cache[record_key]
         return VehicleOutput(out.features.float(), out.confidence.float())
+
+    def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
+        sample = self.dataset.sample(i, 0 if self.stage == "ego" else None)
+        f, _ = self.dataset.index[i]
+        ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
+        others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
+        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None
+        return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels
+
+
+class Trainer:
+    """One optimisation step per global batch of samples (one sample by default), spread over the processes of a
+    torchrun world."""
+
+    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float,
+                 device: torch.device = torch.device("cpu"), world: distributed.World = distributed.World()):
+        self.model, self.stage, self.device, self.world = model, stage, device, world
+        self.sample_fraction = sample_fraction
+        if stage == "fusion":
+            if model.ego.fusion is None:
+                raise Co3sopError("--stage fusion needs a model with fusion (e.g. preset tiny, not tiny-single)")
+            for p in model.vehicle.parameters():
+                p.requires_grad_(False)
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
+        self.forward = _Forward(model, dataset, stage, device)
+        if world.size > 1:  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
+            self.forward = torch.nn.parallel.DistributedDataParallel(
+                self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
 
     def _loss(self, i: int, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         n = self.model.cfg.grid.num_voxels

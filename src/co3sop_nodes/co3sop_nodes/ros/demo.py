@@ -39,7 +39,7 @@ from ..errors import Co3sopError
 from ..foxglove import CAMERAS, write_layout
 from ..model import pace
 from ..model.checkpoint import load_model, read_checkpoint, shipped_checkpoint
-from ..scoring import read_recording
+from ..scoring import message_counts
 from .recorder import DEFAULT_TOPICS
 from .supervisor import Supervisor
 
@@ -224,7 +224,7 @@ def main(args: list[str] | None = None) -> int:
     code = score.main([str(mcap), "--out", str(opts.out)])
     layout = write_layout(opts.out / "foxglove_layout.json", ego)
     say(f"to see it in 3D: open {mcap} in Foxglove and import the layout {layout} (prediction | ground truth, cameras)")
-    recorded = len(read_recording(mcap).predictions)
+    recorded = message_counts(mcap).get(topics.EGO_OCCUPANCY, 0)
     if recorded != published:
         say(f"error: the recording holds {recorded} of the {published} /ego/occupancy messages published")
         return 1
