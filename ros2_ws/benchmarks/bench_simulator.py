@@ -75,25 +75,43 @@ def sensor_table(full: bool, workers: int) -> str:
 
 
 def ray_table() -> str:
+    """Cameras on the reference path (trimesh's intersector, NumPy shading) and the compiled kernel, one and two
+    threads, in the same run, with the images compared; then the LiDAR."""
     town = generate_town(TownConfig(), seed=7)
     traffic = Traffic(town, TrafficConfig(cavs=3), seed=8)
     scene = RayScene([ObjectMeshes(town.objects), ObjectMeshes(traffic.objects())])
     vehicle = traffic.cavs[0].pose()
-    rows = [f"Scene: {len(scene.mesh.faces):,} triangles.", "", "| sensor | rays per frame | seconds | rays/s |", "|---|---:|---:|---:|"]
+    poses = [vehicle @ mount for mount in rig.vehicle_from_cameras()]
+    rows = [f"Scene: {len(scene.mesh.faces):,} triangles. Camera rays: one primary ray per pixel (and a shadow ray per "
+            "pixel that hits something), counted once; best of 3.", "",
+            "| sensor | path | threads | rays per frame | seconds | rays/s | reference / path | images identical |",
+            "|---|---|---:|---:|---:|---:|---:|---|"]
     for width, height in ((400, 300), (800, 600)):
         k = rig.intrinsics(width, height)
-        t0 = time.perf_counter()
-        for mount in rig.vehicle_from_cameras():
-            camera.render(scene, vehicle @ mount, width, height, k)
-        dt = time.perf_counter() - t0
         rays = 4 * width * height
-        rows.append(f"| 4 cameras {width}x{height} (+ shadow rays) | {rays:,} | {dt:.2f} | {rays / dt:,.0f} |")
+        camera.render_rig(scene, poses, width, height, k, 2, compiled=True)  # BVH, kernel and rays: not timed
+        reference, seconds = None, {}
+        for compiled, threads in ((False, 1), (True, 1), (True, 2)):
+            times = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                images = camera.render_rig(scene, poses, width, height, k, threads, compiled=compiled)
+                times.append(time.perf_counter() - t0)
+            dt = seconds[compiled, threads] = min(times)
+            reference = reference or images
+            same = all(np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth) and np.array_equal(a.semantic, b.semantic)
+                       for a, b in zip(reference, images))
+            rows.append(f"| 4 cameras {width}x{height} (+ shadow rays) | {'kernel' if compiled else 'reference'} | {threads} | "
+                        f"{rays:,} | {dt:.3f} | {rays / dt:,.0f} | {seconds[False, 1] / dt:.1f}x | {'yes' if same else 'NO'} |")
+            print(f"  cameras {width}x{height} {'kernel' if compiled else 'reference'} x{threads}: {dt:.3f} s", flush=True)
     cfg = lidar.LidarConfig()
-    t0 = time.perf_counter()
-    lidar.scan(scene, vehicle @ rig.vehicle_from_lidar(), cfg, np.random.default_rng(0))
-    dt = time.perf_counter() - t0
     rays = cfg.channels * cfg.azimuth_steps
-    rows.append(f"| LiDAR {cfg.channels} x {cfg.azimuth_steps} | {rays:,} | {dt:.3f} | {rays / dt:,.0f} |")
+    for compiled in (False, True):
+        t0 = time.perf_counter()
+        scene.cast(np.broadcast_to(vehicle[:3, 3], (rays, 3)), lidar.beam_directions(cfg) @ vehicle[:3, :3].T, cfg.range, compiled=compiled)
+        dt = time.perf_counter() - t0
+        rows.append(f"| LiDAR {cfg.channels} x {cfg.azimuth_steps} | {'kernel' if compiled else 'reference'} | 1 | {rays:,} | "
+                    f"{dt:.3f} | {rays / dt:,.0f} | | |")
     return "\n".join(rows)
 
 

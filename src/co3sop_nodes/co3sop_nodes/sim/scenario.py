@@ -30,7 +30,7 @@ class ScenarioConfig:
     ranges: tuple[str, ...] = tuple(BENCHMARK_RANGES)  # benchmark grids to annotate per CAV
     extra_images: bool = False  # also keep depth and semantic camera images
     gnss_noise: float = 0.2  # m, std of the predicted_ego_pos error
-    workers: int = 2  # voxel sensor threads
+    workers: int = 2  # threads of the voxel sensor and of the cameras
 
 
 def config_from_dict(data: dict) -> ScenarioConfig:
@@ -79,11 +79,9 @@ def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFram
         for cav in traffic.cavs:
             vehicle = cav.pose()
             world_lidar = vehicle @ rig.vehicle_from_lidar()
-            cams = []
-            for name_i, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras()):
-                pose = vehicle @ mount
-                img = camera.render(scene, pose, width, height, k)
-                cams.append(CameraFrame(name_i, pose, k, img.rgb, *((img.depth, img.semantic) if cfg.extra_images else ())))
+            poses = [vehicle @ mount for mount in rig.vehicle_from_cameras()]
+            cams = [CameraFrame(name_i, pose, k, img.rgb, *((img.depth, img.semantic) if cfg.extra_images else ()))
+                    for name_i, pose, img in zip(rig.CAMERA_NAMES, poses, camera.render_rig(scene, poses, width, height, k, cfg.workers))]
             scan = lidar.scan(scene, world_lidar, cfg.lidar, rng)
             predicted = vehicle.copy()
             predicted[:2, 3] += rng.normal(0, cfg.gnss_noise, 2)

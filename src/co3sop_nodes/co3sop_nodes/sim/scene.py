@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -20,6 +21,11 @@ class SceneObject:
     texture: str = "plain"  # "plain" | "bricks" | "stripes" | "noise": procedural pattern for the cameras
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._aabb
+
+    @cached_property
+    def _aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        # the town's static objects are culled by their box for every sensor and every frame
         boxes = [p.aabb() for p in self.primitives]
         return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 

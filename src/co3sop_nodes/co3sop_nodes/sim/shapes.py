@@ -56,13 +56,13 @@ class Box:
         (inf for a degenerate axis, which separates nothing). Written as elementwise float64 arithmetic, as the
         compiled voxel sensor (native/voxel_sensor.c) repeats it, so both decide every voxel alike."""
         eye, r = np.eye(3), self.rot
-        axes = [eye[i] for i in range(3)] + [r[:, j] for j in range(3)]
-        for i in range(3):
-            for j in range(3):
-                axis = np.cross(eye[i], r[:, j])
-                norm = np.sqrt(axis @ axis)
-                axes.append(axis / norm if norm > 1e-9 else np.zeros(3))
-        a = np.array(axes)  # (15, 3)
+        e, b = np.repeat(eye, 3, axis=0), np.tile(r.T, (3, 1))  # (9, 3): e_i and box axis j, i major
+        edges = np.stack([e[:, 1] * b[:, 2] - e[:, 2] * b[:, 1], e[:, 2] * b[:, 0] - e[:, 0] * b[:, 2],
+                          e[:, 0] * b[:, 1] - e[:, 1] * b[:, 0]], axis=1)  # e_i x b_j, np.cross's formula
+        norm = np.sqrt((edges[:, 0] * edges[:, 0] + edges[:, 1] * edges[:, 1]) + edges[:, 2] * edges[:, 2])
+        long = norm > 1e-9
+        edges = np.where(long[:, None], edges / np.where(long, norm, 1.0)[:, None], 0.0)
+        a = np.concatenate([eye, r.T, edges])  # (15, 3)
         valid = np.abs(a).sum(axis=1) > 0
         abs_sum = (np.abs(a[:, 0]) + np.abs(a[:, 1])) + np.abs(a[:, 2])
         along = np.abs(a @ r)  # (15, 3): |axis . box axis j|
