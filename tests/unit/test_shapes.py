@@ -13,9 +13,11 @@ import math
 
 import numpy as np
 import pytest
+import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from co3sop_nodes.sim.shapes import EPS, Box, Cylinder, Sphere, rotation
+from co3sop_nodes.sim.town import TownConfig, generate_town
 
 BAND = 1e-5  # m: configurations this close to touching are left to the strictness tests
 
@@ -444,3 +446,35 @@ def test_aabb_contains_every_overlapping_cube_centre_within_half():
             c = centres_around(rng, lo, hi, 0.1, 300)
             hit = prim.overlaps(c, 0.1)
             assert ((c[hit] > lo - 0.1) & (c[hit] < hi + 0.1)).all()
+
+
+def _trimesh_reference(prim) -> tuple[np.ndarray, np.ndarray]:
+    """The meshes as trimesh.creation builds and places them (what the cameras ray-cast before `triangles`)."""
+    if isinstance(prim, Box):
+        transform = np.eye(4)
+        transform[:3, :3], transform[:3, 3] = prim.rot, prim.center
+        m = trimesh.creation.box(extents=2 * prim.half, transform=transform)
+    elif isinstance(prim, Cylinder):
+        m = trimesh.creation.cylinder(radius=prim.radius, height=prim.z1 - prim.z0, sections=12)
+        m.apply_translation([prim.x, prim.y, (prim.z0 + prim.z1) / 2])
+    else:
+        m = trimesh.creation.icosphere(subdivisions=2, radius=prim.radius)
+        m.apply_translation(prim.center)
+    return m.vertices, m.faces
+
+
+def test_triangles_are_bit_identical_to_trimesh_creation():
+    rng = np.random.default_rng(5)
+    prims = [Box.make([0, 0, 0], [1, 2, 3]), Box.make([1e-9, 0, 0], [1, 1, 1]), Sphere(np.zeros(3), 1.0),
+             Cylinder(0.0, 0.0, 0.5, -1.0, 1.0)]  # identity and near-identity placements: trimesh skips them
+    for _ in range(200):
+        prims.append(Box.make(rng.normal(size=3) * 50, rng.uniform(0.05, 20, 3), *rng.uniform(-np.pi, np.pi, 3)))
+        prims.append(Cylinder(*rng.normal(size=2) * 50, rng.uniform(0.05, 3), *np.sort(rng.uniform(-2, 10, 2))))
+        prims.append(Sphere(rng.normal(size=3) * 50, rng.uniform(0.1, 5)))
+    town = generate_town(TownConfig(), seed=3)
+    prims += [p for o in town.objects for p in o.primitives]
+    for prim in prims:
+        vertices, faces = prim.triangles()
+        ref_vertices, ref_faces = _trimesh_reference(prim)
+        np.testing.assert_array_equal(vertices, ref_vertices)
+        np.testing.assert_array_equal(faces, ref_faces)

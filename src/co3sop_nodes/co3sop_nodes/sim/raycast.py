@@ -31,12 +31,12 @@ class ObjectMeshes:
         meshes, owner = [], []
         for i, obj in enumerate(self.objects):
             for p in obj.primitives:
-                m = p.mesh()
-                meshes.append(m)
-                owner.append(np.full(len(m.faces), i))
-        self.vertices = np.concatenate([m.vertices for m in meshes]) if meshes else np.zeros((0, 3))
-        offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-        self.faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]) if meshes else np.zeros((0, 3), int)
+                vertices, faces = p.triangles()
+                meshes.append((vertices, faces))
+                owner.append(np.full(len(faces), i))
+        self.vertices = np.concatenate([v for v, _ in meshes]) if meshes else np.zeros((0, 3))
+        offsets = np.cumsum([0] + [len(v) for v, _ in meshes[:-1]])
+        self.faces = np.concatenate([f + o for (_, f), o in zip(meshes, offsets)]) if meshes else np.zeros((0, 3), int)
         self.face_owner = np.concatenate(owner) if owner else np.zeros(0, int)
 
 

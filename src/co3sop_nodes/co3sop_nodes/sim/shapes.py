@@ -13,12 +13,47 @@ not leak into the voxel above it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import trimesh
+from trimesh.transformations import flips_winding, transform_points
 
 EPS = 1e-6  # m
+Triangles = tuple[np.ndarray, np.ndarray]  # vertices (V, 3) float64, faces (F, 3) int64
+
+
+@lru_cache(maxsize=4096)
+def _template(kind: str, radius: float = 0.0, height: float = 0.0) -> Triangles:
+    """trimesh.creation's mesh before placement: a unit box, a 12-sided cylinder, a twice subdivided icosphere
+    (read-only; the town repeats sizes, so each is built once)."""
+    if kind == "box":
+        m = trimesh.creation.box()
+    elif kind == "cylinder":
+        m = trimesh.creation.cylinder(radius=radius, height=height, sections=12)
+    else:
+        m = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    vertices, faces = np.array(m.vertices), np.array(m.faces)
+    vertices.setflags(write=False)
+    faces.setflags(write=False)
+    return vertices, faces
+
+
+def _placed(vertices: np.ndarray, faces: np.ndarray, matrix: np.ndarray) -> Triangles:
+    """What trimesh's Trimesh.apply_transform makes of a mesh, with the same calls, without building a Trimesh
+    (most of the cost of meshing a town): the cameras see bit-identical triangles."""
+    matrix = np.asanyarray(matrix, order="C", dtype=np.float64)
+    if trimesh.util.allclose(matrix, np.eye(4), 1e-8):
+        return vertices, faces
+    if not trimesh.util.allclose(matrix[:3, :3], np.eye(3), atol=1e-6) and flips_winding(matrix):
+        faces = np.ascontiguousarray(np.fliplr(faces))
+    return transform_points(vertices, matrix), faces
+
+
+def _translation(t) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, 3] = np.asanyarray(t, dtype=np.float64)
+    return matrix
 
 
 def rotation(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
@@ -90,10 +125,15 @@ class Box:
         t_in, t_out = lo.max(axis=1), hi.min(axis=1)
         return np.where(t_in < t_out, t_out, np.nan)  # rays start at z = 0: t is world z
 
-    def mesh(self) -> trimesh.Trimesh:
+    def triangles(self) -> Triangles:
+        """trimesh.creation.box(extents=2 * half, transform=pose)'s vertices and faces."""
         transform = np.eye(4)
         transform[:3, :3], transform[:3, 3] = self.rot, self.center
-        return trimesh.creation.box(extents=2 * self.half, transform=transform)
+        vertices, faces = _template("box")
+        return _placed(vertices * (2 * self.half), faces, transform)
+
+    def mesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(*self.triangles(), process=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,10 +167,12 @@ class Cylinder:
         inside = (xy[:, 0] - self.x) ** 2 + (xy[:, 1] - self.y) ** 2 < self.radius**2
         return np.where(inside, self.z1, np.nan)
 
+    def triangles(self) -> Triangles:
+        """trimesh.creation.cylinder(radius, height, sections=12) moved to its place."""
+        return _placed(*_template("cylinder", self.radius, self.z1 - self.z0), _translation([self.x, self.y, (self.z0 + self.z1) / 2]))
+
     def mesh(self) -> trimesh.Trimesh:
-        m = trimesh.creation.cylinder(radius=self.radius, height=self.z1 - self.z0, sections=12)
-        m.apply_translation([self.x, self.y, (self.z0 + self.z1) / 2])
-        return m
+        return trimesh.Trimesh(*self.triangles(), process=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,10 +197,12 @@ class Sphere:
         with np.errstate(invalid="ignore"):
             return np.where(d2 < self.radius**2, self.center[2] + np.sqrt(self.radius**2 - d2), np.nan)
 
+    def triangles(self) -> Triangles:
+        """trimesh.creation.icosphere(subdivisions=2, radius) moved to its centre."""
+        return _placed(*_template("sphere", self.radius), _translation(self.center))
+
     def mesh(self) -> trimesh.Trimesh:
-        m = trimesh.creation.icosphere(subdivisions=2, radius=self.radius)
-        m.apply_translation(self.center)
-        return m
+        return trimesh.Trimesh(*self.triangles(), process=False)
 
 
 Primitive = Box | Cylinder | Sphere
