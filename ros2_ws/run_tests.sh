@@ -13,6 +13,16 @@ if [ "$(cat "$FOX/node_modules/.co3sop-lock" 2>/dev/null)" != "$(sha256sum "$FOX
   npm ci --prefix "$FOX" --no-audit --no-fund --loglevel=error
   sha256sum "$FOX/package-lock.json" | cut -c1-16 > "$FOX/node_modules/.co3sop-lock"
 fi
+# nftables for the emulated V2X channel's loss rules (tests/integration/test_channel.py; ip and tc come with iproute2)
+if ! command -v nft >/dev/null || ! command -v tc >/dev/null; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "[bootstrap] apt-get install nftables iproute2 (the emulated V2X channel)"
+    apt-get install -y -qq nftables iproute2 >/dev/null || { apt-get update -qq && apt-get install -y -qq nftables iproute2 >/dev/null; }
+  else
+    echo "run_tests: error: the emulated V2X channel's tests need nft and tc, as root: apt-get install nftables iproute2" >&2
+    exit 2
+  fi
+fi
 # shellcheck disable=SC1091
 . "$ROOT/ros2_ws/env.sh"
 cd "$ROOT"

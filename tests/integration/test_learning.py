@@ -130,7 +130,7 @@ def test_train_stages_resume_and_evaluate(small_split):
     verdict = "**met**" if on >= 0.15 and gain["ci95"][0] > 0 else "**not met"
     assert f"mIoU 1..23 with collaboration {100 * on:.2f} against the goal of 15.00 (gain {100 * gain['delta']:.2f})" in text
     assert verdict in text
-    assert "## Choices made on validate" in text and "| an-option | ego 4 + fusion 2 steps |" in text
+    assert "## Choices made on validate" in text and "| an-option | tiny 51.2m | ego 4 + fusion 2 steps |" in text
     assert "nearest collaborator's distance" in text and f"| {next(iter(bins))} | {next(iter(bins.values()))['samples']} |" in text
     bad = tool("report", str(out / "ego"), "--out", str(page))
     assert bad.returncode == 2 and "no <preset>-<range>-s<seed> folder" in bad.stderr and page.read_text() == text

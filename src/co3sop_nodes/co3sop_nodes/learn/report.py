@@ -171,11 +171,12 @@ def validate_section(results: Path) -> list[str]:
     out = ["## Choices made on validate", "",
            "Each option of a recipe choice evaluated on the `validate` split (never `test`); the protocol uses the",
            "option its settings name (`ros2_ws/run_protocol.sh`).", "",
-           "| option | training steps | off | on | gain on - off [95 % interval] | command |", "|---|---|---:|---:|---|---|"]
+           "| option | model | training steps | off | on | gain on - off [95 % interval] | command |", "|---|---|---|---:|---:|---|---|"]
     for path in found:
         r = json.loads(path.read_text())
         gain = r["differences"]["on"]["co3sop-code"]
-        out.append(f"| {path.parent.name} | {recipe(r)} | {pct(point(r['off'], 'co3sop-code'))} | {pct(point(r['on'], 'co3sop-code'))} | "
+        model = " ".join(path.stem.split("_")[:2])  # evaluate names its JSON <preset>_<range>_<ablation>
+        out.append(f"| {path.parent.name} | {model} | {recipe(r)} | {pct(point(r['off'], 'co3sop-code'))} | {pct(point(r['on'], 'co3sop-code'))} | "
                    f"{pct(gain['delta'])} {span(gain['ci95'])} | `{r.get('command', '')}` |")
     return out + [""]
 

@@ -153,6 +153,12 @@ def fastdds_profile_path() -> str:
     return os.path.join(get_package_share_directory(PACKAGE), "config", "fastdds.xml")
 
 
+def channel_environment() -> dict[str, str]:
+    """What every DDS process of an emulated V2X channel needs (channel.py): UDP only, discovery past localhost."""
+    return {"FASTRTPS_DEFAULT_PROFILES_FILE": os.path.join(get_package_share_directory(PACKAGE), "config", "fastdds_udp.xml"),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
+
+
 def configure_environment() -> None:
     """Project defaults, applied before rclpy.init(); variables already set win.
 

@@ -15,11 +15,21 @@ scores the MCAP (table printed, pictures beside it, and a Foxglove layout
 for the recording: prediction | ground truth in 3D, the ego's cameras) and checks the recording
 holds every /ego/occupancy message the ego published. Nothing is decided from
 the nodes' logs.
+
+With --channel-rate the graph runs over an emulated V2X channel (channel.py,
+root and nftables needed): the ego (with its own encoder and the recorder) and
+each neighbour in its own network namespace, their transmit limited to
+--channel-rate Mbit/s of real time (times --rate, so that the link keeps its
+real-time meaning at a slower playback) with --channel-loss percent of their
+packets dropped at random; the player and this launcher stay on the machine's
+side, unshaped. DDS runs over UDP only there (config/fastdds_udp.xml).
+Namespaces are removed on exit, SIGINT and SIGTERM included.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import re
@@ -33,6 +43,7 @@ from ament_index_python.packages import get_package_prefix
 
 from .. import topics
 from ..bags import open_reader
+from ..channel import Channel, Link
 from ..cli import generate, score
 from ..cli.common import run
 from ..errors import Co3sopError
@@ -40,6 +51,7 @@ from ..foxglove import CAMERAS, write_layout
 from ..model import pace
 from ..model.checkpoint import load_model, read_checkpoint, shipped_checkpoint
 from ..scoring import message_counts
+from .dds import channel_environment
 from .recorder import DEFAULT_TOPICS
 from .supervisor import Supervisor
 
@@ -171,7 +183,15 @@ def main(args: list[str] | None = None) -> int:
                         help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
     parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
+    parser.add_argument("--channel-rate", type=float, metavar="MBIT",
+                        help="run over an emulated V2X channel: each CAV in its own network namespace, transmitting at most MBIT "
+                             "Mbit/s of real time (the link runs at MBIT x --rate); needs root, iproute2 and nftables")
+    parser.add_argument("--channel-loss", type=float, default=0.0, metavar="PERCENT",
+                        help="with --channel-rate: share of each CAV's packets dropped at random (default 0)")
     opts = parser.parse_args(args)
+    if opts.channel_rate is None and opts.channel_loss:
+        parser.error("--channel-loss needs --channel-rate")
+    signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = model_path(opts.model)
     sensors = read_checkpoint(checkpoint)["config"]["modality"]
@@ -185,18 +205,41 @@ def main(args: list[str] | None = None) -> int:
     say(f"model {checkpoint} ({sensors})")
     if opts.rate is None:
         opts.rate = measured_rate(checkpoint, len(cavs), bag_period(bag, frames))
+    channel = None
+    if opts.channel_rate is not None:
+        link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)
+        channel = Channel({member: link for member in ["ego", *(f"cav{c}" for c in cavs[1:])]})
+        os.environ.update(channel_environment())  # before any DDS participant, the supervisor's included
+        say(f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} Mbit/s of real time "
+            f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost")
+    with channel or contextlib.nullcontext():
+        return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, t0)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], frames: int, mcap: Path, channel: Channel | None,
+           t0: float) -> int:
+    """The nodes started (inside the channel's namespaces where there is one), the bag played, the recording scored."""
+    ego = cavs[0]
+
+    def on(member: str, argv: list[str]) -> list[str]:
+        return channel.wrap(member, argv) if channel else argv
+
     model = ["-p", f"checkpoint:={checkpoint}", "-p", "autostart:=false"]  # the demo drives the lifecycle
     ros_params = [x for p in opts.params for x in ("-p", p)]
     echo = not opts.quiet
     ego_params = [x for p in opts.ego_params for x in ("-p", p)]
     shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]  # the layout's camera panels
-    recorder = Process("recorder", [executable("recorder"), "--out", str(mcap), "--topics", *DEFAULT_TOPICS, *shown], echo)
-    nodes = {"/ego": Process("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params], echo)}
+    recorder = Process("recorder", on("ego", [executable("recorder"), "--out", str(mcap), "--topics", *DEFAULT_TOPICS, *shown]), echo)
+    nodes = {"/ego": Process("ego", on("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params]), echo)}
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
     for c in cavs:
-        nodes[topics.vehicle_node(c)] = Process(f"vehicle {c}", [executable("vehicle"), "--id", str(c), "--ros-args", *model,
-                                                          *(lossless if c == ego else ros_params)], echo)
+        nodes[topics.vehicle_node(c)] = Process(f"vehicle {c}", on("ego" if c == ego else f"cav{c}", [
+            executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)]), echo)
     player = None
     supervisor = Supervisor("demo", alive=lambda: next((f"{p.label} exited with code {p.proc.returncode}" for p in [recorder, *nodes.values()]
                                                         if p.proc.poll() is not None), None))
@@ -219,8 +262,15 @@ def main(args: list[str] | None = None) -> int:
             if p is not None:
                 p.stop()
         supervisor.close()
-    published = len(supervisor.reports("ego"))
+    reports = supervisor.reports("ego")
+    published = len(reports)
     say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames")
+    if channel:  # what crossed the links in time, frame by frame
+        say("neighbours fused per frame: " + " ".join(r.get("neighbours_used", "?") for r in reports) + "; heard but late: " +
+            " ".join(r["neighbours_missing"] or "-" for r in reports) + "; never received: " +
+            " ".join(r["neighbours_silent"] or "-" for r in reports))
+    if channel and opts.channel_loss:
+        say("packets dropped by the channel: " + ", ".join(f"{m} {channel.dropped(m)}" for m in channel.links))
     code = score.main([str(mcap), "--out", str(opts.out)])
     layout = write_layout(opts.out / "foxglove_layout.json", ego)
     say(f"to see it in 3D: open {mcap} in Foxglove and import the layout {layout} (prediction | ground truth, cameras)")

@@ -256,11 +256,14 @@ class Ego(ManagedNode):
         self.published += 1
         self.pairing.fused(stamp)
         missing = sorted(self._agents[t] for t in heard if self._agents[t] not in matched)
+        # discovered, yet not one frame received (a link that cannot carry its features, say): by topic, no id is known
+        silent = sorted(t for t in self._subs if t != self.own_topic and t not in self._agents)
         out_of_range = [a for a in matched if a not in chosen]
         used = [ego, *others]
         values = {
             "stamp": stamp, "neighbours_used": len(others), "neighbours": ",".join(map(str, chosen)),
-            "neighbours_missing": ",".join(map(str, missing)), "neighbours_not_chosen": ",".join(map(str, out_of_range)),
+            "neighbours_missing": ",".join(map(str, missing)), "neighbours_silent": ",".join(silent),
+            "neighbours_not_chosen": ",".join(map(str, out_of_range)),
             "neighbour_age_ms": ",".join(f"{(stamp - r.stamp) / 1e6:.0f}" for r in others),
             "received_wall_ns": ",".join(f"{a}:{r.received_wall_ns}" for a, r in zip([self.ego_id, *chosen], used)),
             "bytes_received": sum(r.wire_bytes for r in used), "bytes_per_agent": ",".join(f"{a}:{r.wire_bytes}" for a, r in zip([self.ego_id, *chosen], used)),
@@ -269,8 +272,9 @@ class Ego(ManagedNode):
             "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
             **self.drops.values(),
         }
-        level = DiagnosticStatus.WARN if missing else DiagnosticStatus.OK
-        text = f"{len(others)} neighbours used" + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
+        level = DiagnosticStatus.WARN if missing or silent else DiagnosticStatus.OK
+        text = (f"{len(others)} neighbours used" + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
+                + (f"; nothing received yet on {', '.join(silent)}" if silent else ""))
         self._diag.publish(diagnostics_msg(stamp, "ego", frame, level, text, values))
         self.get_logger().info(f"frame {stamp}: published #{self.published}, {text}, {1e3 * (t3 - t0):.0f} ms")
 

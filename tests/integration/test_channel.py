@@ -1,0 +1,213 @@
+"""The emulated V2X channel: real network namespaces, tc and nftables (as root), and the demo graph through it."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import executable
+
+from co3sop_nodes import channel as ch
+from co3sop_nodes import topics
+from co3sop_nodes.channel import Channel, ChannelError, Link
+from co3sop_nodes.scoring import message_counts
+
+FRAMES = 5
+
+
+def ours(pid: int) -> list[str]:
+    return [n for n in ch.namespaces() if n.startswith(f"{ch.PREFIX}{pid}-")]
+
+
+def in_namespace(channel: Channel, member: str, code: str) -> subprocess.Popen:
+    return subprocess.Popen(channel.wrap(member, [sys.executable, "-c", code]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+RECEIVE = """
+import socket, sys, time
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.bind(("0.0.0.0", 47001)); s.settimeout(3)
+n = 0
+try:
+    while True:
+        s.recv(2000); n += 1
+except socket.timeout:
+    pass
+print(n)
+"""
+SEND = """
+import socket, time
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+for i in range(2000):
+    s.sendto(b"x" * 1000, ("{address}", 47001))
+    time.sleep(0.0005)
+"""
+STREAM_SERVER = """
+import socket
+s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1); s.bind(("0.0.0.0", 47002)); s.listen(1)
+c, _ = s.accept(); n = 0
+while (d := c.recv(65536)):
+    n += len(d)
+print(n)
+"""
+STREAM_CLIENT = """
+import socket, time
+c = socket.create_connection(("{address}", 47002), timeout=10)
+t = time.monotonic(); c.sendall(b"x" * {size}); c.shutdown(socket.SHUT_WR); c.recv(1)
+print(time.monotonic() - t)
+"""
+
+
+def test_channel_shapes_rate_and_loss_and_removes_everything():
+    with Channel({"ego": Link(8.0), "lossy": Link(50.0, loss=0.2)}) as channel:
+        names = ours(os.getpid())
+        assert sorted(names) == sorted(channel.namespace(m) for m in ("hub", "ego", "lossy"))
+        # rate: 1 MB through the ego's 8 Mbit/s link takes about a second (TCP, so nothing is lost)
+        server = in_namespace(channel, "lossy", STREAM_SERVER)
+        time.sleep(0.5)
+        client = in_namespace(channel, "ego", STREAM_CLIENT.format(address=channel.addresses["lossy"], size=1_000_000))
+        seconds = float(client.communicate(timeout=60)[0])
+        assert int(server.communicate(timeout=30)[0]) == 1_000_000
+        assert 0.85 < seconds < 3.0, seconds  # 8 Mbit/s: 1.0 s; an unshaped veth would take milliseconds
+        # loss: 20 % of the lossy member's packets are dropped at random, and counted
+        receiver = in_namespace(channel, "ego", RECEIVE)
+        time.sleep(0.5)
+        sender = in_namespace(channel, "lossy", SEND.format(address=channel.addresses["ego"]))
+        assert sender.wait(60) == 0
+        received = int(receiver.communicate(timeout=30)[0])
+        assert 1450 < received < 1750, received  # binomial(2000, 0.8): mean 1600, sd 18
+        assert 250 < channel.dropped("lossy") < 550 and channel.dropped("ego") == 0
+        shaping = subprocess.run(channel.wrap("ego", ["tc", "qdisc", "show", "dev", "eth0"]), capture_output=True, text=True).stdout
+        assert "tbf" in shaping and "8Mbit" in shaping
+        host_if = ch.host_link(os.getpid())
+        assert host_if in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
+    assert ours(os.getpid()) == []
+    assert host_if not in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
+
+
+def test_channel_is_removed_when_its_user_fails():
+    with pytest.raises(RuntimeError):
+        with Channel({"ego": Link(10.0)}):
+            assert ours(os.getpid())
+            raise RuntimeError("a crash of the launcher")
+    assert ours(os.getpid()) == []
+
+
+LAUNCHER = """
+import time
+from co3sop_nodes.channel import Channel, Link
+channel = Channel({"ego": Link(10.0), "cav1": Link(10.0)}).__enter__()
+print("up", flush=True)
+time.sleep(120)
+"""
+
+
+def test_namespaces_of_a_killed_launcher_are_reaped():
+    launcher = subprocess.Popen([sys.executable, "-c", LAUNCHER], stdout=subprocess.PIPE, text=True)
+    try:
+        assert launcher.stdout.readline().strip() == "up"
+        assert len(ours(launcher.pid)) == 3
+        launcher.kill()  # no unwinding: the reaper removes them
+        launcher.wait()
+        deadline = time.monotonic() + 15
+        while ours(launcher.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert ours(launcher.pid) == []
+        assert ch.host_link(launcher.pid) not in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+        ch.remove_launcher(launcher.pid)
+
+
+def test_missing_tools_are_named(monkeypatch, tmp_path):
+    monkeypatch.setenv("PATH", str(tmp_path))  # no ip, tc or nft
+    with pytest.raises(ChannelError, match=r"nft \(Debian package nftables\)"):
+        Channel({"ego": Link(10.0)})
+    with pytest.raises(ChannelError, match="loss must be in"):
+        Link(10.0, loss=1.5)
+
+
+# --- the demo graph over the channel ---------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("scenario")
+    done = subprocess.run([executable("generate"), "--out", str(root / "data"), "--bags", str(root / "bags"), "--splits", "test=1",
+                           "--frames", str(FRAMES), "--cavs", "3", "--seed", "11", "--image-size", "160x120", "--lidar-steps", "256",
+                           "--workers", "1"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    return next((root / "bags" / "test").iterdir())
+
+
+def demo(bag: Path, out: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([executable("demo"), "--bag", str(bag), "--out", str(out), "--model", "tiny-lidar", "--rate", "0.25",
+                             "--quiet", "--channel-rate", "27", "--channel-loss", "5", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def fused_per_frame(out: str) -> tuple[list[int], list[int]]:
+    """From the demo's output (the ego's /diagnostics as its supervisor saw them): per frame, the neighbours fused
+    and the neighbours it discovered but got no frame from in time (late, or nothing received at all)."""
+    line = out.split("neighbours fused per frame: ")[1].splitlines()[0]
+    used, rest = line.split("; heard but late: ")
+    late, silent = rest.split("; never received: ")
+    count = [0 if m == "-" else len(m.split(",")) for m in late.split()]
+    return [int(n) for n in used.split()], [a + (0 if m == "-" else len(m.split(","))) for a, m in zip(count, silent.split())]
+
+
+def test_demo_through_a_lossy_channel(scenario, tmp_path):
+    # int8 features of the 4096 most confident voxels fit the link: reliable QoS repairs the 5 % loss, both
+    # neighbours are fused in (nearly: CI machines are slow and shared) every frame
+    proc = demo(scenario, tmp_path / "fits", "--params", "codec.dtype:=int8", "codec.selection:=topk")
+    out = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 0, out
+    dropped = dict(re.findall(r"(\w+) (\d+)", out.split("packets dropped by the channel:")[1].splitlines()[0]))
+    assert len(dropped) == 3 and all(int(n) > 0 for n in dropped.values()), out
+    used, late = fused_per_frame(out)
+    assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 2, out
+    # dense float16 features (~1 MB a frame) do not fit 27 Mbit/s: the ego still publishes every frame, alone,
+    # and its diagnostics name the neighbours it discovered but got no frame from in time
+    proc = demo(scenario, tmp_path / "dense", "--params", "codec.dtype:=float16", "--ego-params", "max_wait:=1.0")
+    out = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 0, out
+    assert message_counts(tmp_path / "dense" / "demo.mcap")[topics.EGO_OCCUPANCY] == FRAMES
+    used, late = fused_per_frame(out)
+    assert len(used) == FRAMES and sum(used) < FRAMES, out  # at most a few get through
+    assert sum(late) >= FRAMES, out
+    assert ours(proc.pid) == []
+
+
+def children(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def test_demo_stopped_by_sigterm_leaves_no_namespace_and_no_node(scenario, tmp_path):
+    proc = demo(scenario, tmp_path / "stopped")
+    deadline = time.monotonic() + 120
+    while len(ours(proc.pid)) < 4 and time.monotonic() < deadline:  # hub, ego and two neighbours
+        time.sleep(0.2)
+    assert len(ours(proc.pid)) == 4
+    time.sleep(3)  # the nodes are starting inside them
+    nodes = children(proc.pid)
+    assert nodes
+    proc.send_signal(signal.SIGTERM)
+    out = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 130, out
+    assert ours(proc.pid) == []
+    for pid in nodes:
+        assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
