@@ -308,10 +308,11 @@ def test_feature_round_trip(setting):
 
 
 def test_all_settings_are_covered():
-    # 3 dtypes x 3 selections x 2 codecs x {with, without confidence}, minus threshold without confidence
-    assert len(ALL_SETTINGS) == 3 * 3 * 2 * 2 - 3 * 2
+    # 3 dtypes x 4 selections x 2 codecs x {with, without confidence}, minus threshold without confidence
+    # ("request" without a request map ranks as "topk": what a vehicle sends before the first request arrives)
+    assert len(ALL_SETTINGS) == 3 * 4 * 2 * 2 - 3 * 2
     assert set(FEATURE_DTYPES) == {"float32", "float16", "int8"}
-    assert set(SELECTIONS) == {"dense", "topk", "threshold"}
+    assert set(SELECTIONS) == {"dense", "topk", "threshold", "request"}
     assert set(CODECS) == {"zstd", "none"}
 
 
@@ -1153,3 +1154,53 @@ def test_codec_config_types():
     for bad in (dict(topk=True), dict(threshold="0.5"), dict(threshold=None)):
         with pytest.raises(CodecError):
             FeatureCodecConfig(**bad)
+
+
+# --- byte budgets and request maps --------------------------------------------------------------------------
+
+
+def _volume(seed: int = 0, dims=(16, 16, 6), channels: int = 32):
+    rng = np.random.default_rng(seed)
+    return (_grid(dims), rng.normal(size=(channels, *dims)).astype(np.float32), rng.uniform(size=dims).astype(np.float32))
+
+
+@pytest.mark.parametrize("selection", ["topk", "request"])
+@pytest.mark.parametrize("budget", [2000, 8000, 30000])
+def test_budget_keeps_the_most_best_scored_voxels_that_fit(selection, budget):
+    grid, features, confidence = _volume()
+    request = np.random.default_rng(1).uniform(size=grid.dims).astype(np.float32)
+    cfg = FeatureCodecConfig("int8", selection, max_bytes=budget)
+    enc = encode_features(features, confidence, grid, cfg, request)
+    assert enc.budget_bytes <= budget
+    assert enc.budget_bytes == enc.payload_bytes + 4 * 2 * 32  # int8 scale and offset per channel
+    # nearly all of the budget is used: one more voxel of 33 raw bytes would not fit much better
+    assert enc.budget_bytes > budget - 3 * 33
+    mask = decode_features(enc).confidence.reshape(-1) > 0
+    score = confidence.reshape(-1) * (request.reshape(-1) if selection == "request" else 1)
+    assert score[mask].min() >= score[~mask].max()
+
+
+def test_request_selects_where_the_ego_asks():
+    grid, features, confidence = _volume(2)
+    request = np.zeros(grid.dims, np.float32)
+    request[:4] = 1.0  # the ego needs only the first 4 x-slices (384 voxels)
+    enc = encode_features(features, confidence, grid, FeatureCodecConfig("int8", "request", max_bytes=6000), request)
+    sent = np.argwhere(decode_features(enc).confidence > 0)
+    assert len(sent) > 50 and (sent[:, 0] < 4).all()
+    # without a request a vehicle falls back to its own confidence, as "topk"
+    fallback = encode_features(features, confidence, grid, FeatureCodecConfig("int8", "request", max_bytes=6000))
+    topk = encode_features(features, confidence, grid, FeatureCodecConfig("int8", "topk", max_bytes=6000))
+    assert fallback == topk
+
+
+def test_budget_and_request_are_checked():
+    grid, features, confidence = _volume()
+    with pytest.raises(CodecError, match="max_bytes needs selection"):
+        FeatureCodecConfig("int8", "dense", max_bytes=1000)
+    with pytest.raises(CodecError, match="max_bytes must be"):
+        FeatureCodecConfig("int8", "topk", max_bytes=-1)
+    with pytest.raises(CodecError, match="even an empty selection"):
+        encode_features(features, confidence, grid, FeatureCodecConfig("int8", "topk", max_bytes=10))
+    with pytest.raises(CodecError, match="request: a"):
+        encode_features(features, confidence, grid, FeatureCodecConfig("int8", "request"), np.full(grid.dims, 2.0, np.float32))
+    assert FeatureCodecConfig("int8", "request", max_bytes=65536).name == "int8-request64KB-zstd"

@@ -149,6 +149,15 @@ class Bootstrap:
         return {name: {"delta": point(sa, name) - point(sb, name), "ci95": _percentiles(a[name] - b[name])} for name in SCORES}
 
 
+    def ratio(self, run: dict, full: dict, base: dict, score: str = "co3sop-code") -> dict:
+        """{"ratio": (run - base) / (full - base), "ci95": [low, high]}: the share of full's gain over base that run
+        keeps (a codec against the lossless one and no collaborator), paired over the same resampled scenarios."""
+        a, f, b = (self._resampled(c)[score] for c in (run, full, base))
+        pa, pf, pb = (point(pooled(c).summary(), score) for c in (run, full, base))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return {"ratio": (pa - pb) / (pf - pb) if pf != pb else float("nan"), "ci95": _percentiles((a - b) / (f - b))}
+
+
 def confusions_of(summary: dict) -> dict[str, Confusion]:
     """Per-scenario confusions back from a Bootstrap.summary() (e.g. read from evaluate's JSON)."""
     return {k: Confusion.from_counts(v) for k, v in summary["per_scenario"].items()}

@@ -15,9 +15,9 @@ from ..grid import GridSpec
 from .model import VehicleOutput
 
 
-def encode_output(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -> EncodedFeatures:
-    """A batch-of-one vehicle output -> what the vehicle sends."""
-    return encode_features(out.features[0].cpu().numpy(), out.confidence[0, 0].cpu().numpy(), grid, cfg)
+def encode_output(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None) -> EncodedFeatures:
+    """A batch-of-one vehicle output -> what the vehicle sends (to the ego whose `request` it weighs, if any)."""
+    return encode_features(out.features[0].cpu().numpy(), out.confidence[0, 0].cpu().numpy(), grid, cfg, request)
 
 
 def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
@@ -26,10 +26,11 @@ def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
     return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(conf)[None, None])
 
 
-def through_codec(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig) -> tuple[VehicleOutput, int]:
-    """A vehicle output as the ego receives it through `cfg` without DDS, and the payload bytes it took."""
-    enc = encode_output(out, grid, cfg)
-    return decoded_output(decode_features(enc)), enc.payload_bytes
+def through_codec(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None) -> tuple[VehicleOutput, int]:
+    """A vehicle output as the ego receives it through `cfg` without DDS, and the bytes it took (payload and
+    quantisation constants, as a byte budget counts them)."""
+    enc = encode_output(out, grid, cfg, request)
+    return decoded_output(decode_features(enc)), enc.budget_bytes
 
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
