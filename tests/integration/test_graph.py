@@ -4,24 +4,32 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
+import sys
+import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from co3sop_msgs.msg import RequestMap, VoxelFeatures
 from mcap.reader import make_reader
+from rclpy.serialization import deserialize_message
 from ament_index_python.packages import get_package_share_directory
 from conftest import executable
 
 from co3sop_nodes import topics
-from co3sop_nodes.codec import FeatureCodecConfig
-from co3sop_nodes.learn.bag_eval import predict_bag
+from co3sop_nodes.codec import FeatureCodecConfig, decode_features, decode_request
+from co3sop_nodes.learn.bag_eval import predict_bag, vehicle_outputs
 from co3sop_nodes.model.checkpoint import export_model, load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.outputs import encode_output
+from co3sop_nodes.model.request import request_for_neighbour
+from co3sop_nodes.ros.convert import features_from_msg, pose_from_msg, request_from_msg, stamp_to_ns
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.scoring import read_recording
 
@@ -103,10 +111,12 @@ def scenario(tmp_path_factory) -> tuple[Path, list[int]]:
     return bag, cavs
 
 
-def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str], ego_params: list[str] = ()) -> Path:
-    """Recorder, ego (the first CAV), one vehicle per CAV; the bag played once; everything stopped; the MCAP path."""
+def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str], ego_params: list[str] = (),
+              recorded: tuple[str, ...] = (), before_play=lambda: None) -> Path:
+    """Recorder (its default topics, or `recorded`), ego (the first CAV), one vehicle per CAV; `before_play()`; the
+    bag played once; everything stopped; the MCAP path."""
     mcap = graph.folder / "run.mcap"
-    graph.start("recorder", executable("recorder"), "--out", str(mcap))
+    graph.start("recorder", executable("recorder"), "--out", str(mcap), *(("--topics", *recorded) if recorded else ()))
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0", *ego_params)
     for c in cavs:
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *[x for p in vehicle_params for x in ("-p", p)])
@@ -115,6 +125,7 @@ def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str
     graph.supervisor.wait_subscribed("/recorder", topics.EGO_OCCUPANCY)
     played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in cavs for s in
                                ["lidar/pose", "ground_truth/occupancy_50m", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
+    before_play()
     player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
     assert player.wait(120) == 0, graph.log("player")
     graph.wait_fused(FRAMES)
@@ -145,6 +156,67 @@ def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
         assert agent == cavs[0]
         assert np.array_equal(labels, offline[stamp].labels), f"frame {stamp}: {(labels != offline[stamp].labels).mean():.2%} of voxels differ"
     assert rec.truths.keys() == rec.predictions.keys()
+
+
+def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[str, object]]:
+    """(topic, message) of every message on topics matching the pattern, in log order."""
+    with open(mcap, "rb") as f:
+        return [(channel.topic, deserialize_message(message.data, msg_type))
+                for _, channel, message in make_reader(f).iter_messages() if re.fullmatch(topic_pattern, channel.topic)]
+
+
+def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario):
+    """A request map reaches the vehicles (a stand-in's from before the first frame, then the ego's own after each
+    frame); each vehicle answers it with the voxels it weighs highest under its byte budget, addressed to the ego;
+    what arrives is what the same computation gives offline, byte for byte, and only where the ego asked."""
+    bag, cavs = scenario
+    budget = 20000
+    codec = FeatureCodecConfig("int8", "request", max_bytes=budget)
+    params = ["codec.dtype:=int8", "codec.selection:=request", f"codec.max_bytes:={budget}", "request_timeout:=60.0"]
+    torch.set_num_threads(1)
+    model, _ = load_model(shipped_checkpoint())
+    fg = model.cfg.feature_grid
+    outputs = vehicle_outputs(model, bag)
+    first = min(outputs)
+    world_from_ego = outputs[first][cavs[0]][1]
+
+    def ask() -> None:  # the stand-in ego's request, known to every vehicle before it encodes a frame
+        graph.start("requester", sys.executable, str(Path(__file__).parent / "peers" / "requester.py"), str(cavs[0]), "1",
+                    json.dumps(world_from_ego.tolist()), model.cfg.range)
+        for c in cavs[1:]:
+            graph.supervisor.wait_subscribed(topics.vehicle_node(c), topics.EGO_REQUEST)
+        time.sleep(1.0)
+
+    mcap = run_graph(graph, bag, cavs, params, recorded=("/cav_.*/voxel_features", topics.EGO_REQUEST, topics.DIAGNOSTICS,
+                                                         topics.EGO_OCCUPANCY), before_play=ask)
+    requests = {stamp_to_ns(m.header.stamp): m for _, m in recorded_messages(mcap, re.escape(topics.EGO_REQUEST), RequestMap)}
+    assert 1 in requests and len(requests) >= FRAMES  # the stand-in's, and the ego's after each of its frames
+    assert all(m.agent_id == cavs[0] for m in requests.values())
+    features = recorded_messages(mcap, r"/cav_\d+/voxel_features", VoxelFeatures)
+    addressed = [(t, m) for t, m in features if m.addressed]
+    assert addressed and all(m.recipient_id == cavs[0] for _, m in addressed)  # the only ego
+    used = {}  # (vehicle, frame stamp) -> the request stamp it answered
+    for name, statuses in read_recording(mcap).diagnostics.items():
+        if name.startswith("vehicle "):
+            for status in statuses:
+                for item in filter(None, status["request_stamps"].split(",")):
+                    used[int(name.split("_")[1]), int(status["stamp"])] = int(item.split(":")[1])
+    assert len(addressed) >= FRAMES * (len(cavs) - 1)  # every neighbour frame (the ego's own encoder is not asked)
+    carried = 0
+    for _, msg in addressed:
+        enc = features_from_msg(msg)
+        assert enc.budget_bytes <= budget
+        request = requests[used[msg.agent_id, stamp_to_ns(msg.header.stamp)]]
+        need = decode_request(request_from_msg(request))
+        out, world_from_vehicle = outputs[stamp_to_ns(msg.header.stamp)][msg.agent_id]
+        wanted = request_for_neighbour(need, pose_from_msg(request.lidar_pose).matrix(), world_from_vehicle, fg)
+        expected = encode_output(out, fg, codec, wanted)
+        assert (enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale) == (
+            expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale), f"cav {msg.agent_id}"
+        sent = decode_features(enc).confidence.reshape(-1) > 0
+        assert (wanted.reshape(-1)[sent] > 0).all()  # only voxels the ego asked for (none where it asked nothing in view)
+        carried += int(sent.sum())
+    assert carried > 0
 
 
 def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):

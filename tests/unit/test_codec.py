@@ -64,7 +64,7 @@ CONF_ELEMENTS = st.floats(0.0, 1.0, width=32)
 
 # VoxelFeatures.msg: the wire fields EncodedFeatures mirrors one to one.
 MSG_DIR = Path(__file__).resolve().parents[2] / "src" / "co3sop_msgs" / "msg"
-VOXEL_FEATURES_ENVELOPE = {"header", "agent_id", "lidar_pose"}  # set by the ROS glue, not the codec
+VOXEL_FEATURES_ENVELOPE = {"header", "agent_id", "addressed", "recipient_id", "lidar_pose"}  # set by the ROS glue, not the codec
 
 # Every valid (dtype, selection, codec) setting; threshold needs a confidence.
 ALL_SETTINGS = [

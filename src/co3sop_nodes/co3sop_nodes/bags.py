@@ -32,7 +32,7 @@ from .geometry import OPTICAL_FROM_BODY, Pose
 from .grid import BENCHMARK_RANGES, GridSpec
 from .transforms import StaticTransforms
 
-CO3SOP_MSGS = ("GridSpec", "VoxelFeatures", "SemanticOccupancy")
+CO3SOP_MSGS = ("GridSpec", "VoxelFeatures", "SemanticOccupancy", "RequestMap")
 _RANGE_OF_SUFFIX = {suffix: name for name, suffix in topics.RANGE_SUFFIX.items()}
 _NEVER = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)
 _LATCHED = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _NEVER, _NEVER,

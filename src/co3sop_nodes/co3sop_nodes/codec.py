@@ -280,7 +280,10 @@ def encode_features(
 def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
     """The most best-scored voxels whose encoding fits cfg.max_bytes (bisection on their count: the size grows
     with it, up to compression noise, so the result always fits and is within a few voxels of the largest)."""
-    order = np.argsort(-_score(features, confidence, request if cfg.selection == "request" else None), kind="stable")
+    score = _score(features, confidence, request if cfg.selection == "request" else None)
+    order = np.argsort(-score, kind="stable")
+    if request is not None and cfg.selection == "request":
+        order = order[: np.count_nonzero(score > 0)]  # what the ego did not ask for is not worth a byte
 
     def encoded(k: int) -> EncodedFeatures:
         return _encode(features, confidence, grid, cfg, np.sort(order[:k]))
@@ -479,3 +482,31 @@ def decode_labels(enc: EncodedLabels, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES
         craw = _decompress(enc.confidence, enc.codec, enc.confidence_raw_size, n, "confidence", max_raw_bytes)
         confidence = np.frombuffer(craw, np.uint8).reshape(enc.grid.dims)
     return DecodedLabels(labels=labels, confidence=confidence)
+
+
+@dataclass(frozen=True)
+class EncodedRequest:
+    """An ego's request map as carried by co3sop_msgs/RequestMap (minus header, ids and pose)."""
+
+    grid: GridSpec
+    codec: str
+    need: bytes
+    need_raw_size: int
+
+
+def encode_request(need: np.ndarray, grid: GridSpec, codec: str = "zstd", level: int = 3) -> EncodedRequest:
+    """(nx, ny, nz) need in [0, 1] -> round(255 * need) uint8, compressed."""
+    _check_choice("codec", codec, CODECS)
+    need = np.asarray(need, dtype=np.float32)
+    if need.shape != grid.dims:
+        raise SizeMismatchError(f"need: shape {need.shape} does not match the grid {grid.dims}")
+    if not (np.isfinite(need).all() and need.min(initial=0) >= 0 and need.max(initial=0) <= 1):
+        raise CodecError("need: values must lie in [0, 1]")
+    raw = np.rint(need * 255).astype(np.uint8).tobytes()
+    return EncodedRequest(grid, codec, _compress(raw, codec, level), len(raw))
+
+
+def decode_request(enc: EncodedRequest, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> np.ndarray:
+    """Inverse of encode_request: (nx, ny, nz) float32 need in [0, 1] (multiples of 1/255)."""
+    raw = _decompress(enc.need, enc.codec, enc.need_raw_size, enc.grid.num_voxels, "need", max_raw_bytes)
+    return (np.frombuffer(raw, np.uint8).astype(np.float32) / 255).reshape(enc.grid.dims)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .. import topics
@@ -17,22 +18,20 @@ from ..bags import read_frames, read_static_transforms
 from ..codec import FeatureCodecConfig
 from ..errors import DatasetError
 from ..model.inputs import sensor_inputs, to_batch
-from ..model.model import Co3SOP
+from ..model.model import Co3SOP, VehicleOutput
 from ..model.outputs import through_codec
 from ..model.predict import FramePrediction, predict_frame
 
 
 @torch.no_grad()
-def predict_bag(model: Co3SOP, bag: Path, ego_id: int, codec: FeatureCodecConfig, cavs: list[int] | None = None,
-                **predict_kw) -> dict[int, FramePrediction]:
-    """Stamp -> the ego's prediction, for every frame of the bag in which the ego appears; `cavs` limits who takes part."""
+def vehicle_outputs(model: Co3SOP, bag: Path, cavs: list[int] | None = None) -> dict[int, dict[int, tuple[VehicleOutput, np.ndarray]]]:
+    """Stamp -> {cav: (its vehicle half's output, world_from_lidar)} for every frame of the bag, as `vehicle` computes
+    them; `cavs` limits who takes part."""
     cfg = model.cfg
     mounts = read_static_transforms(bag)
     results = {}
     for stamp, agents in read_frames(bag):
-        if ego_id not in agents:
-            continue
-        received = {}
+        results[stamp] = {}
         for cav, data in sorted(agents.items()):
             if cavs is not None and cav not in cavs:
                 continue
@@ -42,9 +41,19 @@ def predict_bag(model: Co3SOP, bag: Path, ego_id: int, codec: FeatureCodecConfig
             cameras = [(name, rgb, data["intrinsics"][name], mounts.lookup(topics.lidar_frame(cav), data["optical_frames"][name]))
                        for name, rgb in sorted(data["cameras"].items())]
             inputs = sensor_inputs(cfg, world_from_lidar, cameras, data.get("points"))
-            out = model.vehicle(**to_batch(inputs))
-            received[cav] = (through_codec(out, cfg.feature_grid, codec)[0], world_from_lidar)
+            results[stamp][cav] = (model.vehicle(**to_batch(inputs)), world_from_lidar)
+    return results
+
+
+@torch.no_grad()
+def predict_bag(model: Co3SOP, bag: Path, ego_id: int, codec: FeatureCodecConfig, cavs: list[int] | None = None,
+                **predict_kw) -> dict[int, FramePrediction]:
+    """Stamp -> the ego's prediction, for every frame of the bag in which the ego appears; `cavs` limits who takes part."""
+    results = {}
+    for stamp, agents in vehicle_outputs(model, bag, cavs).items():
+        if ego_id not in agents:
+            continue
+        received = {cav: (through_codec(out, model.cfg.feature_grid, codec)[0], world_from_lidar) for cav, (out, world_from_lidar) in agents.items()}
         ego, world_from_ego = received.pop(ego_id)
         results[stamp] = predict_frame(model, ego, world_from_ego, received, **predict_kw)
     return results
-

@@ -7,13 +7,13 @@ import importlib
 import numpy as np
 from builtin_interfaces.msg import Time
 from co3sop_msgs.msg import GridSpec as GridSpecMsg
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from ..cloud import CLOUD_DTYPE, CLOUD_FIELDS, cloud_xyz
-from ..codec import EncodedFeatures, EncodedLabels
+from ..codec import EncodedFeatures, EncodedLabels, EncodedRequest
 from ..errors import Co3sopError, DatasetError
 from ..geometry import Pose
 from ..grid import GridSpec
@@ -51,9 +51,13 @@ def pose_from_msg(msg: PoseMsg) -> Pose:
     return Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w))
 
 
-def features_to_msg(enc: EncodedFeatures, *, stamp_ns: int, frame_id: str, agent_id: int, pose: Pose) -> VoxelFeatures:
+def features_to_msg(enc: EncodedFeatures, *, stamp_ns: int, frame_id: str, agent_id: int, pose: Pose,
+                    recipient_id: int | None = None) -> VoxelFeatures:
+    """recipient_id: the ego whose request map selected these voxels (None: for every ego)."""
     msg = VoxelFeatures(
         agent_id=agent_id,
+        addressed=recipient_id is not None,
+        recipient_id=recipient_id or 0,
         lidar_pose=pose_to_msg(pose),
         grid=grid_to_msg(enc.grid),
         channels=enc.channels,
@@ -94,6 +98,20 @@ def features_from_msg(msg: VoxelFeatures) -> EncodedFeatures:
         values_raw_size=msg.values_raw_size,
         confidence_raw_size=msg.confidence_raw_size,
     )
+
+
+def request_to_msg(enc: EncodedRequest, *, stamp_ns: int, frame_id: str, agent_id: int, pose: Pose) -> RequestMap:
+    msg = RequestMap(agent_id=agent_id, lidar_pose=pose_to_msg(pose), grid=grid_to_msg(enc.grid), codec=enc.codec,
+                     need_raw_size=enc.need_raw_size)
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.need = enc.need
+    return msg
+
+
+def request_from_msg(msg: RequestMap) -> EncodedRequest:
+    """Raises GridError on an invalid grid; the payload is checked by codec.decode_request."""
+    return EncodedRequest(grid_from_msg(msg.grid), msg.codec, memoryview(msg.need), msg.need_raw_size)
 
 
 def labels_to_msg(enc: EncodedLabels, *, stamp_ns: int, frame_id: str, agent_id: int) -> SemanticOccupancy:

@@ -29,24 +29,26 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from .. import native, topics
 from ..cloud import occupancy_cloud, occupancy_cloud_reference
-from ..codec import decode_features, encode_labels
+from ..codec import decode_features, encode_labels, encode_request
 from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
+from ..geometry import Pose
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
+from ..model.request import request_of
 from ..pairing import Pairing
-from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, stamp_to_ns
+from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
 from .params import Param
-from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, DropLog, spin_node, subscribe_foreign
+from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, REQUEST_QOS, DropLog, spin_node, subscribe_foreign
 from .lifecycle import ManagedNode
 
 PARAMS = (
@@ -65,6 +67,7 @@ PARAMS = (
     Param("max_payload_mb", float, "declared uncompressed payloads above this are refused before decompressing", 64.0, True,
           (0.001, 65536.0)),
     Param("publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True),
+    Param("request_maps", bool, "publish /ego/request_map after each frame (vehicles with codec.selection request use it)", True, True),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
     Param("queue_depth", int, "frames per neighbour queued while one is fused", 10, range=(1, 1000)),
     Param("discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)),
@@ -98,6 +101,7 @@ class Ego(ManagedNode):
         self.published = 0
         self._subs: dict[str, object] = {}
         self._agents: dict[str, int] = {}  # a neighbour's topic -> its vehicle, from its first accepted message
+        self.for_other_egos = 0  # features addressed to another ego (its request map), ignored
         self._timers: list = []
         self.model = None
 
@@ -120,6 +124,7 @@ class Ego(ManagedNode):
         # names relative to the node's namespace: `__ns` and remapping apply
         self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.relative(topics.EGO_OCCUPANCY), OCCUPANCY_QOS)
         self._points = self.create_lifecycle_publisher(PointCloud2, topics.relative(topics.EGO_POINTS), OCCUPANCY_QOS)
+        self._request = self.create_lifecycle_publisher(RequestMap, topics.relative(topics.EGO_REQUEST), REQUEST_QOS)
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
                                f"{self.max_collaborators} collaborators within {self.comm_range:g} m; compiled kernels: {', '.join(self.kernels) or 'none'}")
@@ -153,7 +158,7 @@ class Ego(ManagedNode):
         self.pairing.cfg = replace(cfg, tolerance_ns=int(values.get("tolerance", cfg.tolerance_ns / 1e9) * 1e9),
                                    max_wait_s=values.get("max_wait", cfg.max_wait_s),
                                    neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9))
-        for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points"):
+        for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points", "request_maps"):
             if name in values:
                 setattr(self, name, values[name])
         if "max_payload_mb" in values:
@@ -196,6 +201,9 @@ class Ego(ManagedNode):
     def _on_features(self, topic: str, msg: VoxelFeatures, raw: bytes) -> None:
         wall = time.time_ns()
         stamp = stamp_to_ns(msg.header.stamp)
+        if msg.addressed and msg.recipient_id != self.ego_id:  # selected for another ego's request: not ours to fuse
+            self.for_other_egos += 1
+            return
         try:
             agent = self._agent_of(topic, msg)
             pose = pose_from_msg(msg.lidar_pose)
@@ -252,6 +260,10 @@ class Ego(ManagedNode):
         if self.publish_points:
             cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
             self._points.publish(cloud_to_msg(cloud, stamp_ns=stamp, frame_id=frame))
+        if self.request_maps:  # for the vehicles' next frame: where this one was unsure (model/request.py)
+            need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid)
+            self._request.publish(request_to_msg(need, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id,
+                                                 pose=Pose.from_matrix(ego.world_from_lidar)))
         t3 = time.perf_counter()
         self.published += 1
         self.pairing.fused(stamp)
@@ -270,6 +282,7 @@ class Ego(ManagedNode):
             "decode_ms": f"{sum(r.decode_ms for r in used):.1f}", "fuse_ms": f"{1e3 * pred.fuse_s:.1f}", "head_ms": f"{1e3 * pred.head_s:.1f}",
             "publish_ms": f"{1e3 * (t3 - t2):.1f}", "total_ms": f"{1e3 * (t3 - t0):.1f}", "published_wall_ns": published_wall,
             "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
+            "messages_for_other_egos": self.for_other_egos,
             **self.drops.values(),
         }
         level = DiagnosticStatus.WARN if missing or silent else DiagnosticStatus.OK

@@ -18,12 +18,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
-from co3sop_msgs.msg import VoxelFeatures
+from co3sop_msgs.msg import RequestMap, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.utilities import remove_ros_args
@@ -32,7 +32,7 @@ from tf2_msgs.msg import TFMessage
 
 from .. import topics
 from ..assembly import Frame, FrameAssembly
-from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig
+from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, decode_request
 from ..errors import CodecError, Co3sopError
 from ..grid import BENCHMARK_RANGES
 from ..geometry import Pose
@@ -40,10 +40,11 @@ from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.predict import compile_kernels
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
+from ..model.request import request_for_neighbour
 from ..transforms import StaticTransforms
-from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, stamp_to_ns
+from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
 from .params import Param
-from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, DropLog, SensorSubscriptions, spin_node
+from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, REQUEST_QOS, DropLog, SensorSubscriptions, spin_node, subscribe_foreign
 from .lifecycle import ManagedNode
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
@@ -60,14 +61,28 @@ PARAMS = (
     Param("threads", int, "torch CPU threads (several vehicles share a machine in the demo)", 1, range=(1, 256)),
     Param("max_pending", int, "incomplete frames kept while waiting for their last message", 10, range=(1, 1000)),
     Param("codec.dtype", str, "feature precision on the wire", "float16", True, choices=tuple(FEATURE_DTYPES)),
-    Param("codec.selection", str, "which voxels are sent: dense, topk (highest confidence) or threshold", "dense", True, choices=SELECTIONS),
+    Param("codec.selection", str, "which voxels are sent: dense, topk (highest confidence), threshold, or request (confidence x "
+          "the ego's request map; without one, as topk)", "dense", True, choices=SELECTIONS),
     Param("codec.topk", int, "voxels kept by topk", 4096, True, (1, 2**31 - 1)),
     Param("codec.threshold", float, "confidence kept by threshold", 0.5, True, (0.0, 1.0)),
     Param("codec.compression", str, "payload compression", "zstd", True, choices=CODECS),
     Param("codec.level", int, "zstd level", 3, True, (1, 22)),
+    Param("request_timeout", float, "s: an ego's request map not renewed within this is no longer served", 1.0, True, (0.0, 3600.0)),
+    Param("codec.max_bytes", int, "byte budget per message for topk / request (0: none; then codec.topk voxels)", 0, True, (0, 2**31 - 1)),
 )
 CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.topk": "topk", "codec.threshold": "threshold",
-                "codec.compression": "codec", "codec.level": "level"}
+                "codec.compression": "codec", "codec.level": "level", "codec.max_bytes": "max_bytes"}
+REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
+
+
+@dataclass(frozen=True)
+class Request:
+    """An ego's latest request map, as this vehicle holds it."""
+
+    need: np.ndarray  # (X, Y, Z) on the ego's feature grid, in [0, 1]
+    world_from_ego: np.ndarray  # (4, 4) the ego's LiDAR pose when it made the request
+    stamp: int  # the ego frame it came from
+    received_ns: int  # wall clock
 
 
 class Vehicle(ManagedNode):
@@ -82,6 +97,9 @@ class Vehicle(ManagedNode):
         self.published = 0
         self.inputs: SensorSubscriptions | None = None
         self.model = None
+        self._requests: dict[int, Request] = {}  # requesting ego -> its latest request map
+        self._request_subs: dict[str, object] = {}
+        self._request_timer = None
 
     def configure(self) -> None:
         p = self.params
@@ -123,11 +141,45 @@ class Vehicle(ManagedNode):
         self.inputs.add(TFMessage, topics.TF_STATIC, self._on_static, STATIC_DEPTH)
         for key, topic in self._parts.items():
             self.inputs.add(self._types[key], topic, self._part(key), SENSOR_DEPTH)
+        # every ego's request map, whatever its name or namespace (found by type, as the ego finds features)
+        self._request_timer = self.create_timer(0.5, self._discover_requests)
+        self._discover_requests()
 
     def deactivate(self) -> None:
         if self.inputs is not None:
             self.inputs.close()  # half-received frames go with the assembly; mounts come again on /tf_static
             self.inputs = None
+        if self._request_timer is not None:
+            self.destroy_timer(self._request_timer)
+        for sub in self._request_subs.values():
+            self.destroy_subscription(sub)
+        self._requests, self._request_subs, self._request_timer = {}, {}, None
+
+    def _discover_requests(self) -> None:
+        for name, types in self.get_topic_names_and_types():
+            if REQUEST_TYPE in types and name not in self._request_subs:
+                self._request_subs[name] = subscribe_foreign(self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg),
+                                                             REQUEST_QOS, self.drops)
+
+    def _on_request(self, topic: str, msg: RequestMap) -> None:
+        try:
+            enc = request_from_msg(msg)
+            if enc.grid != self.cfg.feature_grid:
+                raise Co3sopError(f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m is not this model's feature grid")
+            pose = pose_from_msg(msg.lidar_pose)
+            pose.check("lidar_pose")
+            need = decode_request(enc)
+        except Co3sopError as exc:
+            return self.drops(topic, "request", str(exc))
+        if msg.agent_id != self.agent_id:  # a vehicle that is also an ego does not serve itself
+            self._requests[msg.agent_id] = Request(need, pose.matrix(), stamp_to_ns(msg.header.stamp), time.time_ns())
+
+    def _recipients(self) -> dict[int, Request]:
+        """The egos served one message each this frame: with selection "request", those whose request is fresh."""
+        if self.codec.selection != "request":
+            return {}
+        oldest = time.time_ns() - int(self.params["request_timeout"] * 1e9)
+        return {ego: r for ego, r in self._requests.items() if r.received_ns >= oldest}
 
     def release(self) -> None:
         self.params.on_change(None)
@@ -190,19 +242,26 @@ class Vehicle(ManagedNode):
         with torch.inference_mode():
             out = self.model.vehicle(**to_batch(inputs))
         t2 = time.perf_counter()
+        # one message per requesting ego, its voxels weighed by that ego's request moved into this frame; else one for all
+        fg, recipients = self.cfg.feature_grid, self._recipients()
         try:
-            enc = encode_output(out, self.cfg.feature_grid, self.codec)
+            messages = [(ego, encode_output(out, fg, self.codec, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
+                        for ego, r in recipients.items()] or [(None, encode_output(out, fg, self.codec))]
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
             return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
-        msg = features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose)
+        msgs = [features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose, recipient_id=ego)
+                for ego, enc in messages]
         t3 = time.perf_counter()
-        self._pub.publish(msg)
+        for msg in msgs:
+            self._pub.publish(msg)
         published_wall = time.time_ns()
         self.published += 1
         values = {"stamp": stamp, "first_input_wall_ns": frame.first_wall_ns, "published_wall_ns": published_wall,
                   "inputs_ms": f"{1e3 * (t1 - t0):.1f}", "encoder_ms": f"{1e3 * (t2 - t1):.1f}", "codec_ms": f"{1e3 * (t3 - t2):.1f}",
-                  "payload_bytes": enc.payload_bytes, "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
-                  "frames_published": self.published, **self.drops.values()}
+                  "payload_bytes": sum(enc.payload_bytes for _, enc in messages),
+                  "recipients": ",".join(f"{ego}:{enc.budget_bytes}" for ego, enc in messages if ego is not None),
+                  "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),
+                  "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published, **self.drops.values()}
         self._diag.publish(diagnostics_msg(stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
                                            f"frame {self.published} encoded", values))
 
