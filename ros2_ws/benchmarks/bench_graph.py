@@ -56,9 +56,13 @@ def pairs(text: str) -> dict[int, int]:
 
 
 def measure(mcap: Path) -> dict:
-    rec = read_recording(mcap)
-    ego = rec.diagnostics["ego"]
-    vehicles = {int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds} for name, ds in rec.diagnostics.items() if name.startswith("vehicle")}
+    return measure_diagnostics(read_recording(mcap).diagnostics)
+
+
+def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]]) -> dict:
+    """Bytes, latency, transport share, CPU and stage times from the nodes' /diagnostics (status name -> reports)."""
+    ego = diagnostics["ego"]
+    vehicles = {int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds} for name, ds in diagnostics.items() if name.startswith("vehicle")}
     sizes, latency, dds_share = [], [], []
     for d in ego:
         stamp = int(d["stamp"])

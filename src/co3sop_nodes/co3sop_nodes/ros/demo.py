@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import math
 import os
 import re
@@ -264,6 +265,9 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         supervisor.close()
     reports = supervisor.reports("ego")
     published = len(reports)
+    # every node's /diagnostics as the launcher received them (beside the recording, which holds what the recorder got)
+    statuses = {"ego": reports, **{f"vehicle cav_{c}": supervisor.reports(f"vehicle cav_{c}") for c in cavs}}
+    (opts.out / "diagnostics.json").write_text(json.dumps(statuses, indent=1) + "\n")
     say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames")
     if channel:  # what crossed the links in time, frame by frame
         say("neighbours fused per frame: " + " ".join(r.get("neighbours_used", "?") for r in reports) + "; heard but late: " +
