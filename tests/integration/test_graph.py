@@ -22,6 +22,7 @@ from ament_index_python.packages import get_package_share_directory
 from conftest import executable
 
 from co3sop_nodes import topics
+from co3sop_nodes.bags import read_frames
 from co3sop_nodes.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.learn.bag_eval import predict_bag, vehicle_outputs
 from co3sop_nodes.model.checkpoint import export_model, load_model, shipped_checkpoint
@@ -217,6 +218,49 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario):
         assert (wanted.reshape(-1)[sent] > 0).all()  # only voxels the ego asked for (none where it asked nothing in view)
         carried += int(sent.sum())
     assert carried > 0
+
+
+def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
+    """Two egos at once (one in the root namespace, one under /b), each with its own lossless encoder; the third
+    vehicle answers each ego's request map with a message addressed to it; each ego fuses the answer to its own
+    request and ignores the other's."""
+    bag, cavs = scenario
+    a, b, c = cavs
+    checkpoint = Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt")
+    lidar = ["-p", f"checkpoint:={checkpoint}"]
+    dense = ["-p", "codec.dtype:=float32", "-p", "codec.compression:=none"]
+    graph.start("ego_a", executable("ego"), "--ros-args", "-p", f"ego_id:={a}", "-p", "max_wait:=60.0", *lidar)
+    graph.start("ego_b", executable("ego"), "--ros-args", "-p", f"ego_id:={b}", "-p", "max_wait:=60.0", *lidar,
+                "-r", "__ns:=/b", "-r", f"cav_{b}/voxel_features:={topics.voxel_features(b)}")
+    for v in (a, b):
+        graph.start(f"vehicle{v}", executable("vehicle"), "--id", str(v), "--ros-args", *lidar, *dense)
+    graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *lidar, "-p", "codec.dtype:=int8",
+                "-p", "codec.selection:=request", "-p", "codec.max_bytes:=20000", "-p", "request_timeout:=60.0")
+    graph.wait_active("/ego", "/b/ego", *map(topics.vehicle_node, cavs))
+    sup = graph.supervisor
+    for ego, others in (("/ego", (b, c)), ("/b/ego", (a, c))):
+        for v in others:
+            sup.wait_subscribed(ego, topics.voxel_features(v))
+    poses = {stamp: agents for stamp, agents in read_frames(bag)}
+    first = min(poses)
+    for ego, topic in ((a, topics.EGO_REQUEST), (b, "/b" + topics.EGO_REQUEST)):  # stand-ins, before the first frame
+        graph.start(f"requester{ego}", sys.executable, str(Path(__file__).parent / "peers" / "requester.py"), str(ego), "1",
+                    json.dumps(poses[first][ego]["pose"].tolist()), "51.2m", topic)
+        sup.wait_subscribed(topics.vehicle_node(c), topic)
+    time.sleep(1.0)
+    played = ["/tf_static", *(t for v in cavs for t in (topics.lidar_pose(v), topics.lidar_points(v)))]
+    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    assert player.wait(120) == 0, graph.log("player")
+    reports = sup.wait_reports("ego", 2 * FRAMES, timeout=180)
+    by_ego = {v: [r for r in reports if r["received_wall_ns"].startswith(f"{v}:")] for v in (a, b)}
+    for ego in (a, b):
+        assert len(by_ego[ego]) == FRAMES
+        # the answer to its request arrived in time (fused, or matched but beyond comm_range)
+        assert all(str(c) in (r["neighbours"] + "," + r["neighbours_not_chosen"]).split(",") for r in by_ego[ego]), by_ego[ego]
+        assert int(by_ego[ego][-1]["messages_for_other_egos"]) >= FRAMES - 1  # the other ego's answers (by its last frame), ignored
+    answered = [r["recipients"] for r in sup.reports(f"vehicle cav_{c}")]
+    assert all({int(x.split(":")[0]) for x in rec.split(",")} == {a, b} for rec in answered), answered
+    assert all(int(x.split(":")[1]) <= 20000 for rec in answered for x in rec.split(","))
 
 
 def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):

@@ -1,8 +1,8 @@
-"""A stand-in ego that only asks: publishes one request map on /ego/request_map, again every 0.2 s until stopped.
+"""A stand-in ego that only asks: publishes one request map, again every 0.2 s until stopped.
 
-    requester.py EGO_ID STAMP_NS POSE_JSON RANGE
+    requester.py EGO_ID STAMP_NS POSE_JSON RANGE [TOPIC]
 
-The need is 1 on the first half of the feature grid along x and 0 elsewhere; the pose is the ego's LiDAR pose
+TOPIC defaults to /ego/request_map (an ego in the root namespace). The need is 1 on the first half of the feature grid along x and 0 elsewhere; the pose is the ego's LiDAR pose
 (a 4x4 matrix as JSON) at the stamp. A vehicle with codec.selection request answers it from its first frame on.
 """
 
@@ -25,12 +25,13 @@ from co3sop_nodes.ros.dds import REQUEST_QOS
 
 def main() -> None:
     ego, stamp, matrix, rng = int(sys.argv[1]), int(sys.argv[2]), np.array(json.loads(sys.argv[3])), sys.argv[4]
+    topic = sys.argv[5] if len(sys.argv) > 5 else topics.EGO_REQUEST
     grid = preset("tiny", range=rng).feature_grid
     need = np.zeros(grid.dims, np.float32)
     need[: grid.dims[0] // 2] = 1.0
     rclpy.init()
     node = rclpy.create_node("requester")
-    pub = node.create_publisher(RequestMap, topics.EGO_REQUEST, REQUEST_QOS)
+    pub = node.create_publisher(RequestMap, topic, REQUEST_QOS)
     msg = request_to_msg(encode_request(need, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(ego), agent_id=ego,
                          pose=Pose.from_matrix(matrix))
     node.create_timer(0.2, lambda: pub.publish(msg))
