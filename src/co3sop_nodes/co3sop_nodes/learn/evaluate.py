@@ -193,6 +193,40 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
             f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its motion.\n\n"
             + "\n".join(rows))
     _write(opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results})
+    _plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
+
+
+# What the papers' collaborators send per neighbour-frame (issue 17): the curve is read against them
+PAPER_SIZES = {"Co3SOP (dense float32)": 18.9e6, "CoHFF": 0.78e6, "VOGS-CP": 0.27e6}
+
+
+def _plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
+    """Share of the collaboration gain kept against bytes per neighbour-frame (log scale), with intervals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name, r in results.items():
+        low, high = r["gain_kept"]["ci95"]
+        kept = r["gain_kept"]["ratio"]
+        marker = "s" if "request" in name else "o"
+        ax.errorbar(r["bytes"], 100 * kept, yerr=[[100 * (kept - low)], [100 * (high - kept)]], fmt=marker, capsize=3, label=name)
+    for name, size in PAPER_SIZES.items():
+        ax.axvline(size, color="grey", linestyle=":", linewidth=1)
+        ax.text(size, ax.get_ylim()[1], name, rotation=90, va="top", ha="right", fontsize=7, color="grey")
+    ax.axvline(65536, color="red", linestyle="--", linewidth=1)
+    ax.axhline(90, color="red", linestyle="--", linewidth=1)
+    ax.set_xscale("log")
+    ax.set_xlabel("bytes per neighbour-frame")
+    ax.set_ylabel("collaboration gain kept (%)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def nearest_distance(sample: Sample) -> float:
