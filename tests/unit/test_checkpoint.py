@@ -66,7 +66,8 @@ def test_the_shipped_checkpoint_is_installed_small_and_loads():
     path = shipped_checkpoint()
     assert path.stat().st_size <= 5 * 2**20
     model, data = load_model(path)
-    assert model.cfg.name == "tiny" and [h["stage"] for h in data["meta"]["history"]] == ["ego", "fusion"]
+    stages = [h["stage"] for h in data["meta"]["history"]]
+    assert model.cfg.name == "tiny" and stages[:2] == ["ego", "fusion"] and set(stages[2:]) <= {"fusion"}  # fusion may be extended
     assert all("--seed" in h["command"] for h in data["meta"]["history"])
 
 
