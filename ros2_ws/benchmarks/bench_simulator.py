@@ -9,10 +9,13 @@ Run with the workspace environment (`. ros2_ws/env.sh`). Prints markdown tables:
    around one CAV of a default town: seconds, voxels per second, kernel vs NumPy
    ratio and whether the three grids are identical, for each benchmark grid and,
    with --full, the paper's full 1000 x 1000 x 70 annotation at 0.1 m.
-2. Rays per second of the cameras (shaded, with shadow rays) and the LiDAR.
+2. Rays per second of the cameras (shaded, with shadow rays) and the LiDAR, on
+   the reference path (trimesh + NumPy) and the compiled ray kernel (one and two
+   threads), with the images compared, in the same run.
 3. End-to-end scenario generation (simulate + OPV2V files + labels at the three
    ranges), frames and CAV-frames per second, and bag megabytes per CAV-frame,
-   with the compiled kernels off (the code before them) and on, in the same run.
+   with every compiled kernel off (the NumPy / trimesh reference paths) and on,
+   in the same run.
 """
 
 from __future__ import annotations
