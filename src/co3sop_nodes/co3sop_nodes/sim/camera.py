@@ -131,5 +131,11 @@ def render_rig(scene: RayScene, world_from_cameras: Sequence[np.ndarray], width:
     """Every camera of a rig, `threads` at once (Embree and the kernel release the GIL), in order."""
     if threads <= 1:
         return [render(scene, pose, width, height, k, compiled) for pose in world_from_cameras]
-    with ThreadPoolExecutor(threads) as pool:
-        return list(pool.map(lambda pose: render(scene, pose, width, height, k, compiled), world_from_cameras))
+    return list(_pool(threads).map(lambda pose: render(scene, pose, width, height, k, compiled), world_from_cameras))
+
+
+@lru_cache(maxsize=4)
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """Threads kept for the process's life: a frame's four cameras take tens of milliseconds, a new pool's start
+    would be a noticeable share of that."""
+    return ThreadPoolExecutor(threads, thread_name_prefix="co3sop-camera")
