@@ -350,7 +350,8 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     assert sup.change("/ego", "deactivate")
     sup.wait("the inactive ego to unsubscribe", lambda: not sup.subscribes("/ego", topics.voxel_features(neighbour)), 30)
     assert sup.change("/ego", "cleanup") and sup.state("/ego") == "unconfigured"
-    sup.wait("cleanup to release the ego's publishers", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0, 30)
+    sup.wait("cleanup to release the ego's publishers", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
+             and sup.node.count_publishers(topics.EGO_REQUEST) == 0, 30)
     assert sup.change("/ego", "configure") and sup.change("/ego", "activate")  # loads again after a cleanup
     sup.wait_subscribed("/ego", topics.voxel_features(neighbour))
     for node in [*nodes, broken]:

@@ -189,14 +189,15 @@ def _score(features: np.ndarray, confidence: np.ndarray | None, request: np.ndar
 
 
 def _select(features: np.ndarray, confidence: np.ndarray | None, cfg: FeatureCodecConfig, request: np.ndarray | None) -> np.ndarray | None:
-    """Flat indices (ascending) of the voxels to send, or None for dense ("topk" / "request" without a budget)."""
+    """Flat indices (ascending) of the voxels to send, or None for dense ("topk" / "request" without a budget);
+    `request` is None unless the selection is "request"."""
     if cfg.selection == "dense":
         return None
     if cfg.selection == "threshold":
         if confidence is None:
             raise CodecError("feature selection 'threshold' needs a confidence volume")
         return np.flatnonzero(confidence.reshape(-1) >= cfg.threshold)
-    score = _score(features, confidence, request if cfg.selection == "request" else None)
+    score = _score(features, confidence, request)
     if cfg.topk >= score.size:
         return np.arange(score.size)
     return np.sort(np.argpartition(-score, cfg.topk - 1)[: cfg.topk])
@@ -268,6 +269,8 @@ def encode_features(
             raise SizeMismatchError(f"confidence: shape {confidence.shape} does not match the grid {grid.dims}")
         if not (np.isfinite(confidence).all() and confidence.min() >= 0 and confidence.max() <= 1):
             raise CodecError("confidence: values must lie in [0, 1]")
+    if cfg.selection != "request":
+        request = None  # only "request" weighs by it
     if request is not None:
         request = np.asarray(request, dtype=np.float32)
         if request.shape != grid.dims or not (np.isfinite(request).all() and request.min() >= 0 and request.max() <= 1):
@@ -280,9 +283,9 @@ def encode_features(
 def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
     """The most best-scored voxels whose encoding fits cfg.max_bytes (bisection on their count: the size grows
     with it, up to compression noise, so the result always fits and is within a few voxels of the largest)."""
-    score = _score(features, confidence, request if cfg.selection == "request" else None)
+    score = _score(features, confidence, request)
     order = np.argsort(-score, kind="stable")
-    if request is not None and cfg.selection == "request":
+    if request is not None:
         order = order[: np.count_nonzero(score > 0)]  # what the ego did not ask for is not worth a byte
 
     def encoded(k: int) -> EncodedFeatures:

@@ -144,7 +144,7 @@ class Ego(ManagedNode):
 
     def release(self) -> None:
         self.params.on_change(None)
-        for pub in ("_occupancy", "_points", "_diag"):
+        for pub in ("_occupancy", "_points", "_request", "_diag"):
             if hasattr(self, pub):
                 self.destroy_lifecycle_publisher(getattr(self, pub))
                 delattr(self, pub)

@@ -42,6 +42,7 @@ class Supervisor:
         rclpy.init(context=self._context)
         self.node = rclpy.create_node(name, context=self._context)
         self._lock = threading.Lock()
+        self._clients: dict[str, object] = {}  # service name -> its client (see _call)
         self._diagnostics: dict[str, list[dict[str, str]]] = defaultdict(list)  # status name -> values of each report
         self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
         self._executor = SingleThreadedExecutor(context=self._context)
@@ -84,21 +85,32 @@ class Supervisor:
                 raise Co3sopError(f"no {what} within {timeout:g} s")
             time.sleep(0.05)
 
-    def _call(self, service_type, service: str, request, timeout: float):
-        client = self.node.create_client(service_type, service)
-        try:
-            self.wait(f"service {service}", lambda: client.service_is_ready(), timeout)
+    def _call(self, service_type, service: str, request, timeout: float, resend: float | None = None):
+        """The answer of `service` to `request`. One client per service for the supervisor's life: a server may
+        answer before it has matched a new client's response reader, and that answer is lost (rmw logs "failed to
+        send response"); `resend` s without an answer send the request again (for requests that may be repeated)."""
+        client = self._clients.get(service)
+        if client is None:
+            client = self._clients[service] = self.node.create_client(service_type, service)
+        self.wait(f"service {service}", client.service_is_ready, timeout)
+        deadline = time.monotonic() + timeout
+        while True:
             future = client.call_async(request)
-            self.wait(f"an answer from {service}", future.done, timeout)
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+            try:
+                self.wait(f"an answer from {service}", future.done, min(resend or timeout, max(0.0, deadline - time.monotonic())))
+                return future.result()
+            except Co3sopError:
+                client.remove_pending_request(future)
+                if resend is None or self._alive() is not None:
+                    raise
+                if time.monotonic() >= deadline:
+                    raise Co3sopError(f"no answer from {service} within {timeout:g} s") from None
 
     # --- lifecycle ---
 
     def state(self, node: str, timeout: float = 60) -> str:
         """The lifecycle state of `node` (a fully qualified name, e.g. /ego): unconfigured, inactive, active, finalized."""
-        return self._call(GetState, f"{node}/get_state", GetState.Request(), timeout).current_state.label
+        return self._call(GetState, f"{node}/get_state", GetState.Request(), timeout, resend=5.0).current_state.label
 
     def change(self, node: str, transition: str, timeout: float = 300) -> bool:
         """Asks `node` for a transition (configure, activate, deactivate, cleanup, shutdown); True when it succeeded."""
