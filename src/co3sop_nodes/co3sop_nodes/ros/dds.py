@@ -35,9 +35,10 @@ OCCUPANCY_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
-# Request maps: only the newest matters (a vehicle uses the latest of each ego), small, reliable
+# Request maps: only the newest matters (a vehicle uses the latest of each ego), small, reliable; latched, so a
+# vehicle that joins (or matches late) gets each ego's latest request at once instead of a frame later
 REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # /diagnostics: one status per node per frame; reliable so the recorder and benchmarks see every one
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
