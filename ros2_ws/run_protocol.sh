@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The benchmark protocol end to end, resumable (re-run it after an interruption):
 #   1. data:     the dataset of config/benchmark.yaml (train 48 / validate 4 / test 8 scenarios)
-#   2. train:    each model's two stages (ego, then fusion from it) on `train`, for every seed
+#   2. train:    each model's two stages (ego, then fusion from it) on `train`, for every seed; a single-agent
+#                preset (a Table 2 baseline: tiny-occformer, tiny-sscnet, ...) has its one stage only
 #   3. evaluate: every trained model on `test`, with 95 % intervals over test scenarios, the
 #                collaboration, collaborators, pose-noise and input-control ablations
 #   4. report:   src/co3sop_nodes/doc/results.md from the evaluation JSON (no hand-typed figure)
@@ -49,6 +50,11 @@ steps() {
   python -c 'import sys, torch; print(torch.load(sys.argv[1], weights_only=True)["step"])' "$1/state.pt" 2>/dev/null || echo 0
 }
 
+# single PRESET: whether the preset has no fusion (a single-agent baseline, trained in one stage)
+single() {
+  python -c 'import sys; from co3sop_nodes.model.config import preset; sys.exit(0 if not preset(sys.argv[1]).fusion else 1)' "$1"
+}
+
 # train STEPS ARGS... --out DIR: skipped when DIR has done STEPS (or has a model and no state), resumed (or
 # extended: a finished run given more steps continues the same sample order) when DIR/state.pt exists
 train() {
@@ -65,6 +71,11 @@ for step in "${STEPS[@]}"; do
     train)
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed"
+        if single "$preset"; then
+          train "$EGO_STEPS" --data "$DATA" --preset "$preset" --range "$range" --stage ego --seed "$seed" \
+            --schedule "$SCHEDULE" --device "$DEVICE" --out "$run"
+          continue
+        fi
         train "$EGO_STEPS" --data "$DATA" --preset "$preset" --range "$range" --stage ego --seed "$seed" \
           --schedule "$SCHEDULE" --device "$DEVICE" --out "$run-ego"
         train "$FUSION_STEPS" --data "$DATA" --stage fusion --init "$run-ego/model.pt" --seed "$seed" \
@@ -75,6 +86,17 @@ for step in "${STEPS[@]}"; do
       # extended) after its marker is evaluated again
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
+        if single "$preset"; then  # alone, and the input controls for the first seed
+          if [ ! "$out/.done-alone" -nt "$run/model.pt" ]; then
+            "$LIB/evaluate" --model "$run/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/alone"
+            touch "$out/.done-alone"
+          fi
+          if [ "$seed" = "${SEEDS%% *}" ] && [ ! "$out/.done-inputs" -nt "$run/model.pt" ]; then
+            "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation inputs
+            touch "$out/.done-inputs"
+          fi
+          continue
+        fi
         ablations=(collaboration)
         # shellcheck disable=SC2206
         [ "$seed" = "${SEEDS%% *}" ] && ablations+=($FIRST_SEED_ABLATIONS)

@@ -1,6 +1,6 @@
 """Model benchmark: CPU time per stage at each range, masked vs dense fusion, peak memory.
 
-    ros2_ws/benchmarks/bench_model.py [--preset tiny] [--repeats 3] [--out FILE.md]
+    ros2_ws/benchmarks/bench_model.py [--preset tiny] [--repeats 3] [--out FILE.md] [--device cuda]
 
 Run with the workspace environment (`. ros2_ws/env.sh`). For the preset at each
 benchmark range (untrained weights: timing does not depend on them), with
@@ -10,7 +10,9 @@ reference (logits at every scale, softmax, argmax) against its exact fast path
 (`OccupancyHead.labels`), measured in the same run; then the fusion computed
 only where the hybrid mask selects against the dense reference, on the same
 inputs (outputs compared on the selected voxels), for several mask densities;
-and the process's peak resident memory. The accuracy cost of each feature
+and the process's peak resident memory. With `--device cuda` the stages, the
+head and the fusion run on the GPU (the warp on its PyTorch path, the per-node
+CPU table is left out) and the peak GPU memory is given. The accuracy cost of each feature
 codec comes from `evaluate --ablation codec` on a trained model.
 """
 
@@ -24,31 +26,52 @@ from pathlib import Path
 import torch
 
 from co3sop_nodes import native
+from co3sop_nodes.learn.device import add_device_argument, select_device
 from co3sop_nodes.model import pace
 from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.outputs import labels_from_logits
-from co3sop_nodes.model.warp import warp_compiled
+from co3sop_nodes.model.warp import warp_compiled, warp_with_mask
 from timing import timed
 
 
+def on(device: torch.device):
+    """`timed` for work on `device`: a CUDA call is timed until the GPU has finished it."""
+    if device.type != "cuda":
+        return timed
+
+    def timed_synchronised(fn, repeats):
+        def call():
+            result = fn()
+            torch.cuda.synchronize(device)
+            return result
+        call()  # warm-up: cuDNN's algorithm choice, the caching allocator
+        return timed(call, repeats)
+    return timed_synchronised
+
+
 @torch.no_grad()
-def stage_table(name: str, repeats: int) -> str:
+def stage_table(name: str, repeats: int, device: torch.device) -> str:
     rows = ["| range | feature grid | vehicle half s/agent | warp s/neighbour | fusion s | head s | total s (ego + 2 collaborators) |",
             "|---|---|---:|---:|---:|---:|---:|"]
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
-        model = build_model(cfg).eval()
-        inputs = pace.shaped_inputs(model)
-        t_vehicle, ego = timed(lambda: model.vehicle(**inputs), repeats)
+        model = build_model(cfg).eval().to(device)
+        inputs = {k: v.to(device) for k, v in pace.shaped_inputs(model).items()}
+        timed_on = on(device)
+        t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
         others = [VehicleOutput(ego.features.roll(3, 2), torch.rand_like(ego.confidence)) for _ in range(2)]
         rel = torch.eye(4)[None].repeat(1, 2, 1, 1)
         rel[0, :, 0, 3] = torch.tensor([6.0, -9.0])
+        rel = rel.to(device)
         both = torch.cat([others[0].features, others[0].confidence], 1)
-        t_warp, _ = timed(lambda: warp_compiled(both, rel[:, 0], cfg.feature_grid, torch.get_num_threads()), repeats)
-        t_fuse, fused = timed(lambda: model.ego.fuse(ego, others, rel), repeats)
-        t_head, _ = timed(lambda: model.ego.head.labels(fused), repeats)
+        if device.type == "cpu":
+            t_warp, _ = timed(lambda: warp_compiled(both, rel[:, 0], cfg.feature_grid, torch.get_num_threads()), repeats)
+        else:
+            t_warp, _ = timed_on(lambda: warp_with_mask(both, rel[:, 0], cfg.feature_grid), repeats)
+        t_fuse, fused = timed_on(lambda: model.ego.fuse(ego, others, rel), repeats)
+        t_head, _ = timed_on(lambda: model.ego.head.labels(fused), repeats)
         total = 3 * t_vehicle + 2 * t_warp + t_fuse + t_head
         rows.append(f"| {range_name} | {'x'.join(map(str, cfg.feature_grid.dims))} | {t_vehicle:.3f} | {t_warp:.4f} | {t_fuse:.3f} | {t_head:.3f} | {total:.2f} |")
         print(f"  {range_name}: vehicle {t_vehicle:.3f} s, fusion {t_fuse:.3f} s, head {t_head:.3f} s", flush=True)
@@ -56,8 +79,11 @@ def stage_table(name: str, repeats: int) -> str:
 
 
 @torch.no_grad()
-def head_table(name: str, repeats: int) -> str:
-    """Fused features -> labels + confidence: the dense reference, the PyTorch loop and the compiled kernel, same run."""
+def head_table(name: str, repeats: int, device: torch.device) -> str:
+    """Fused features -> labels + confidence: the dense reference, the PyTorch loop and the compiled kernel (on the
+    CPU), same run."""
+    if device.type == "cuda":
+        return gpu_head_table(name, repeats, device)
     rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | PyTorch loop s | compiled s | reference / compiled "
             "| loop / compiled | labels differing (loop, compiled) |", "|---|---|---:|---:|---:|---:|---:|---|"]
     for range_name in ("25.6m", "51.2m", "76.8m"):
@@ -98,19 +124,37 @@ def frame_table(repeats: int) -> str:
 
 
 @torch.no_grad()
-def masked_table(name: str, repeats: int) -> str:
+def gpu_head_table(name: str, repeats: int, device: torch.device) -> str:
+    """The dense reference against the per-parent PyTorch loop, both on the GPU, same run."""
+    rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | per-parent loop s | reference / loop | labels differing |",
+            "|---|---|---:|---:|---:|---|"]
+    timed_on = on(device)
+    for range_name in ("25.6m", "51.2m", "76.8m"):
+        cfg = preset(name, range=range_name)
+        head = build_model(cfg).ego.head.eval().to(device)
+        fused = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims, generator=torch.Generator().manual_seed(0)).to(device)
+        t_ref, (ref_labels, _) = timed_on(lambda: labels_from_logits(head(fused)[-1]), repeats)
+        t_loop, (loop, _) = timed_on(lambda: head.labels(fused), repeats)
+        differ = int((loop[0].cpu().numpy() != ref_labels).sum())
+        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.4f} | {t_loop:.4f} | {t_ref / t_loop:.1f}x | {differ:,} of {ref_labels.size:,} |")
+        print(f"  head {range_name}: reference {t_ref:.4f} s, loop {t_loop:.4f} s", flush=True)
+    return "\n".join(rows)
+
+
+@torch.no_grad()
+def masked_table(name: str, repeats: int, device: torch.device) -> str:
     cfg = preset(name)
-    model = build_model(cfg).eval()
+    model = build_model(cfg).eval().to(device)
     fusion = model.ego.fusion
     c, dims = cfg.embed_dims, cfg.feature_grid.dims
     rows = ["| selected voxels | masked s | dense s | dense / masked | max abs difference on selected |", "|---:|---:|---:|---:|---:|"]
     for share in (0.05, 0.2, 0.5, 1.0):
         gen = torch.Generator().manual_seed(0)
-        ego = torch.randn(1, c, *dims, generator=gen)
-        values = torch.randn(1, 2, c, *dims, generator=gen)
-        mask = torch.rand(1, 2, *dims, generator=gen) < share / 2 if share < 1 else torch.ones(1, 2, *dims, dtype=torch.bool)
-        t_masked, masked = timed(lambda: fusion(ego, values, mask), repeats)
-        t_dense, dense = timed(lambda: fusion(ego, values, mask, dense=True), repeats)
+        ego = torch.randn(1, c, *dims, generator=gen).to(device)
+        values = torch.randn(1, 2, c, *dims, generator=gen).to(device)
+        mask = (torch.rand(1, 2, *dims, generator=gen) < share / 2 if share < 1 else torch.ones(1, 2, *dims, dtype=torch.bool)).to(device)
+        t_masked, masked = on(device)(lambda: fusion(ego, values, mask), repeats)
+        t_dense, dense = on(device)(lambda: fusion(ego, values, mask, dense=True), repeats)
         selected = mask.any(1)[:, None].expand_as(masked)
         diff = float((masked - dense)[selected].abs().max())
         rows.append(f"| {float(mask.any(1).float().mean()):.1%} | {t_masked:.3f} | {t_dense:.3f} | {t_dense / t_masked:.1f}x | {diff:.1e} |")
@@ -123,15 +167,23 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path)
+    add_device_argument(parser)
     opts = parser.parse_args()
     torch.set_num_threads(opts.threads)
-    text = "\n\n".join([
-        f"### CPU time per stage, preset `{opts.preset}` ({opts.threads} threads, median of {opts.repeats})", stage_table(opts.preset, opts.repeats),
-        f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads)", head_table(opts.preset, opts.repeats),
-        "### CPU per frame as the nodes compute it (shipped models, one thread, median)", frame_table(opts.repeats),
-        f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats),
-        f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB.",
-    ])
+    device = select_device(opts.device)
+    if device.type == "cuda":
+        where = f"{torch.cuda.get_device_name(device)}, median of {opts.repeats}"
+        parts = [f"### GPU time per stage, preset `{opts.preset}` ({where})", stage_table(opts.preset, opts.repeats, device),
+                 f"### Head to labels on the GPU: dense reference vs the per-parent loop (`{opts.preset}`)", head_table(opts.preset, opts.repeats, device),
+                 f"### Masked vs dense fusion attention on the GPU (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats, device),
+                 f"Peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB."]
+    else:
+        parts = [f"### CPU time per stage, preset `{opts.preset}` ({opts.threads} threads, median of {opts.repeats})", stage_table(opts.preset, opts.repeats, device),
+                 f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads)", head_table(opts.preset, opts.repeats, device),
+                 "### CPU per frame as the nodes compute it (shipped models, one thread, median)", frame_table(opts.repeats),
+                 f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats, device)]
+    parts.append(f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB.")
+    text = "\n\n".join(parts)
     print(text)
     if opts.out:
         opts.out.write_text(text + "\n")

@@ -46,7 +46,7 @@ def test_no_kernel_for_head_widths_that_are_not_vectors():
     assert not deform_kernel.available(6)
 
 
-@pytest.mark.parametrize("name", ["tiny", "paper"])
+@pytest.mark.parametrize("name", ["tiny", "small", "paper"])
 def test_the_camera_vehicle_half_at_inference_equals_its_training_path(name, monkeypatch):
     torch.manual_seed(0)
     model = build_model(preset(name, **MICRO)).eval()

@@ -68,9 +68,10 @@ def collect(results: Path) -> dict[tuple[str, str, str], dict[int, Path]]:
     return runs
 
 
-def ego_stage(folder: Path) -> dict | None:
-    """The run's ego stage scored alone (`evaluate` of the ego-stage checkpoint with 0 collaborators), if evaluated."""
-    path = folder / "ego-stage" / "evaluation.json"
+def ego_stage(folder: Path, name: str = "ego-stage") -> dict | None:
+    """The run's ego stage scored alone (`evaluate` of the ego-stage checkpoint with 0 collaborators, in
+    folder/`name`), if evaluated; `name` "alone" holds a single-agent model's own evaluation."""
+    path = folder / name / "evaluation.json"
     if not path.is_file():
         return None
     return next(v for v in json.loads(path.read_text()).values() if isinstance(v, dict) and "per_scenario" in v)
@@ -129,6 +130,28 @@ def goals(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
                      + ("" if what == "mean gain" else f" (gain {pct(mean)})")
                      + f"; every seed's gain interval above zero: {'yes' if above else 'no'}; **{verdict}**.")
     return lines
+
+
+def single_agent_section(results: Path) -> list[str]:
+    """The single-agent models (the paper's Table 2 baselines: no fusion) scored alone, one row per run, with the
+    input controls of their first seed."""
+    rows, controls = [], []
+    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
+        m = RUN_NAME.fullmatch(folder.name)
+        alone = ego_stage(folder, "alone") if m else None
+        if alone is None:
+            continue
+        made = json.loads((folder / "alone" / "evaluation.json").read_text())
+        rows.append(f"| {m['preset']} | {m['range']} | {recipe(alone)} | {m['seed']} | "
+                    + " | ".join(f"{pct(point(alone, s))} {span(alone['ci95'][s])}" for s in SCORES) + f" | `{made.get('command', '')}` |")
+        controls += compact(_load(folder, "inputs"), f"Input controls: {folder.name}")
+    if not rows:
+        return []
+    return ["## Single-agent models (the paper's Table 2 baselines)", "",
+            "Models without fusion, trained in one stage on single agents and scored alone on `test`, each score with its",
+            "95 % interval over test scenarios (`ros2_ws/run_protocol.sh` with the preset in PRESETS).", "",
+            "| model | range | training steps | seed | " + " | ".join(SCORE_NAMES[s] for s in SCORES) + " | command |",
+            "|---|---|---|---:|" + "---:|" * len(SCORES) + "---|", *rows, "", *controls]
 
 
 def compact(report: dict | None, title: str) -> list[str]:
@@ -205,7 +228,7 @@ def render(results: Path, command: str) -> str:
            "`ego stage alone` is the single-agent model the fusion stage started from; its head had fewer training",
            "steps (the fusion stage trains it further), so the gain over it overstates what collaboration adds.", "",
            *headline(runs), "", "Against the goal of issue 12 (computed from the table above):", "", *goals(runs), "",
-           *validate_section(results), *observed_section(results)]
+           *single_agent_section(results), *validate_section(results), *observed_section(results)]
     for (preset, rng, steps), seeds in runs.items():
         first = seeds[min(seeds)]
         out += [f"## {preset}, {rng}, {steps}", ""]

@@ -38,6 +38,8 @@ from ..model.checkpoint import export_model, load_model, read_checkpoint, save_t
 from ..model.config import PRESETS, preset
 from ..model.inputs import to_batch
 from ..model.losses import confidence_loss, downsample_labels, occupancy_loss
+from ..model.mask_loss import mask_classification_loss
+from ..model.occformer import class_scores, log_scores
 from ..model.model import VehicleOutput, build_model
 from ..cli.common import progress, run
 from .dataset import OccupancyDataset
@@ -133,7 +135,15 @@ class Trainer:
                 self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
 
     def _loss(self, i: int, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        n = self.model.cfg.grid.num_voxels
+        cfg = self.model.cfg
+        if cfg.head == "occformer":  # mask classification on class-guided points (model/mask_loss.py)
+            preds, confidence, labels = self.forward(i, None)
+            labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
+            parts = mask_classification_loss(preds, labels, cfg.occformer.points, rng)
+            if self.stage != "fusion":
+                parts["confidence"] = confidence_loss(confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, cfg.num_classes))
+            return sum(parts.values()), parts
+        n = cfg.grid.num_voxels
         index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(self.device)
         logits, confidence, labels = self.forward(i, index)
         labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)

@@ -35,6 +35,20 @@ class LidarConfig:
 
 
 @dataclass(frozen=True)
+class OccFormerConfig:
+    """OccFormer's ego-side network (head "occformer"): dual-path transformer encoder, top-down neck, mask decoder."""
+
+    stages: tuple[int, ...] = (32, 64)  # encoder stage channels: the first at the feature grid, each next at 1/2
+    blocks: int = 2  # dual-path blocks per stage
+    window: int = 7  # side of the attention windows on each horizontal slice and on the BEV plane (voxels)
+    queries: int = 32  # mask queries (not tied to classes)
+    dims: int = 64  # decoder width and mask-feature channels
+    layers: int = 3  # decoder layers, attending to the encoder levels coarse to fine in turn
+    heads: int = 4  # decoder attention heads
+    points: int = 8192  # class-guided points per sample for the matching and the mask losses
+
+
+@dataclass(frozen=True)
 class ModelConfig:
     name: str
     modality: str = "camera"  # vehicle half: "camera" (Co3SOP-Base, SurroundOcc-style) | "lidar" (LMSCNet / SSCNet)
@@ -51,6 +65,8 @@ class ModelConfig:
     fusion_attention: AttentionConfig = field(default_factory=AttentionConfig)
     max_collaborators: int = 6
     head_channels: tuple[int, int, int] = (32, 16, 8)  # per output scale: 1/4, 1/2, 1
+    head: str = "conv"  # "conv": Co3SOP-Base's 3D conv head | "occformer": OccFormer's encoder + mask decoder
+    occformer: OccFormerConfig = field(default_factory=OccFormerConfig)
     lidar: LidarConfig = field(default_factory=LidarConfig)
     # (origin, voxel size, dims) of a grid other than the benchmark range's (custom extents, small tests)
     custom_grid: tuple | None = None
@@ -86,6 +102,18 @@ PRESETS: dict[str, ModelConfig] = {
         head_channels=(128, 64, 32),
     ),
 }
+# GPU-trained Co3SOP-Base between the two: the dataset's full 320x240 images, a ResNet-18-like backbone at 3/8 of
+# its width, two image and two fusion attention layers, 48 feature channels; float16 checkpoint under 5 MB.
+PRESETS["small"] = ModelConfig(
+    name="small",
+    image_size=(320, 240),
+    backbone=BackboneConfig(depth=(1, 2, 2, 1), channels=(24, 48, 96, 176), stem=24),
+    fpn_channels=48,
+    embed_dims=48,
+    image_attention=AttentionConfig(layers=2, heads=4, points=4),
+    fusion_attention=AttentionConfig(layers=2, heads=4, points=4),
+    head_channels=(48, 32, 16),
+)
 # Baselines of the paper's Table 2, as presets of the same structure.
 PRESETS["tiny-single"] = replace(PRESETS["tiny"], name="tiny-single", fusion=False)  # SurroundOcc-style
 PRESETS["surroundocc"] = replace(PRESETS["paper"], name="surroundocc", fusion=False)
@@ -96,11 +124,18 @@ PRESETS["tiny-sscnet"] = replace(PRESETS["tiny"], name="tiny-sscnet", modality="
 PRESETS["tiny-lidar"] = replace(PRESETS["tiny-sscnet"], name="tiny-lidar", fusion=True)
 PRESETS["lmscnet"] = replace(PRESETS["paper"], name="lmscnet", modality="lidar", fusion=False, lidar=LidarConfig("lmscnet", 128))
 PRESETS["sscnet"] = replace(PRESETS["paper"], name="sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 128))
+# OccFormer (camera, single agent): the same camera lifting, then its dual-path transformer encoder and mask
+# decoder. The paper-size one follows OccFormer's SemanticKITTI configuration (4 stages of 2 blocks, 128..1024
+# channels, window 7; 100 queries, 9 decoder layers of width 192, 6 heads; 50176 points).
+PRESETS["tiny-occformer"] = replace(PRESETS["tiny"], name="tiny-occformer", fusion=False, head="occformer")
+PRESETS["occformer"] = replace(PRESETS["paper"], name="occformer", fusion=False, head="occformer",
+                               occformer=OccFormerConfig(stages=(128, 256, 512, 1024), queries=100, dims=192, layers=9, heads=6, points=50176))
 
 
 def config_from_dict(data: dict) -> ModelConfig:
     """Inverse of dataclasses.asdict(ModelConfig) (as stored in checkpoints)."""
-    nested = {"backbone": BackboneConfig, "image_attention": AttentionConfig, "fusion_attention": AttentionConfig, "lidar": LidarConfig}
+    nested = {"backbone": BackboneConfig, "image_attention": AttentionConfig, "fusion_attention": AttentionConfig, "lidar": LidarConfig,
+              "occformer": OccFormerConfig}
     kwargs = {}
     for key, value in data.items():
         if key in nested:

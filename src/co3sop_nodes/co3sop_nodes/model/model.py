@@ -5,7 +5,8 @@ LiDAR (LMSCNet / SSCNet encoder) -> voxel features (B, C, X/4, Y/4, Z/4) and a
 confidence volume (1x1x1 conv + sigmoid), in the sender's LiDAR frame.
 Ego half: each collaborator's features and confidence warped into the ego
 frame, hybrid mask (warp mask x confidence mask), masked deformable fusion,
-then the prediction head (logits at 1/4, 1/2 and full resolution).
+then the prediction head (logits at 1/4, 1/2 and full resolution; or
+OccFormer's encoder and mask decoder, `occformer.py`).
 The node graph calls exactly these two halves; training calls both.
 """
 
@@ -23,6 +24,7 @@ from .fusion import VoxelFusion, hybrid_mask
 from .head import OccupancyHead
 from .lidar import LMSCNetEncoder, SSCNetEncoder
 from .lifting import LiftingLayer, project, voxel_centres
+from .occformer import OccFormerHead
 from .warp import compiled_available, warp_compiled, warp_with_mask
 
 # ImageNet-style normalisation of uint8 RGB inputs
@@ -83,7 +85,12 @@ class EgoHalf(nn.Module):
         self.cfg = cfg
         fg = cfg.feature_grid
         self.fusion = VoxelFusion(cfg.embed_dims, cfg.fusion_attention, cfg.max_collaborators, fg.dims) if cfg.fusion else None
-        self.head = OccupancyHead(cfg.embed_dims, cfg.head_channels, cfg.num_classes)
+        if cfg.head == "conv":
+            self.head = OccupancyHead(cfg.embed_dims, cfg.head_channels, cfg.num_classes)
+        elif cfg.head == "occformer":
+            self.head = OccFormerHead(cfg)
+        else:
+            raise ValueError(f"unknown head {cfg.head!r}")
 
     def align(self, ego: VehicleOutput, others: list[VehicleOutput], neighbour_from_ego: torch.Tensor):
         """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
@@ -119,8 +126,11 @@ class EgoHalf(nn.Module):
 
     def forward(self, ego: VehicleOutput, others=(), neighbour_from_ego: torch.Tensor | None = None,
                 sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:
-        """Logits at 1/4, 1/2 and 1 (B, K, X, Y, Z); with sample_index (B, N), full resolution only there (B, K, N)."""
+        """Logits at 1/4, 1/2 and 1 (B, K, X, Y, Z); with sample_index (B, N), full resolution only there (B, K, N).
+        OccFormer's head: its decoder's predictions (`OccFormerHead.predict`), which its loss takes."""
         fused = self.fuse(ego, others, neighbour_from_ego)
+        if isinstance(self.head, OccFormerHead):
+            return self.head.predict(fused)
         return self.head(fused) if sample_index is None else self.head.forward_at(fused, sample_index)
 
 

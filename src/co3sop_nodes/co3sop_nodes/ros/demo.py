@@ -1,6 +1,6 @@
 """`demo`: the whole graph on a small scenario, scored: player + vehicles + ego + recorder, then `score`.
 
-    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny|tiny-lidar|CKPT] [--out results/demo] [--rate R]
+    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny-lidar|tiny|small|CKPT] [--out results/demo] [--rate R]
 
 Without --bag it generates one scenario with three CAVs (once; kept in
 data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
@@ -136,7 +136,7 @@ def measured_rate(checkpoint: Path, vehicles: int, period: float) -> float:
 
 
 def model_path(model: str) -> Path:
-    """A checkpoint path, or the name of a shipped checkpoint (tiny, tiny-lidar)."""
+    """A checkpoint path, or the name of a shipped checkpoint (tiny-lidar, tiny, small)."""
     path = Path(model)
     if path.suffix == ".pt" or path.exists():
         if not path.is_file():
@@ -178,7 +178,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
     parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
     parser.add_argument("--model", default=DEFAULT_MODEL,
-                        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera) or a path "
+                        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera; small: the larger, GPU-trained camera model) or a path "
                              f"(default: {DEFAULT_MODEL})")
     parser.add_argument("--params", nargs="*", default=[],
                         help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
