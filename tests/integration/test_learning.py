@@ -114,6 +114,8 @@ def test_train_stages_resume_and_evaluate(small_split):
     result = tool("evaluate", "--model", str(out / "ego" / "model.pt"), "--collaborators", "0", "--data", data, "--splits", "train", "validate",
                   "--out", str(bench / "ego-stage"))
     assert result.returncode == 0, result.stderr
+    single = out / "bench" / "tiny-single-51.2m-s1" / "alone"  # a single-agent run's evidence (here: the ego stage's)
+    shutil.copytree(bench / "ego-stage", single)
     choice = out / "bench" / "validate" / "an-option"  # a recipe choice's evidence (here: any collaboration JSON)
     choice.mkdir(parents=True)
     shutil.copy(bench / "tiny_51.2m_collaboration.json", choice)
@@ -130,6 +132,7 @@ def test_train_stages_resume_and_evaluate(small_split):
     verdict = "**met**" if on >= 0.15 and gain["ci95"][0] > 0 else "**not met"
     assert f"mIoU 1..23 with collaboration {100 * on:.2f} against the goal of 15.00 (gain {100 * gain['delta']:.2f})" in text
     assert verdict in text
+    assert "## Single-agent models" in text and f"| tiny-single | 51.2m | ego 4 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} [" in text
     assert "## Choices made on validate" in text and "| an-option | tiny 51.2m | ego 4 + fusion 2 steps |" in text
     assert "nearest collaborator's distance" in text and f"| {next(iter(bins))} | {next(iter(bins.values()))['samples']} |" in text
     bad = tool("report", str(out / "ego"), "--out", str(page))
