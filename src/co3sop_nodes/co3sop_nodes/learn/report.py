@@ -68,13 +68,15 @@ def collect(results: Path) -> dict[tuple[str, str, str], dict[int, Path]]:
     return runs
 
 
-def ego_stage(folder: Path, name: str = "ego-stage") -> dict | None:
-    """The run's ego stage scored alone (`evaluate` of the ego-stage checkpoint with 0 collaborators, in
-    folder/`name`), if evaluated; `name` "alone" holds a single-agent model's own evaluation."""
+def scored_alone(folder: Path, name: str) -> tuple[dict, dict] | None:
+    """A model of the run scored alone (`evaluate` with 0 collaborators into folder/`name`: "ego-stage" for a
+    collaborative run's ego stage, "alone" for a single-agent model), if evaluated: the evaluation JSON and its
+    scores."""
     path = folder / name / "evaluation.json"
     if not path.is_file():
         return None
-    return next(v for v in json.loads(path.read_text()).values() if isinstance(v, dict) and "per_scenario" in v)
+    made = json.loads(path.read_text())
+    return made, next(v for v in made.values() if isinstance(v, dict) and "per_scenario" in v)
 
 
 def mean_sd(x: np.ndarray) -> str:
@@ -93,8 +95,9 @@ def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
         geo = [(point(r["off"], "geometry"), point(r["on"], "geometry")) for r in reports]
         alone, over_alone = [], []
         for folder, r in zip(seeds.values(), reports):
-            single = ego_stage(folder)
-            if single is not None:
+            scored = scored_alone(folder, "ego-stage")
+            if scored is not None:
+                single = scored[1]
                 alone.append(point(single, "co3sop-code"))
                 boot = Bootstrap(list(r["on"]["per_scenario"]))
                 over_alone.append(boot.difference(confusions_of(r["on"]), confusions_of(single))["co3sop-code"])
@@ -138,10 +141,10 @@ def single_agent_section(results: Path) -> list[str]:
     rows, controls = [], []
     for folder in sorted(p for p in results.iterdir() if p.is_dir()):
         m = RUN_NAME.fullmatch(folder.name)
-        alone = ego_stage(folder, "alone") if m else None
-        if alone is None:
+        scored = scored_alone(folder, "alone") if m else None
+        if scored is None:
             continue
-        made = json.loads((folder / "alone" / "evaluation.json").read_text())
+        made, alone = scored
         rows.append(f"| {m['preset']} | {m['range']} | {recipe(alone)} | {m['seed']} | "
                     + " | ".join(f"{pct(point(alone, s))} {span(alone['ci95'][s])}" for s in SCORES) + f" | `{made.get('command', '')}` |")
         controls += compact(_load(folder, "inputs"), f"Input controls: {folder.name}")
