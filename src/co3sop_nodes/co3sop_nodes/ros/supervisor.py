@@ -136,6 +136,13 @@ class Supervisor:
     def wait_subscribed(self, node: str, topic: str, timeout: float = 60) -> None:
         self.wait(f"{node} subscribed to {topic}", lambda: self.subscribes(node, topic), timeout)
 
+    def publishes(self, node: str, topic: str) -> bool:
+        """`node` (fully qualified) has a publisher on `topic`."""
+        return any(_qualified(info.node_namespace, info.node_name) == node for info in self.node.get_publishers_info_by_topic(topic))
+
+    def wait_published(self, node: str, topic: str, timeout: float = 60) -> None:
+        self.wait(f"{node} publishing on {topic}", lambda: self.publishes(node, topic), timeout)
+
     # --- what the nodes report ---
 
     def reports(self, status: str) -> list[dict[str, str]]:
