@@ -1,12 +1,14 @@
 """Benchmark through the emulated V2X channel: link rate x loss x codec, the demo graph once per cell.
 
-    ros2_ws/benchmarks/bench_channel.py [--bag BAG] [--link 6 27 100] [--loss 0 5] [--play-rate 0.25] [--out results/bench_channel]
+    ros2_ws/benchmarks/bench_channel.py [--bag BAG] [--link 6 27 100] [--loss 0 5] [--reliability reliable best_effort]
+        [--play-rate 0.25] [--out results/bench_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/channel.py). Each cell runs
 `demo --channel-rate LINK --channel-loss LOSS --rate PLAY_RATE` with the
 neighbours' codec, so the link rate is scaled by the play rate and a cell
-stands for real time (27 Mbit/s at rate 0.25 is a 6.75 Mbit/s link). Features
-are reliable (the project's QoS). Per cell, from the launcher's copy of every
+stands for real time (27 Mbit/s at rate 0.25 is a 6.75 Mbit/s link), and the
+features' QoS (`features_reliability` of the neighbours and the ego: reliable
+resends lost fragments, best effort drops a sample with one lost). Per cell, from the launcher's copy of every
 node's /diagnostics (OUT/diagnostics.json) and `score`: the share of
 neighbour-frames fused within the ego's max_wait, bytes per neighbour-frame
 received, latency p50 / p95 (first sensor message of a frame reaching a
@@ -27,17 +29,21 @@ import numpy as np
 from ament_index_python.packages import get_package_prefix
 from bench_graph import measure_diagnostics
 
+from co3sop_nodes.ros.dds import RELIABILITIES
+
 CODECS = {  # the neighbours' vehicle parameters
     "int8 dense": ["codec.dtype:=int8", "codec.selection:=dense"],
     "request map, 64 KB": ["codec.dtype:=int8", "codec.selection:=request", "codec.max_bytes:=65536"],
+    "request map, 64 KB, rank 8": ["codec.dtype:=int8", "codec.selection:=request", "codec.max_bytes:=65536", "codec.rank:=8"],
 }
 
 
-def cell(demo: str, opts, link: float, loss: float, codec: str) -> dict:
-    out = opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}"
+def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str) -> dict:
+    out = opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}"
+    qos = f"features_reliability:={reliability}"
     argv = [demo, "--out", str(out), "--quiet", "--rate", f"{opts.play_rate:g}", "--channel-rate", f"{link:g}",
-            "--channel-loss", f"{loss:g}", "--params", *CODECS[codec]] + (["--bag", str(opts.bag)] if opts.bag else [])
-    print(f"[bench_channel] {link:g} Mbit/s, {loss:g} % loss, {codec}", flush=True)
+            "--channel-loss", f"{loss:g}", "--params", *CODECS[codec], qos, "--ego-params", qos] + (["--bag", str(opts.bag)] if opts.bag else [])
+    print(f"[bench_channel] {link:g} Mbit/s, {loss:g} % loss, {codec}, {reliability}", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
     if done.returncode != 0:
         print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
@@ -49,7 +55,7 @@ def cell(demo: str, opts, link: float, loss: float, codec: str) -> dict:
     measured = measure_diagnostics(diagnostics)
     score = json.loads((out / "score.json").read_text())
     lost = re.search(r"packets dropped by the channel: (.*)", done.stdout)
-    return {"link": link, "loss": loss, "codec": codec, "fused": fused, "bytes": measured["bytes_per_agent_frame"],
+    return {"link": link, "loss": loss, "codec": codec, "reliability": reliability, "fused": fused, "bytes": measured["bytes_per_agent_frame"],
             "latency_p50": measured["latency_ms_p50"], "latency_p95": measured["latency_ms_p95"],
             "miou24": score["co3sop-readme"]["miou"], "miou23": score["co3sop-code"]["miou"],
             "lost": lost.group(1) if lost else "-", "frames": len(ego)}
@@ -61,22 +67,25 @@ def main() -> int:
     parser.add_argument("--link", type=float, nargs="+", default=[6, 27, 100], help="link rates, Mbit/s of real time")
     parser.add_argument("--loss", type=float, nargs="+", default=[0, 5], help="packet loss, percent")
     parser.add_argument("--codecs", nargs="+", default=list(CODECS), choices=list(CODECS))
+    parser.add_argument("--reliability", nargs="+", default=list(RELIABILITIES), choices=list(RELIABILITIES),
+                        help="the features' QoS")
     parser.add_argument("--play-rate", type=float, default=0.25, help="the bag's play rate (the link is scaled by it)")
     parser.add_argument("--out", type=Path, default=Path("results/bench_channel"))
     opts = parser.parse_args()
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
-    rows = [f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); reliable features; 3 vehicles + ego.", "",
-            "| link (Mbit/s, real time) | loss (%) | neighbours' codec | neighbour-frames fused (%) | bytes per neighbour-frame | "
+    rows = [f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); 3 vehicles + ego.", "",
+            "| link (Mbit/s, real time) | loss (%) | neighbours' codec | features QoS | neighbour-frames fused (%) | bytes per neighbour-frame | "
             "latency p50 / p95 (ms) | mIoU 24 classes | mIoU 1..23 | packets lost by the channel |",
-            "|---:|---:|---|---:|---:|---:|---:|---:|---|"]
+            "|---:|---:|---|---|---:|---:|---:|---:|---:|---|"]
     results = []
     for link in opts.link:
         for loss in opts.loss:
             for codec in opts.codecs:
-                r = cell(demo, opts, link, loss, codec)
-                results.append(r)
-                rows.append(f"| {link:g} | {loss:g} | {codec} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
-                            f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |")
+                for reliability in opts.reliability:
+                    r = cell(demo, opts, link, loss, codec, reliability)
+                    results.append(r)
+                    rows.append(f"| {link:g} | {loss:g} | {codec} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
+                                f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |")
     text = "\n".join(rows)
     print(text)
     opts.out.mkdir(parents=True, exist_ok=True)

@@ -438,18 +438,27 @@ BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=
 def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_path, peer, sup):
     """A LiDAR driver and a ground-truth source that publish best effort (as most drivers do): the vehicle and the
     recorder subscribe with the QoS offered, so they match and get the messages (a reliable subscription would not
-    match a best-effort publisher at all)."""
+    match a best-effort publisher at all). The vehicle and the ego take `features_reliability:=best_effort` for the
+    features (a lossy V2X link): the vehicle offers best effort, and the ego subscribes best effort to it."""
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
     truth_topic = topics.ground_truth(LIDAR_CAV, "51.2m")
+    best_effort = ["-p", "features_reliability:=best_effort"]
+    features = topics.voxel_features(LIDAR_CAV)
     procs = {
-        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}",
+                       *best_effort),
         "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap"), "--topics", re.escape(truth_topic)),
+        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", f"checkpoint:={lidar_model}", *best_effort),
     }
     try:
         for name, (proc, log) in procs.items():
             wait_ready(sup, NODES[name], proc, log)
+        assert [i.qos_profile.reliability for i in peer.get_publishers_info_by_topic(features)] == [ReliabilityPolicy.BEST_EFFORT]
+        sup.wait_subscribed("/ego", features)
+        assert {i.qos_profile.reliability for i in peer.get_subscriptions_info_by_topic(features) if i.node_name == "ego"} == {
+            ReliabilityPolicy.BEST_EFFORT}
         got: list = []
-        peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
+        peer.create_subscription(VoxelFeatures, features, got.append, BEST_EFFORT)
         pose_pub = peer.create_publisher(PoseStamped, topics.lidar_pose(LIDAR_CAV), BEST_EFFORT)
         points_pub = peer.create_publisher(PointCloud2, topics.lidar_points(LIDAR_CAV), BEST_EFFORT)
         truth_pub = peer.create_publisher(SemanticOccupancy, truth_topic, BEST_EFFORT)

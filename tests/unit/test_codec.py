@@ -1204,3 +1204,93 @@ def test_budget_and_request_are_checked():
     with pytest.raises(CodecError, match="request: a"):
         encode_features(features, confidence, grid, FeatureCodecConfig("int8", "request"), np.full(grid.dims, 2.0, np.float32))
     assert FeatureCodecConfig("int8", "request", max_bytes=65536).name == "int8-request64KB-zstd"
+
+
+# --- transform coding: the message's own principal directions (rank) ----------------------------------------------
+
+
+def _low_rank(seed: int, rank: int, channels: int = 32, dims=(16, 16, 6)):
+    """Features lying exactly on a `rank`-dimensional affine subspace of the channels (plus confidence)."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(channels, rank))
+    coefficients = rng.normal(size=(rank, int(np.prod(dims)))) * np.linspace(3, 1, rank)[:, None]
+    features = (directions @ coefficients + rng.normal(size=(channels, 1))).astype(np.float32).reshape(channels, *dims)
+    return _grid(dims), features, rng.uniform(size=dims).astype(np.float32)
+
+
+@pytest.mark.parametrize("dtype", list(FEATURE_DTYPES))
+@pytest.mark.parametrize("selection", ["dense", "topk", "request"])
+def test_rank_wire_layout_decodes_independently(dtype, selection):
+    """values carry K coefficient rows; basis (C x K, row-major) and mean rebuild the channels, as the .msg says."""
+    grid, features, confidence = _volume(3, channels=12)
+    rank = 5
+    cfg = FeatureCodecConfig(dtype, selection, topk=300, rank=rank)
+    enc = encode_features(features, confidence, grid, cfg, np.ones(grid.dims, np.float32))
+    n = enc.num_voxels
+    assert (enc.basis_rank, enc.rows, len(enc.basis), len(enc.basis_mean)) == (rank, rank, 12 * rank, 12)
+    assert enc.values_raw_size == rank * n * FEATURE_DTYPES[dtype].itemsize
+    assert len(enc.quant_scale) == (rank if dtype == "int8" else 0)
+    assert enc.budget_bytes == enc.payload_bytes + 4 * (len(enc.quant_scale) + len(enc.quant_offset) + 12 * rank + 12)
+    wire = np.frombuffer(_raw_field(enc.values, cfg.codec), FEATURE_DTYPES[dtype]).reshape(rank, n).astype(np.float64)
+    if dtype == "int8":
+        wire = wire * np.asarray(enc.quant_scale, np.float64)[:, None] + np.asarray(enc.quant_offset, np.float64)[:, None]
+    basis = np.asarray(enc.basis, np.float64).reshape(12, rank)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(rank), atol=1e-6)  # orthonormal directions
+    rebuilt = basis @ wire + np.asarray(enc.basis_mean, np.float64)[:, None]
+    dec = decode_features(enc)
+    np.testing.assert_allclose(dec.features.reshape(12, -1)[:, dec.mask.reshape(-1)], rebuilt, rtol=1e-6, atol=1e-6)
+    plain = decode_features(encode_features(features, confidence, grid, FeatureCodecConfig(dtype, selection, topk=300),
+                                            np.ones(grid.dims, np.float32)))
+    np.testing.assert_array_equal(dec.mask, plain.mask)  # the same voxels: transform coding changes only their values
+    np.testing.assert_array_equal(dec.confidence, plain.confidence)
+
+
+@pytest.mark.parametrize("rank", [1, 3, 8])
+def test_rank_is_lossless_on_features_of_that_rank(rank):
+    grid, features, confidence = _low_rank(4, rank)
+    dec = decode_features(encode_features(features, confidence, grid, FeatureCodecConfig("float32", rank=rank)))
+    np.testing.assert_allclose(dec.features, features, atol=1e-4 * np.abs(features).max())
+
+
+def test_rank_error_is_the_discarded_variance_and_falls_with_rank():
+    """Float32 coefficients on the K principal directions: the squared error is the variance PCA leaves out."""
+    grid, features, confidence = _volume(5, channels=16)
+    flat = features.reshape(16, -1).astype(np.float64)
+    centred = flat - flat.mean(axis=1, keepdims=True)
+    discarded = np.linalg.eigvalsh(centred @ centred.T)[::-1]  # descending
+    errors = []
+    for rank in (1, 4, 8, 16):
+        dec = decode_features(encode_features(features, confidence, grid, FeatureCodecConfig("float32", rank=rank)))
+        errors.append(((dec.features.reshape(16, -1) - flat) ** 2).sum())
+        np.testing.assert_allclose(errors[-1], discarded[rank:].sum(), rtol=1e-3, atol=1e-3)
+    assert errors == sorted(errors, reverse=True) and errors[-1] < 1e-6 * errors[0]
+
+
+def test_rank_fits_more_voxels_under_a_budget():
+    grid, features, confidence = _low_rank(6, 6, dims=(32, 32, 6))
+    plain = encode_features(features, confidence, grid, FeatureCodecConfig("int8", "topk", max_bytes=20000))
+    coded = encode_features(features, confidence, grid, FeatureCodecConfig("int8", "topk", max_bytes=20000, rank=6))
+    assert coded.budget_bytes <= 20000 and plain.num_voxels * 2.5 < coded.num_voxels < grid.num_voxels
+
+
+def test_rank_errors_name_the_field():
+    with pytest.raises(CodecError) as info:
+        FeatureCodecConfig(rank=-1)
+    _assert_error(info, CodecError, "rank")
+    grid, features, confidence = _volume(7, channels=4)
+    with pytest.raises(CodecError) as info:
+        encode_features(features, confidence, grid, FeatureCodecConfig(rank=5))
+    _assert_error(info, CodecError, "rank 5", "4 feature channels")
+    assert FeatureCodecConfig("int8", "request", max_bytes=65536, rank=8).name == "int8-request64KB-pca8-zstd"
+    enc = encode_features(features, confidence, grid, FeatureCodecConfig("float32", rank=2))
+    for bad, fragment in ((dict(basis=enc.basis[:-1]), "basis"), (dict(basis_mean=()), "basis"),
+                          (dict(basis_rank=5, basis=enc.basis * 3), "basis_rank")):
+        with pytest.raises(SizeMismatchError) as info:
+            decode_features(dataclasses.replace(enc, **bad))
+        _assert_error(info, SizeMismatchError, fragment)
+    for field in ("basis", "basis_mean"):
+        values = list(getattr(enc, field))
+        values[0] = float("nan")
+        with pytest.raises(NonFiniteError) as info:
+            decode_features(dataclasses.replace(enc, **{field: tuple(values)}))
+        _assert_error(info, NonFiniteError, field)

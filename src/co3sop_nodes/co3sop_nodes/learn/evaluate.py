@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from ..cli.common import progress, run
-from ..codec import BUDGET_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
+from ..codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
 from ..collaboration import COMM_RANGE
 from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
 from ..model.checkpoint import load_model, shipped_checkpoint
@@ -179,7 +179,7 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
     alone = measure(collaborators=0, desc="no collaborator")[0]
     results, runs = {"alone": boot.summary(alone)}, {}
     lossless = STANDARD_FEATURE_SETTINGS[0].name
-    for setting in (*STANDARD_FEATURE_SETTINGS, *BUDGET_FEATURE_SETTINGS):
+    for setting in (*STANDARD_FEATURE_SETTINGS, *BUDGET_FEATURE_SETTINGS, *RANK_FEATURE_SETTINGS):
         runs[setting.name], size = measure(codec=setting, desc=setting.name)
         summary = boot.summary(runs[setting.name])
         diff = boot.difference(runs[setting.name], runs[lossless])["co3sop-code"]

@@ -71,6 +71,9 @@ def features_to_msg(enc: EncodedFeatures, *, stamp_ns: int, frame_id: str, agent
         voxel_mask_raw_size=enc.voxel_mask_raw_size,
         values_raw_size=enc.values_raw_size,
         confidence_raw_size=enc.confidence_raw_size,
+        basis_rank=enc.basis_rank,
+        basis=list(enc.basis),
+        basis_mean=list(enc.basis_mean),
     )
     msg.header.stamp = ns_to_stamp(stamp_ns)
     msg.header.frame_id = frame_id
@@ -97,6 +100,9 @@ def features_from_msg(msg: VoxelFeatures) -> EncodedFeatures:
         voxel_mask_raw_size=msg.voxel_mask_raw_size,
         values_raw_size=msg.values_raw_size,
         confidence_raw_size=msg.confidence_raw_size,
+        basis_rank=msg.basis_rank,
+        basis=tuple(msg.basis),
+        basis_mean=tuple(msg.basis_mean),
     )
 
 

@@ -21,14 +21,20 @@ from ..errors import Co3sopError, exception_line
 
 PACKAGE = "co3sop_nodes"
 
-# Features and predictions are large multi-fragment samples: best effort would
-# drop whole samples, so reliable with a short queue (a late frame is useless).
-FEATURES_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=2,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
+# Features and predictions are large multi-fragment samples: best effort drops a whole sample when one fragment
+# is lost, so reliable with a short queue (a late frame is useless) by default. Over a lossy V2X link best effort
+# trades lost frames for no resends (the `features_reliability` parameter; bench_channel.py measures both).
+RELIABILITIES = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
+
+
+def features_qos(reliability: str = "reliable", depth: int = 2) -> QoSProfile:
+    """The QoS of VoxelFeatures: `reliability` one of RELIABILITIES (a best-effort subscription also matches a
+    reliable publisher; a reliable one does not match a best-effort publisher)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=RELIABILITIES[reliability],
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+FEATURES_QOS = features_qos()
 OCCUPANCY_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=5,

@@ -31,7 +31,6 @@ import numpy as np
 import torch
 from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from .. import native, topics
@@ -48,7 +47,7 @@ from ..model.request import request_of
 from ..pairing import Pairing
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
 from .params import Param
-from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, REQUEST_QOS, DropLog, spin_node, subscribe_foreign
+from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
 from .lifecycle import ManagedNode
 
 PARAMS = (
@@ -70,6 +69,8 @@ PARAMS = (
     Param("request_maps", bool, "publish /ego/request_map after each frame (vehicles with codec.selection request use it)", True, True),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
     Param("queue_depth", int, "frames per neighbour queued while one is fused", 10, range=(1, 1000)),
+    Param("features_reliability", str, "QoS of the features subscriptions: reliable, or best_effort (matches both kinds of "
+          "vehicle; a reliable subscription does not match a best-effort vehicle)", "reliable", choices=tuple(RELIABILITIES)),
     Param("discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)),
     Param("reference_paths", bool, "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)", False),
 )
@@ -120,7 +121,7 @@ class Ego(ManagedNode):
         native.ENABLED = native.ENABLED and not self.reference_paths
         torch.set_num_threads(p["threads"])
         # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
-        self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["queue_depth"], reliability=ReliabilityPolicy.RELIABLE)
+        self._qos = features_qos(p["features_reliability"], p["queue_depth"])
         # names relative to the node's namespace: `__ns` and remapping apply
         self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.relative(topics.EGO_OCCUPANCY), OCCUPANCY_QOS)
         self._points = self.create_lifecycle_publisher(PointCloud2, topics.relative(topics.EGO_POINTS), OCCUPANCY_QOS)

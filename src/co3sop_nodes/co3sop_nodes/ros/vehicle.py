@@ -44,7 +44,7 @@ from ..model.request import request_for_neighbour
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
 from .params import Param
-from .dds import DIAGNOSTICS_QOS, FEATURES_QOS, REQUEST_QOS, DropLog, SensorSubscriptions, spin_node, subscribe_foreign
+from .dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
 from .lifecycle import ManagedNode
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
@@ -69,9 +69,14 @@ PARAMS = (
     Param("codec.level", int, "zstd level", 3, True, (1, 22)),
     Param("request_timeout", float, "s: an ego's request map not renewed within this is no longer served", 1.0, True, (0.0, 3600.0)),
     Param("codec.max_bytes", int, "byte budget per message for topk / request (0: none; then codec.topk voxels)", 0, True, (0, 2**31 - 1)),
+    Param("codec.rank", int, "transform coding: K coefficients per voxel on the message's own K principal directions (0: the "
+          "channels as they are)", 0, True, (0, 4096)),
+    Param("features_reliability", str, "QoS of the published features: reliable (resends lost fragments) or best_effort (a "
+          "sample with a lost fragment is dropped; only best-effort subscribers match)", "reliable", choices=tuple(RELIABILITIES)),
 )
 CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.topk": "topk", "codec.threshold": "threshold",
-                "codec.compression": "codec", "codec.level": "level", "codec.max_bytes": "max_bytes"}
+                "codec.compression": "codec", "codec.level": "level", "codec.max_bytes": "max_bytes",
+                "codec.rank": "rank"}
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 
 
@@ -126,11 +131,12 @@ class Vehicle(ManagedNode):
         else:
             self._parts["points"], self._types["points"] = topics.lidar_points(), PointCloud2
         self._parts = {k: self.resolve_topic_name(name) for k, name in self._parts.items()}  # full names in logs and drops
-        self._pub = self.create_lifecycle_publisher(VoxelFeatures, topics.voxel_features(), FEATURES_QOS)
+        self._pub = self.create_lifecycle_publisher(VoxelFeatures, topics.voxel_features(), features_qos(p["features_reliability"]))
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
             f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
-            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}; "
+            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}, "
+            f"{p['features_reliability']}; "
             f"compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     def activate(self) -> None:
