@@ -166,14 +166,16 @@ def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[st
                 for _, channel, message in make_reader(f).iter_messages() if re.fullmatch(topic_pattern, channel.topic)]
 
 
-def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario):
+@pytest.mark.parametrize("rank", [0, 8], ids=["channels", "rank8"])
+def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, rank):
     """A request map reaches the vehicles (a stand-in's from before the first frame, then the ego's own after each
     frame); each vehicle answers it with the voxels it weighs highest under its byte budget, addressed to the ego;
-    what arrives is what the same computation gives offline, byte for byte, and only where the ego asked."""
+    what arrives is what the same computation gives offline, byte for byte, and only where the ego asked. With
+    codec.rank the message carries 8 coefficients per voxel and its own basis."""
     bag, cavs = scenario
     budget = 20000
-    codec = FeatureCodecConfig("int8", "request", max_bytes=budget)
-    params = ["codec.dtype:=int8", "codec.selection:=request", f"codec.max_bytes:={budget}", "request_timeout:=60.0"]
+    codec = FeatureCodecConfig("int8", "request", max_bytes=budget, rank=rank)
+    params = ["codec.dtype:=int8", "codec.selection:=request", f"codec.max_bytes:={budget}", f"codec.rank:={rank}", "request_timeout:=60.0"]
     torch.set_num_threads(1)
     model, _ = load_model(shipped_checkpoint())
     fg = model.cfg.feature_grid
@@ -212,8 +214,9 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario):
         out, world_from_vehicle = outputs[stamp_to_ns(msg.header.stamp)][msg.agent_id]
         wanted = request_for_neighbour(need, pose_from_msg(request.lidar_pose).matrix(), world_from_vehicle, fg)
         expected = encode_output(out, fg, codec, wanted)
-        assert (enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale) == (
-            expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale), f"cav {msg.agent_id}"
+        assert (enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale, enc.basis_rank, enc.basis, enc.basis_mean) == (
+            expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale, rank, expected.basis,
+            expected.basis_mean), f"cav {msg.agent_id}"
         sent = decode_features(enc).confidence.reshape(-1) > 0
         assert (wanted.reshape(-1)[sent] > 0).all()  # only voxels the ego asked for (none where it asked nothing in view)
         carried += int(sent.sum())
