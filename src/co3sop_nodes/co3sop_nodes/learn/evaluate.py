@@ -208,11 +208,13 @@ def _plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for name, r in results.items():
+    colours = plt.get_cmap("tab20").colors  # one per codec (the default cycle repeats after 10)
+    for i, (name, r) in enumerate(results.items()):
         low, high = r["gain_kept"]["ci95"]
         kept = r["gain_kept"]["ratio"]
         marker = "s" if "request" in name else "o"
-        ax.errorbar(r["bytes"], 100 * kept, yerr=[[100 * (kept - low)], [100 * (high - kept)]], fmt=marker, capsize=3, label=name)
+        ax.errorbar(r["bytes"], 100 * kept, yerr=[[100 * (kept - low)], [100 * (high - kept)]], fmt=marker, capsize=3, label=name,
+                    color=colours[i % len(colours)], markerfacecolor="none" if "pca" in name else None)
     for name, size in PAPER_SIZES.items():
         ax.axvline(size, color="grey", linestyle=":", linewidth=1)
         ax.text(size, ax.get_ylim()[1], name, rotation=90, va="top", ha="right", fontsize=7, color="grey")
