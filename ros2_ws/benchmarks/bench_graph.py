@@ -72,12 +72,13 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]]) -> dict:
         total = int(d["published_wall_ns"]) - first_input
         latency.append(total / 1e6)
         transport = [r - int(marks[a]["published_wall_ns"]) for a, r in pairs(d["received_wall_ns"]).items() if a in marks]
-        dds_share.append(max(transport) / total)
+        if transport:  # none where the only features received are from a vehicle whose report of that frame was lost
+            dds_share.append(max(transport) / total)
     cpu = {"ego": np.median([float(d["cpu_ms"]) for d in ego])}
     cpu.update({f"vehicle {a}": np.median([float(d["cpu_ms"]) for d in v.values()]) for a, v in sorted(vehicles.items())})
     stages = {k: float(np.median([float(d[k]) for d in ego])) for k in ("decode_ms", "fuse_ms", "head_ms", "publish_ms")}
     return {"bytes_per_agent_frame": float(np.mean(sizes)) if sizes else 0.0, "latency_ms_p50": float(np.percentile(latency, 50)),
-            "latency_ms_p95": float(np.percentile(latency, 95)), "dds_share_p50": float(np.median(dds_share)),
+            "latency_ms_p95": float(np.percentile(latency, 95)), "dds_share_p50": float(np.median(dds_share)) if dds_share else float("nan"),
             "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()}, "ego_stage_ms": stages, "frames": len(ego)}
 
 

@@ -1282,6 +1282,11 @@ def test_rank_errors_name_the_field():
         encode_features(features, confidence, grid, FeatureCodecConfig(rank=5))
     _assert_error(info, CodecError, "rank 5", "4 feature channels")
     assert FeatureCodecConfig("int8", "request", max_bytes=65536, rank=8).name == "int8-request64KB-pca8-zstd"
+    spread = np.zeros((16, 2, 1, 1), np.float32)
+    spread[:, 1] = 60000.0  # within float16 per channel; the one coefficient, +-30000 x sqrt(16), is not
+    with pytest.raises(CodecError) as info:
+        encode_features(spread, None, _grid((2, 1, 1)), FeatureCodecConfig("float16", rank=1))
+    _assert_error(info, CodecError, "float16 range")
     enc = encode_features(features, confidence, grid, FeatureCodecConfig("float32", rank=2))
     for bad, fragment in ((dict(basis=enc.basis[:-1]), "basis"), (dict(basis_mean=()), "basis"),
                           (dict(basis_rank=5, basis=enc.basis * 3), "basis_rank")):

@@ -340,6 +340,9 @@ def _encode(features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec,
             raise CodecError(f"rank {cfg.rank}: more components than the {channels} feature channels")
         b, m, values = _principal(values, cfg.rank)  # values: (K, N) coefficients
         basis, mean = tuple(b.reshape(-1).tolist()), tuple(m.tolist())
+        with np.errstate(over="ignore"):
+            if cfg.dtype == "float16" and not np.isfinite(values.astype(np.float16)).all():
+                raise CodecError("features: coefficients beyond the float16 range (|x| > 65504); use float32 or int8")
 
     mask_raw = b""
     if keep is not None:
