@@ -10,8 +10,8 @@ Feature volumes: (C, nx, ny, nz) float32 -> float32 / float16 / int8 with a
 per-channel affine scale, dense or sparse (top-k voxels by confidence, all
 voxels at or above a confidence threshold, or the voxels a requesting ego needs
 most: confidence x its request, Where2comm-style), optionally transform coded
-(`rank` K: the K principal directions of the sent voxels' features, computed
-per message and sent with it, and K coefficients per voxel instead of C
+(`rank` K: the K principal directions of the voxels' features, those selected
+or, under a budget, every candidate; computed per message and sent with it, and K coefficients per voxel instead of C
 channels), then zstd; a byte budget (`max_bytes`) keeps the best-scored voxels
 that fit. Labels: uint8 grids, lossless zstd.
 """
@@ -48,8 +48,9 @@ class FeatureCodecConfig:
     # > 0: "topk" / "request" keep as many of their best-scored voxels as fit this many bytes (payload and
     # quantisation constants), instead of `topk`
     max_bytes: int = 0
-    # > 0: transform coding, K coefficients per voxel on the message's own K principal directions (PCA of the sent
-    # voxels' features; the basis travels in the message): fewer bytes per voxel, so more voxels under a budget
+    # > 0: transform coding, K coefficients per voxel on the message's own K principal directions (PCA of the selected
+    # voxels' features, or of every candidate under a budget; the basis travels in the message): fewer bytes per
+    # voxel, so more voxels under a budget
     rank: int = 0
 
     def __post_init__(self) -> None:
@@ -300,7 +301,8 @@ def encode_features(
             raise CodecError(f"request: a (nx, ny, nz) = {grid.dims} volume in [0, 1] expected")
     if cfg.max_bytes:
         return _within_budget(features, confidence, grid, cfg, request)
-    return _encode(features, confidence, grid, cfg, _select(features, confidence, cfg, request))
+    keep = _select(features, confidence, cfg, request)
+    return _encode(features, confidence, grid, cfg, keep, _basis(features, keep, cfg.rank))
 
 
 def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
@@ -311,8 +313,10 @@ def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig
     if request is not None:
         order = order[: np.count_nonzero(score > 0)]  # what the ego did not ask for is not worth a byte
 
+    basis = _basis(features, np.sort(order), cfg.rank)  # one for every count tried: that of all candidates
+
     def encoded(k: int) -> EncodedFeatures:
-        return _encode(features, confidence, grid, cfg, np.sort(order[:k]))
+        return _encode(features, confidence, grid, cfg, np.sort(order[:k]), basis)
 
     lo, hi = 0, len(order)
     best = encoded(0)
@@ -329,17 +333,18 @@ def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig
 
 
 def _encode(features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec, cfg: FeatureCodecConfig,
-            keep: np.ndarray | None) -> EncodedFeatures:
+            keep: np.ndarray | None, basis: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> EncodedFeatures:
+    """keep: flat indices of the voxels sent (None: all); basis: _basis's transform coding, to send the voxels as
+    its K coefficients, or None for the channels themselves."""
     channels = features.shape[0]
     flat = features.reshape(channels, -1)  # (C, V)
     values = flat if keep is None else flat[:, keep]  # (C, N)
     num_voxels = values.shape[1]
-    basis = mean = ()
-    if cfg.rank:
-        if cfg.rank > channels:
-            raise CodecError(f"rank {cfg.rank}: more components than the {channels} feature channels")
-        b, m, values = _principal(values, cfg.rank)  # values: (K, N) coefficients
-        basis, mean = tuple(b.reshape(-1).tolist()), tuple(m.tolist())
+    sent_basis = sent_mean = ()
+    if basis is not None:
+        directions, mean, coefficients = basis
+        values = coefficients if keep is None else coefficients[:, keep]  # (K, N)
+        sent_basis, sent_mean = tuple(directions.reshape(-1).tolist()), tuple(mean.tolist())
         with np.errstate(over="ignore"):
             if cfg.dtype == "float16" and not np.isfinite(values.astype(np.float16)).all():
                 raise CodecError("features: coefficients beyond the float16 range (|x| > 65504); use float32 or int8")
@@ -382,24 +387,34 @@ def _encode(features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec,
         voxel_mask_raw_size=len(mask_raw),
         values_raw_size=len(values_raw),
         confidence_raw_size=len(conf_raw),
-        basis_rank=cfg.rank,
-        basis=basis,
-        basis_mean=mean,
+        basis_rank=0 if basis is None else basis[0].shape[1],
+        basis=sent_basis,
+        basis_mean=sent_mean,
     )
 
 
-def _principal(values: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """values (C, N) -> basis (C, K) float32 with orthonormal columns (the K principal directions, largest variance
-    first, each column's largest entry positive), mean (C,) float32, coefficients (K, N) float32: the least-squares
-    projection on the float32 basis the receiver gets, so values ~= basis @ coefficients + mean."""
-    x = values.astype(np.float64)
-    mean = (x.mean(axis=1) if x.shape[1] else np.zeros(x.shape[0])).astype(np.float32)  # (C,)
+def _basis(features: np.ndarray, keep: np.ndarray | None, rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The transform coding fitted to the voxels `keep` (None: all): their K = rank principal directions, (C, K)
+    float32 with orthonormal columns (largest variance first, each column's largest entry positive), their mean
+    (C,) float32, and every voxel's coefficients (K, V) float32, the least-squares ones on the float32 basis the
+    receiver gets; None when rank is 0. Under a byte budget it is fitted once to every candidate voxel."""
+    if not rank:
+        return None
+    channels = features.shape[0]
+    if rank > channels:
+        raise CodecError(f"rank {rank}: more components than the {channels} feature channels")
+    flat = features.reshape(channels, -1)
+    x = (flat if keep is None else flat[:, keep]).astype(np.float64)  # (C, N)
+    mean = (x.mean(axis=1) if x.shape[1] else np.zeros(channels)).astype(np.float32)
     centred = x - mean[:, None]
-    _, vectors = np.linalg.eigh(centred @ centred.T)  # ascending eigenvalues
-    basis = vectors[:, ::-1][:, :rank]  # (C, K)
-    basis *= np.where(basis[np.abs(basis).argmax(axis=0), np.arange(rank)] < 0, -1.0, 1.0)
-    basis = basis.astype(np.float32)
-    return basis, mean, (basis.T.astype(np.float64) @ centred).astype(np.float32)
+    # einsum, not `@`: numpy's own single-threaded loops. A multithreaded BLAS spinning in each of several vehicle
+    # processes on a few cores made encoding 10-100x slower in the graph; the bits also no longer depend on threads.
+    _, vectors = np.linalg.eigh(np.einsum("cn,dn->cd", centred, centred))  # ascending eigenvalues
+    directions = vectors[:, ::-1][:, :rank]  # (C, K)
+    directions *= np.where(directions[np.abs(directions).argmax(axis=0), np.arange(rank)] < 0, -1.0, 1.0)
+    directions = directions.astype(np.float32)
+    coefficients = np.einsum("ck,cv->kv", directions.astype(np.float64), flat - mean[:, None].astype(np.float64))  # (K, V)
+    return directions, mean, coefficients.astype(np.float32)
 
 
 def _check_finite(field: str, values: np.ndarray) -> None:
