@@ -471,7 +471,8 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         _check_finite("basis", basis)
         _check_finite("basis_mean", mean)
         f32max = np.finfo(np.float32).max
-        values = np.clip(basis @ values + mean, -f32max, f32max).astype(np.float32)  # (C, N)
+        rebuilt = np.einsum("ck,kn->cn", basis, values) + mean  # (C, N); einsum, not BLAS threads: see _basis
+        values = np.clip(rebuilt, -f32max, f32max).astype(np.float32)
 
     conf = None  # (N,) float32
     if enc.has_confidence:
