@@ -337,17 +337,18 @@ def _encode(features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec,
     """keep: flat indices of the voxels sent (None: all); basis: _basis's transform coding, to send the voxels as
     its K coefficients, or None for the channels themselves."""
     channels = features.shape[0]
-    flat = features.reshape(channels, -1)  # (C, V)
-    values = flat if keep is None else flat[:, keep]  # (C, N)
-    num_voxels = values.shape[1]
     sent_basis = sent_mean = ()
-    if basis is not None:
+    if basis is None:
+        flat = features.reshape(channels, -1)  # (C, V)
+        values = flat if keep is None else flat[:, keep]  # (C, N)
+    else:
         directions, mean, coefficients = basis
         values = coefficients if keep is None else coefficients[:, keep]  # (K, N)
         sent_basis, sent_mean = tuple(directions.reshape(-1).tolist()), tuple(mean.tolist())
         with np.errstate(over="ignore"):
             if cfg.dtype == "float16" and not np.isfinite(values.astype(np.float16)).all():
                 raise CodecError("features: coefficients beyond the float16 range (|x| > 65504); use float32 or int8")
+    num_voxels = values.shape[1]
 
     mask_raw = b""
     if keep is not None:
