@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from co3sop_nodes import native
 from co3sop_nodes.classes import LABEL_BY_NAME as L
 from co3sop_nodes.geometry import carla_pose_to_matrix, carla_to_ros_matrix
 from co3sop_nodes.sim import camera, lidar, rig
@@ -289,9 +290,9 @@ def town_scene():
     return RayScene([ObjectMeshes(town.objects), ObjectMeshes(traffic.objects())]), traffic
 
 
-def test_compiled_render_equals_the_reference_in_a_town(town_scene):
+@pytest.mark.parametrize("width, height", [(160, 120), (37, 23)])  # whole blocks and packets of rays, and not
+def test_compiled_render_equals_the_reference_in_a_town(town_scene, width, height):
     scene, traffic = town_scene
-    width, height = 160, 120
     k = rig.intrinsics(width, height)
     poses = [cav.pose() @ mount for cav in traffic.cavs for mount in rig.vehicle_from_cameras()]
     ref = [camera.render(scene, p, width, height, k, compiled=False) for p in poses]
@@ -307,6 +308,26 @@ def test_compiled_render_equals_the_reference_in_a_town(town_scene):
         seen |= {scene.objects[i].texture for i in np.unique(hits.object_index[hits.object_index >= 0])}
     assert seen == {"plain", "bricks", "stripes", "noise"}
     assert any((r.semantic == SKY).any() for r in ref)
+
+
+def test_single_threaded_blas_keeps_the_products_and_restores_the_threads():
+    rng = np.random.default_rng(5)
+    body, pose = rng.normal(size=(200_000, 3)), rng.normal(size=(4, 4))
+    threaded = body @ pose[:3, :3].T
+    setter = native._blas_threads_setter()
+    if "openblas" in np.show_config(mode="dicts")["Build Dependencies"]["blas"]["name"]:
+        assert setter is not None  # numpy's OpenBLAS (0.3.27 on) has per-thread counts
+    with native.single_threaded_blas():
+        alone = body @ pose[:3, :3].T
+        if setter is not None:
+            assert setter(1) == 1
+    np.testing.assert_array_equal(alone, threaded)
+    if setter is not None:
+        original = setter(3)  # what the block restored
+        assert setter(original) == 3
+        with native.single_threaded_blas():
+            pass
+        assert setter(original) == original
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "reference"])

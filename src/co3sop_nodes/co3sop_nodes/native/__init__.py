@@ -21,7 +21,9 @@ import platform
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 
@@ -90,8 +92,48 @@ def parallel(fn, args: tuple, n: int, threads: int) -> None:
     list(_pool(threads).map(lambda i: fn(*args, int(bounds[i]), int(bounds[i + 1])), range(threads)))
 
 
+def interleaved(fn, args: tuple, threads: int) -> None:
+    """fn(*args, part, threads) for every part in [0, threads) at once: the kernel takes every threads-th block of
+    its work from `part` on (even shares where cost varies along the data, as a camera's sky rows and street rows)."""
+    if threads <= 1:
+        fn(*args, 0, 1)
+        return
+    list(_pool(threads).map(lambda part: fn(*args, part, threads), range(threads)))
+
+
 def together(fn, threads: int) -> list:
     """fn() on `threads` threads at once (workers sharing a queue inside the kernel); their results."""
     if threads <= 1:
         return [fn()]
     return list(_pool(threads).map(lambda _: fn(), range(threads)))
+
+
+@cache
+def _blas_threads_setter():
+    """OpenBLAS's openblas_set_num_threads_local (0.3.27 on: the calling thread's BLAS threads, returns the previous
+    count) from the OpenBLAS numpy loaded; None with another BLAS."""
+    try:
+        maps = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return None
+    for path in dict.fromkeys(line.split(None, 5)[5] for line in maps if line.count(" ") >= 5 and "openblas" in line):
+        fn = getattr(ctypes.CDLL(path), "openblas_set_num_threads_local", None)
+        if fn is not None:
+            fn.argtypes, fn.restype = [ctypes.c_int], ctypes.c_int
+            return fn
+    return None
+
+
+@contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """NumPy's matrix products on the calling thread alone, inside the block. After a multithreaded product
+    OpenBLAS's threads busy-wait for more work for about 0.1 s, taking the cores from the kernels' threads that
+    follow (a camera's rays on 2 cores ran no faster than on one); the sensors' small products gain nothing from
+    them. Same results: a product's elements do not depend on how its rows are split among threads (tested)."""
+    setter = _blas_threads_setter()
+    previous = setter(1) if setter is not None else None
+    try:
+        yield
+    finally:
+        if setter is not None:
+            setter(previous)

@@ -16,6 +16,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from .. import native
 from ..classes import LABEL_BY_NAME
 from . import ray_kernel
 from .raycast import Hits, RayScene
@@ -103,34 +104,36 @@ def shade(scene: RayScene, hits: Hits, directions: np.ndarray) -> np.ndarray:
 
 
 def render(scene: RayScene, world_from_camera: np.ndarray, width: int, height: int, k: np.ndarray,
-           compiled: bool | None = None) -> CameraImages:
-    """compiled: rays and shading by the compiled kernel (default: where it compiles; bit-identical) or the reference."""
+           compiled: bool | None = None, threads: int = 1) -> CameraImages:
+    """compiled: rays and shading by the compiled kernel (default: where it compiles; bit-identical) or the reference;
+    threads: the kernel's threads for this camera's rays."""
     body = pixel_rays(width, height, k)  # (H*W, 3)
-    directions = body @ world_from_camera[:3, :3].T
+    with native.single_threaded_blas():
+        directions = body @ world_from_camera[:3, :3].T
     origin = world_from_camera[:3, 3]
     if compiled is None:
         compiled = ray_kernel.available()
-    hits = scene.cast(np.broadcast_to(origin, directions.shape), directions, 1000.0, compiled=compiled)
     if compiled:
-        idx = np.flatnonzero(hits.object_index >= 0)
-        shadow = scene.cast(hits.point[idx] + hits.normal[idx] * 0.02, np.broadcast_to(SUN, (len(idx), 3)).copy(), 300.0,
-                            compiled=True)
-        lit = np.zeros(len(directions), bool)
-        lit[idx] = shadow.object_index < 0
-        rgb = scene.compiled.shade(directions, hits.distance, hits.object_index, hits.normal, hits.point, lit, SUN)
+        distance, owner, rgb = scene.compiled.camera(origin, directions, SUN, threads)
     else:
+        hits = scene.cast(np.broadcast_to(origin, directions.shape), directions, 1000.0, compiled=False)
+        distance, owner = hits.distance, hits.object_index
         rgb = (np.clip(shade(scene, hits, directions), 0, 1) * 255 + 0.5).astype(np.uint8)
-    depth = np.where(np.isfinite(hits.distance), hits.distance * body[:, 0], 0).astype(np.float32).reshape(height, width)
+    depth = np.where(np.isfinite(distance), distance * body[:, 0], 0).astype(np.float32).reshape(height, width)
     labels = np.array([o.label for o in scene.objects] + [SKY_LABEL], np.uint8)
-    semantic = labels[hits.object_index].reshape(height, width)  # index -1 -> the appended sky label
+    semantic = labels[owner].reshape(height, width)  # index -1 -> the appended sky label
     return CameraImages(rgb.reshape(height, width, 3), depth, semantic)
 
 
 def render_rig(scene: RayScene, world_from_cameras: Sequence[np.ndarray], width: int, height: int, k: np.ndarray,
                threads: int = 1, compiled: bool | None = None) -> list[CameraImages]:
-    """Every camera of a rig, `threads` at once (Embree and the kernel release the GIL), in order."""
-    if threads <= 1:
-        return [render(scene, pose, width, height, k, compiled) for pose in world_from_cameras]
+    """Every camera of a rig in order, on `threads` threads: the kernel splits each camera's rays among them (even
+    shares: no camera waits for another), the reference renders `threads` cameras at once (Embree and NumPy release
+    the GIL)."""
+    if compiled is None:
+        compiled = ray_kernel.available()
+    if threads <= 1 or compiled:
+        return [render(scene, pose, width, height, k, compiled, threads) for pose in world_from_cameras]
     return list(_pool(threads).map(lambda pose: render(scene, pose, width, height, k, compiled), world_from_cameras))
 
 

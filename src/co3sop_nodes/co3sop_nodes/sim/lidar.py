@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import native
 from .raycast import RayScene
 
 
@@ -37,7 +38,8 @@ def beam_directions(cfg: LidarConfig) -> np.ndarray:
 
 def scan(scene: RayScene, world_from_lidar: np.ndarray, cfg: LidarConfig, rng: np.random.Generator) -> LidarScan:
     local = beam_directions(cfg)
-    directions = local @ world_from_lidar[:3, :3].T
+    with native.single_threaded_blas():
+        directions = local @ world_from_lidar[:3, :3].T
     hits = scene.cast(np.broadcast_to(world_from_lidar[:3, 3], directions.shape), directions, cfg.range)
     hit = np.isfinite(hits.distance)
     distance = hits.distance[hit] + rng.normal(0, cfg.noise_std, int(hit.sum()))
