@@ -108,15 +108,21 @@ def together(fn, threads: int) -> list:
     return list(_pool(threads).map(lambda _: fn(), range(threads)))
 
 
+def mapped(fragment: str) -> list[str]:
+    """Paths of the shared libraries this process has loaded whose path contains `fragment` (from /proc/self/maps;
+    none where there is no such file): a library another package loaded, to call it with ctypes."""
+    try:
+        maps = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return []
+    return list(dict.fromkeys(line.split(None, 5)[5] for line in maps if line.count(" ") >= 5 and fragment in line))
+
+
 @cache
 def _blas_threads_setter():
     """OpenBLAS's openblas_set_num_threads_local (0.3.27 on: the calling thread's BLAS threads, returns the previous
     count) from the OpenBLAS numpy loaded; None with another BLAS."""
-    try:
-        maps = Path("/proc/self/maps").read_text().splitlines()
-    except OSError:
-        return None
-    for path in dict.fromkeys(line.split(None, 5)[5] for line in maps if line.count(" ") >= 5 and "openblas" in line):
+    for path in mapped("openblas"):
         fn = getattr(ctypes.CDLL(path), "openblas_set_num_threads_local", None)
         if fn is not None:
             fn.argtypes, fn.restype = [ctypes.c_int], ctypes.c_int

@@ -20,7 +20,6 @@ import importlib
 import weakref
 from collections.abc import Sequence
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -56,13 +55,12 @@ def _embree() -> ctypes.CDLL | None:
     mapped files; None where there is none."""
     try:
         importlib.import_module("embreex.rtcore_scene")  # loads the library
-        maps = Path("/proc/self/maps").read_text().splitlines()
-    except (ImportError, OSError):
+    except ImportError:
         return None
-    path = next((line.split(None, 5)[5] for line in maps if line.count(" ") >= 5 and "libembree4" in line), None)
-    if path is None:
+    paths = native.mapped("libembree4")
+    if not paths:
         return None
-    lib = ctypes.CDLL(path)
+    lib = ctypes.CDLL(paths[0])
     for name, args, res in (("rtcNewDevice", [ctypes.c_char_p], _P), ("rtcReleaseDevice", [_P], None),
                             ("rtcGetDeviceError", [_P], ctypes.c_int), ("rtcNewScene", [_P], _P),
                             ("rtcSetSceneFlags", [_P, ctypes.c_int], None), ("rtcCommitScene", [_P], None),
