@@ -1,8 +1,10 @@
-"""Choosing the transform coding's rank on `validate`: the share of the collaboration gain that request maps keep
-under a byte budget, per `codec.rank`, and with no budget at all (every voxel the ego asked for).
+"""Choosing the transform coding's rank and the burst of a byte budget on `validate`: the share of the collaboration
+gain that request maps keep under a byte budget, per `codec.rank`, with no budget at all (every voxel the ego asked
+for), and with the budget an average per message whose single messages may take up to a burst (`codec.burst_bytes`).
 
     ros2_ws/benchmarks/choose_rank.py --model src/co3sop_nodes/checkpoints/tiny-lidar.pt --data data/bench \
-        [--splits validate] [--budget 65536] [--ranks 4 6 8 10 16] [--unbounded 0 8] [--out FILE.json]
+        [--splits validate] [--budget 65536] [--ranks 4 6 8 10 16] [--unbounded 0 8] [--bursts] [--burst-rank 8] \
+        [--out FILE.json]
 
 Run with the workspace environment (`. ros2_ws/env.sh`). Gain kept: (codec - alone) / (lossless - alone) in mIoU
 1..23, as `evaluate --ablation codec` computes it (its request maps: the ego's previous frame's), with its 95 %
@@ -34,6 +36,8 @@ def main() -> None:
     parser.add_argument("--budget", type=int, default=65536, help="codec.max_bytes of the request maps")
     parser.add_argument("--ranks", type=int, nargs="+", default=[4, 6, 8, 10, 16])
     parser.add_argument("--unbounded", type=int, nargs="*", default=[0, 8], help="ranks also run with no budget")
+    parser.add_argument("--bursts", type=int, nargs="*", default=[], help="codec.burst_bytes also run (at --burst-rank)")
+    parser.add_argument("--burst-rank", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
     opts = parser.parse_args()
@@ -44,15 +48,17 @@ def main() -> None:
     cache: dict = {}  # the vehicle halves' outputs, shared by every run
     alone = evaluate(model, dataset, collaborators=0, cache=cache, desc="alone")[0]
     lossless = evaluate(model, dataset, codec=FeatureCodecConfig("float32", "dense", codec="none"), cache=cache, desc="lossless")[0]
-    runs = [(rank, opts.budget) for rank in (0, *opts.ranks)] + [(rank, UNBOUNDED) for rank in opts.unbounded]
+    runs = ([(rank, opts.budget, 0) for rank in (0, *opts.ranks)] + [(rank, UNBOUNDED, 0) for rank in opts.unbounded]
+            + [(opts.burst_rank, opts.budget, burst) for burst in opts.bursts])
     rows, results = [], []
-    for rank, budget in runs:
-        cfg = FeatureCodecConfig("int8", "request", max_bytes=budget, rank=rank)
+    for rank, budget, burst in runs:
+        cfg = FeatureCodecConfig("int8", "request", max_bytes=budget, burst_bytes=burst, rank=rank)
         confusions, size = evaluate(model, dataset, codec=cfg, cache=cache, desc=cfg.name)
         kept = boot.ratio(confusions, lossless, alone)
-        results.append({"rank": rank, "max_bytes": budget, "bytes": size, "miou": point(boot.summary(confusions), "co3sop-code"),
+        results.append({"rank": rank, "max_bytes": budget, "burst_bytes": burst, "bytes": size, "miou": point(boot.summary(confusions), "co3sop-code"),
                         "gain_kept": kept})
-        rows.append(f"| {rank or '- (channels)'} | {'none' if budget == UNBOUNDED else f'{budget:,}'} | {size:,.0f} | "
+        limit = "none" if budget == UNBOUNDED else f"{budget:,}" + (f" on average, {burst:,} at most" if burst else "")
+        rows.append(f"| {rank or '- (channels)'} | {limit} | {size:,.0f} | "
                     f"{100 * results[-1]['miou']:.2f} | {100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |")
     title = (f"{model.cfg.name} {model.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 alone "
              f"{100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless {100 * point(boot.summary(lossless), 'co3sop-code'):.2f}")

@@ -15,6 +15,7 @@ import torch
 
 from co3sop_nodes import synthetic
 from co3sop_nodes.learn.dataset import OccupancyDataset
+from co3sop_nodes.learn.evaluate import evaluate
 from co3sop_nodes.metrics import Confusion
 from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
@@ -92,6 +93,11 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert "mIoU co3sop-readme" in result.stdout and "mIoU surroundocc" in result.stdout
     data_json = json.loads((out / "results" / "evaluation.json").read_text())
     assert data_json["tiny 51.2m"]["frames"] == 4  # 2 frames x 2 CAVs, each the ego in turn
+    model, _ = load_model(out / "fusion" / "model.pt")
+    later: dict = {}
+    every, _ = evaluate(model, OccupancyDataset(data, ["validate"], model.cfg), later_frames=later)
+    first = {k: c.frames - later[k].frames for k, c in every.items()}
+    assert first == {k: 2 for k in every} and sum(c.frames for c in later.values()) == 2  # the second frame's two egos
     alone = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), str(out / "ego" / "model.pt"), "--collaborators", "0",
                  "--data", data, "--splits", "validate", "--out", str(out / "alone"))
     assert alone.returncode == 0, alone.stderr

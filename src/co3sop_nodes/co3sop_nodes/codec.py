@@ -48,6 +48,9 @@ class FeatureCodecConfig:
     # > 0: "topk" / "request" keep as many of their best-scored voxels as fit this many bytes (payload and
     # quantisation constants), instead of `topk`
     max_bytes: int = 0
+    # > max_bytes: max_bytes is the average per message to one receiver and this the most one message may take (a
+    # token bucket kept by the sender, byte_budget.py; encode_features itself caps at max_bytes)
+    burst_bytes: int = 0
     # > 0: transform coding, K coefficients per voxel on the message's own K principal directions (PCA of the selected
     # voxels' features, or of every candidate under a budget; the basis travels in the message): fewer bytes per
     # voxel, so more voxels under a budget
@@ -65,6 +68,11 @@ class FeatureCodecConfig:
             raise CodecError(f"max_bytes must be a whole number of bytes >= 0 (0: no budget), got {self.max_bytes!r}")
         if self.max_bytes and self.selection not in ("topk", "request"):
             raise CodecError(f"max_bytes needs selection 'topk' or 'request', not {self.selection!r}")
+        if isinstance(self.burst_bytes, bool) or not isinstance(self.burst_bytes, numbers.Integral) or self.burst_bytes < 0:
+            raise CodecError(f"burst_bytes must be a whole number of bytes >= 0 (0: every message capped at max_bytes), "
+                             f"got {self.burst_bytes!r}")
+        if self.burst_bytes and (not self.max_bytes or self.burst_bytes < self.max_bytes):
+            raise CodecError(f"burst_bytes {self.burst_bytes} needs a max_bytes budget of at most it (max_bytes {self.max_bytes})")
         if isinstance(self.rank, bool) or not isinstance(self.rank, numbers.Integral) or self.rank < 0:
             raise CodecError(f"rank must be a whole number of components >= 0 (0: the channels as they are), got {self.rank!r}")
 
@@ -72,6 +80,8 @@ class FeatureCodecConfig:
     def name(self) -> str:
         """Short label, e.g. 'float16-topk4096-zstd'."""
         count = f"{self.max_bytes // 1024}KB" if self.max_bytes else str(self.topk)
+        if self.burst_bytes:
+            count += f"-burst{self.burst_bytes // 1024}KB"
         sel = {"dense": "dense", "topk": f"topk{count}", "threshold": f"conf{self.threshold:g}", "request": f"request{count}"}[self.selection]
         return f"{self.dtype}-{sel}{f'-pca{self.rank}' if self.rank else ''}-{self.codec}"
 

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..byte_budget import ByteBudget, budget_for
 from ..cli.common import progress, run
 from ..codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
 from ..collaboration import COMM_RANGE
@@ -53,16 +54,19 @@ from .device import add_device_argument, select_device
 def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
              codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
              cache: dict | None = None, inputs: str = "real",
-             where: Callable[[Sample], bool] | None = None) -> tuple[dict, float]:
+             where: Callable[[Sample], bool] | None = None, later_frames: dict | None = None) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
     `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
     `inputs` is one of learn.controls.INPUT_CONTROLS; `where` keeps only the samples it accepts (judged on the
-    sample with every collaborator in range, whatever `collaborators` is).
+    sample with every collaborator in range, whatever `collaborators` is). `later_frames`, where given, is
+    filled as the result with the samples whose ego was there the frame before (those a request map reaches:
+    every one but the ego's first frame of a scenario).
     """
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
     confusions, sent = {}, []
+    budgets: dict[tuple, ByteBudget | None] = {}  # (scenario, sender, ego) -> the sender's budget towards that ego
     cache = {} if cache is None else cache
     controlled = ControlledInputs(dataset, inputs)
     bar = progress(len(dataset), desc, "sample")
@@ -80,15 +84,19 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
                 cache[key] = model.vehicle(**to_batch(controlled(frame, position[record.cav_id] if j is None else j), device))
             return cache[key]
 
-        def previous_request(frame: int, cav: int) -> tuple[np.ndarray, np.ndarray] | None:
-            """(request, world_from_ego) of `cav` one frame before `frame` in the same scenario, if it was there."""
+        def previous_frame(frame: int, cav: int) -> int | None:
+            """`cav`'s index among the agents one frame before `frame` in the same scenario, if it was there."""
             if frame == 0 or dataset.frames[frame - 1][0][:2] != dataset.frames[frame][0][:2]:
                 return None
-            agents = dataset.frames[frame - 1][1]
-            j = next((k for k, a in enumerate(agents) if a.cav_id == cav), None)
+            return next((k for k, a in enumerate(dataset.frames[frame - 1][1]) if a.cav_id == cav), None)
+
+        def previous_request(frame: int, cav: int) -> tuple[np.ndarray, np.ndarray] | None:
+            """(request, world_from_ego) of `cav` one frame before `frame` in the same scenario, if it was there."""
+            j = previous_frame(frame, cav)
             if j is None:
                 return None
-            return request_of(vehicle(agents[j], frame - 1, j).confidence), agents[j].world_from_lidar
+            agent = dataset.frames[frame - 1][1][j]
+            return request_of(vehicle(agent, frame - 1, j).confidence), agent.world_from_lidar
 
         ego = vehicle(sample.ego)
         # a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on a
@@ -99,11 +107,17 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
             out = vehicle(record)
             if codec is not None:
                 wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)
-                out, size = through_codec(out, model.cfg.feature_grid, codec, wanted)
+                budget = budgets.setdefault((sample.key[:2], record.cav_id, sample.ego.cav_id), budget_for(codec))
+                out, size = through_codec(out, model.cfg.feature_grid, budget.config(codec) if budget else codec, wanted)
+                if budget:
+                    budget.spend(size)
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
         pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
-        confusions.setdefault("/".join(sample.key[:2]), Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
+        scenario = "/".join(sample.key[:2])
+        confusions.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
+        if later_frames is not None and previous_frame(f, sample.ego.cav_id) is not None:
+            later_frames.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
         bar.update(1)
     bar.close()
     return confusions, float(np.mean(sent)) if sent else 0.0
@@ -173,25 +187,32 @@ def _inputs(opts, cfg, stem, title, measure, boot) -> None:
 
 def _codec(opts, cfg, stem, title, measure, boot) -> None:
     """Bytes per neighbour-frame against mIoU and the share of the collaboration gain each codec keeps (gain: the
-    lossless codec against no collaborator; kept: (codec - alone) / (lossless - alone), a paired interval each)."""
+    lossless codec against no collaborator; kept: (codec - alone) / (lossless - alone), a paired interval each), over
+    every sample and over the later frames (the ego there the frame before: a request map reaches them)."""
     rows = ["| feature codec | bytes per neighbour-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc | "
-            "Δ co3sop-code vs float32-dense-none | gain kept (%) [95 % interval] |", "|---|---:|---:|---:|---:|---:|---|"]
-    alone = measure(collaborators=0, desc="no collaborator")[0]
-    results, runs = {"alone": boot.summary(alone)}, {}
+            "Δ co3sop-code vs float32-dense-none | gain kept (%) [95 % interval] | gain kept after the first frame (%) |",
+            "|---|---:|---:|---:|---:|---:|---|---|"]
+    alone_later: dict = {}
+    alone = measure(collaborators=0, desc="no collaborator", later_frames=alone_later)[0]
+    results, runs, later = {"alone": boot.summary(alone)}, {}, {}
     lossless = STANDARD_FEATURE_SETTINGS[0].name
     for setting in (*STANDARD_FEATURE_SETTINGS, *BUDGET_FEATURE_SETTINGS, *RANK_FEATURE_SETTINGS):
-        runs[setting.name], size = measure(codec=setting, desc=setting.name)
+        later[setting.name] = {}
+        runs[setting.name], size = measure(codec=setting, desc=setting.name, later_frames=later[setting.name])
         summary = boot.summary(runs[setting.name])
         diff = boot.difference(runs[setting.name], runs[lossless])["co3sop-code"]
         kept = boot.ratio(runs[setting.name], runs[lossless], alone)
-        results[setting.name] = {"bytes": size, **summary, "difference": diff, "gain_kept": kept}
+        kept_later = boot.ratio(later[setting.name], later[lossless], alone_later)
+        results[setting.name] = {"bytes": size, **summary, "difference": diff, "gain_kept": kept, "gain_kept_later_frames": kept_later}
         rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
                     f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} | "
                     f"{100 * diff['delta']:+.2f} [{100 * diff['ci95'][0]:.2f}, {100 * diff['ci95'][1]:.2f}] | "
-                    f"{100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |")
+                    f"{100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] | "
+                    f"{100 * kept_later['ratio']:.0f} [{100 * kept_later['ci95'][0]:.0f}, {100 * kept_later['ci95'][1]:.0f}] |")
     text = (f"### Feature codecs over V2X: {title}\n\nAlone (no collaborator): mIoU co3sop-code "
-            f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its motion.\n\n"
-            + "\n".join(rows))
+            f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its "
+            "motion (none on the ego's first frame of a scenario, where a vehicle weighs by its own confidence alone): the "
+            "last column leaves those first frames out.\n\n" + "\n".join(rows))
     _write(opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results})
     _plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
 

@@ -32,6 +32,7 @@ from tf2_msgs.msg import TFMessage
 
 from .. import topics
 from ..assembly import Frame, FrameAssembly
+from ..byte_budget import ByteBudget, budget_for
 from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, decode_request
 from ..errors import CodecError, Co3sopError
 from ..grid import BENCHMARK_RANGES
@@ -69,6 +70,9 @@ PARAMS = (
     Param("codec.level", int, "zstd level", 3, True, (1, 22)),
     Param("request_timeout", float, "s: an ego's request map not renewed within this is no longer served", 1.0, True, (0.0, 3600.0)),
     Param("codec.max_bytes", int, "byte budget per message for topk / request (0: none; then codec.topk voxels)", 0, True, (0, 2**31 - 1)),
+    Param("codec.burst_bytes", int, "with codec.max_bytes: the most one message may take, max_bytes then being the average per "
+          "message to each ego (what a message leaves unspent is saved for the next; 0: every message capped at max_bytes)",
+          0, True, (0, 2**31 - 1)),
     Param("codec.rank", int, "transform coding: K coefficients per voxel on the message's own K principal directions (0: the "
           "channels as they are)", 0, True, (0, 4096)),
     Param("features_reliability", str, "QoS of the published features: reliable (resends lost fragments) or best_effort (a "
@@ -76,7 +80,7 @@ PARAMS = (
 )
 CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.topk": "topk", "codec.threshold": "threshold",
                 "codec.compression": "codec", "codec.level": "level", "codec.max_bytes": "max_bytes",
-                "codec.rank": "rank"}
+                "codec.burst_bytes": "burst_bytes", "codec.rank": "rank"}
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 
 
@@ -105,6 +109,7 @@ class Vehicle(ManagedNode):
         self._requests: dict[int, Request] = {}  # requesting ego -> its latest request map
         self._request_subs: dict[str, object] = {}
         self._request_timer = None
+        self._budgets: dict[int | None, ByteBudget] = {}  # recipient ego (None: every ego) -> its byte budget
 
     def configure(self) -> None:
         p = self.params
@@ -207,6 +212,17 @@ class Vehicle(ManagedNode):
             self.codec = replace(self.codec, **{CODEC_FIELDS[k]: v for k, v in values.items()})
         except CodecError as exc:
             raise Co3sopError(str(exc)) from None
+        self._budgets = {}  # saved bytes were saved under the previous budget
+
+    def _encode_for(self, out, ego: int | None, request: np.ndarray | None):
+        """One message's encoding for `ego` (None: every ego), within its byte budget where the codec averages one."""
+        if ego not in self._budgets:
+            self._budgets[ego] = budget_for(self.codec)
+        budget = self._budgets[ego]
+        enc = encode_output(out, self.cfg.feature_grid, budget.config(self.codec) if budget else self.codec, request)
+        if budget:
+            budget.spend(enc.budget_bytes)
+        return enc
 
     def _mounts_known(self, parts: dict) -> bool:
         """The mounts of the frame's cameras are known (topics carry no order between /tf_static and the images)."""
@@ -251,8 +267,8 @@ class Vehicle(ManagedNode):
         # one message per requesting ego, its voxels weighed by that ego's request moved into this frame; else one for all
         fg, recipients = self.cfg.feature_grid, self._recipients()
         try:
-            messages = [(ego, encode_output(out, fg, self.codec, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
-                        for ego, r in recipients.items()] or [(None, encode_output(out, fg, self.codec))]
+            messages = [(ego, self._encode_for(out, ego, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
+                        for ego, r in recipients.items()] or [(None, self._encode_for(out, None, None))]
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
             return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
         msgs = [features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose, recipient_id=ego)

@@ -1,0 +1,49 @@
+"""A sender's byte budget on a rate-limited link: the bytes each message may take (ROS-free).
+
+`codec.max_bytes` alone caps every message at that many bytes. With
+`codec.burst_bytes` above it, max_bytes becomes the average a sender may spend
+per message to one receiver and burst_bytes the most one message may take:
+what a message leaves unspent is saved for the next ones, up to burst_bytes.
+This is a token bucket, as a link shaper (Linux tc `tbf`, the emulated
+channel's) carries a link's average rate with bursts up to its bucket; a
+frame that needs more than average (a close neighbour, a large overlap) can
+then take what quieter frames left. The bucket starts with one message's
+worth, so the first N messages never take more than N x max_bytes together.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from .codec import FeatureCodecConfig
+from .errors import CodecError
+
+
+@dataclass
+class ByteBudget:
+    """The budget of one sender towards one receiver."""
+
+    rate: int  # bytes per message on average (codec.max_bytes)
+    burst: int  # the most one message may take (codec.burst_bytes)
+    saved: int = 0  # bytes earlier messages left unspent, carried over
+
+    def allowance(self) -> int:
+        """The bytes the next message may take."""
+        return min(self.burst, self.rate + self.saved)
+
+    def spend(self, used: int) -> None:
+        """A message of `used` bytes (at most the allowance) was sent."""
+        allowance = self.allowance()
+        if not 0 <= used <= allowance:
+            raise CodecError(f"a message of {used} bytes overspends its allowance of {allowance}")
+        self.saved = allowance - used
+
+    def config(self, cfg: FeatureCodecConfig) -> FeatureCodecConfig:
+        """`cfg` for the next message: its max_bytes the allowance."""
+        return replace(cfg, max_bytes=self.allowance())
+
+
+def budget_for(cfg: FeatureCodecConfig) -> ByteBudget | None:
+    """A fresh budget where `cfg` averages its max_bytes over messages (burst_bytes set); None where each message is
+    capped alone."""
+    return ByteBudget(cfg.max_bytes, cfg.burst_bytes) if cfg.burst_bytes else None

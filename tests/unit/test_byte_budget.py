@@ -1,0 +1,84 @@
+"""The byte budget of a rate-limited link (byte_budget.py) and the codec settings that ask for it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from co3sop_nodes.byte_budget import ByteBudget, budget_for
+from co3sop_nodes.codec import FeatureCodecConfig, encode_features
+from co3sop_nodes.errors import CodecError
+from co3sop_nodes.grid import GridSpec
+
+
+def test_unspent_bytes_carry_over_up_to_the_burst():
+    budget = ByteBudget(rate=100, burst=250)
+    assert budget.allowance() == 100  # one message's worth to start with
+    budget.spend(40)
+    assert budget.allowance() == 160
+    budget.spend(0)
+    assert budget.allowance() == 250  # 100 + 220 saved, capped at the burst
+    budget.spend(250)
+    assert budget.allowance() == 100
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_no_run_of_messages_from_the_start_takes_more_than_its_average(seed):
+    rng = np.random.default_rng(seed)
+    budget = ByteBudget(rate=1000, burst=int(rng.integers(1000, 5000)))
+    total = 0
+    for n in range(1, 200):
+        allowance = budget.allowance()
+        assert allowance <= budget.burst
+        used = int(rng.integers(0, allowance + 1))
+        budget.spend(used)
+        total += used
+        assert total <= n * budget.rate
+
+
+def test_overspending_is_an_error():
+    budget = ByteBudget(rate=100, burst=200)
+    with pytest.raises(CodecError, match="120 bytes overspends its allowance of 100"):
+        budget.spend(120)
+
+
+def test_a_codec_with_a_burst_gets_a_budget_and_one_without_does_not():
+    assert budget_for(FeatureCodecConfig("int8", "request", max_bytes=65536)) is None
+    budget = budget_for(FeatureCodecConfig("int8", "request", max_bytes=65536, burst_bytes=131072))
+    assert (budget.rate, budget.burst, budget.saved) == (65536, 131072, 0)
+    budget.spend(1000)
+    cfg = budget.config(FeatureCodecConfig("int8", "request", max_bytes=65536, burst_bytes=131072, rank=8))
+    assert (cfg.max_bytes, cfg.burst_bytes, cfg.rank) == (65536 + 64536, 131072, 8)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"burst_bytes": 1024}, "needs a max_bytes budget"),
+    ({"max_bytes": 4096, "burst_bytes": 1024}, "needs a max_bytes budget of at most it"),
+    ({"max_bytes": 4096, "burst_bytes": -1}, "whole number of bytes"),
+    ({"max_bytes": 4096, "burst_bytes": True}, "whole number of bytes"),
+])
+def test_bad_bursts_are_refused_naming_the_field(kw, match):
+    with pytest.raises(CodecError, match=match):
+        FeatureCodecConfig("int8", "request", **kw)
+
+
+def test_a_large_frame_takes_what_small_ones_left():
+    """Request maps under a 4 KB average: a frame asking for little leaves bytes a later, larger one spends."""
+    grid = GridSpec((0.0, 0.0, 0.0), 1.0, (16, 16, 4))
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(8, *grid.dims)).astype(np.float32)
+    confidence = rng.uniform(size=grid.dims).astype(np.float32)
+    small, large = np.zeros(grid.dims, np.float32), np.ones(grid.dims, np.float32)
+    small[:2] = 1.0
+    cfg = FeatureCodecConfig("int8", "request", max_bytes=4096, burst_bytes=12288)
+    assert cfg.name == "int8-request4KB-burst12KB-zstd"
+    capped = encode_features(features, confidence, grid, FeatureCodecConfig("int8", "request", max_bytes=4096), large)
+    budget, sizes = budget_for(cfg), []
+    for request in (small, small, large):
+        enc = encode_features(features, confidence, grid, budget.config(cfg), request)
+        budget.spend(enc.budget_bytes)
+        sizes.append(enc.budget_bytes)
+    assert sizes[0] < 4096 and sizes[1] < 4096
+    assert 4096 < sizes[2] <= 12288
+    assert sum(sizes) <= 3 * 4096
+    assert capped.budget_bytes <= 4096 < sizes[2]
