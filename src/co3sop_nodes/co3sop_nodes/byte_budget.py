@@ -6,9 +6,11 @@ per message to one receiver and burst_bytes the most one message may take:
 what a message leaves unspent is saved for the next ones, up to burst_bytes.
 This is a token bucket, as a link shaper (Linux tc `tbf`, the emulated
 channel's) carries a link's average rate with bursts up to its bucket; a
-frame that needs more than average (a close neighbour, a large overlap) can
-then take what quieter frames left. The bucket starts with one message's
-worth, so the first N messages never take more than N x max_bytes together.
+frame that needs more than average can then take what quieter frames left.
+As tbf's, the bucket starts full: the first message to a receiver (sent
+before any request map from it has arrived, so with no idea of what it
+lacks) may take burst_bytes, and any N messages take at most
+burst_bytes + (N - 1) x max_bytes together.
 """
 
 from __future__ import annotations
@@ -25,7 +27,11 @@ class ByteBudget:
 
     rate: int  # bytes per message on average (codec.max_bytes)
     burst: int  # the most one message may take (codec.burst_bytes)
-    saved: int = 0  # bytes earlier messages left unspent, carried over
+    saved: int | None = None  # bytes earlier messages left unspent, carried over (None: full, burst - rate)
+
+    def __post_init__(self) -> None:
+        if self.saved is None:
+            self.saved = self.burst - self.rate
 
     def allowance(self) -> int:
         """The bytes the next message may take."""
