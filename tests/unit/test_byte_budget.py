@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from co3sop_nodes.byte_budget import ByteBudget, budget_for
+from co3sop_nodes.byte_budget import ByteBudget, SenderBudgets, budget_for
 from co3sop_nodes.codec import FeatureCodecConfig, encode_features
 from co3sop_nodes.errors import CodecError
 from co3sop_nodes.grid import GridSpec
@@ -86,3 +86,15 @@ def test_a_large_frame_takes_what_small_ones_left():
     assert 4096 < sizes[2] <= 12288
     assert sum(sizes) <= 3 * 4096
     assert capped.budget_bytes <= 4096 < sizes[2]
+
+
+def test_a_receiver_that_joins_later_starts_where_the_messages_for_all_left_its_budget():
+    budgets = SenderBudgets(FeatureCodecConfig("int8", "request", max_bytes=100, burst_bytes=400))
+    everyone = budgets.of(None)
+    everyone.spend(400)  # the first message, for every receiver: the whole bucket
+    assert budgets.of(None) is everyone and everyone.allowance() == 100
+    late = budgets.of(7)  # its first own message: no second burst
+    assert late is not everyone and late.allowance() == 100
+    late.spend(10)
+    assert everyone.allowance() == 100 and budgets.of(7).allowance() == 190
+    assert SenderBudgets(FeatureCodecConfig("int8", "request", max_bytes=100)).of(3) is None  # each message capped alone

@@ -53,3 +53,19 @@ def budget_for(cfg: FeatureCodecConfig) -> ByteBudget | None:
     """A fresh budget where `cfg` averages its max_bytes over messages (burst_bytes set); None where each message is
     capped alone."""
     return ByteBudget(cfg.max_bytes, cfg.burst_bytes) if cfg.burst_bytes else None
+
+
+class SenderBudgets:
+    """A sender's budgets, one per receiver (None: the messages for every receiver, sent before any asked for its
+    own): a receiver's own budget starts where the messages for every receiver left it, as it got those too."""
+
+    def __init__(self, cfg: FeatureCodecConfig):
+        self.cfg = cfg
+        self._budgets: dict[int | None, ByteBudget | None] = {}
+
+    def of(self, receiver: int | None) -> ByteBudget | None:
+        """The budget towards `receiver`; None where `cfg` caps each message alone."""
+        if receiver not in self._budgets:
+            shared = self._budgets.get(None)
+            self._budgets[receiver] = replace(shared) if shared is not None else budget_for(self.cfg)
+        return self._budgets[receiver]

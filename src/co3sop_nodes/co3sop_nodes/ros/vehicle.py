@@ -32,7 +32,7 @@ from tf2_msgs.msg import TFMessage
 
 from .. import topics
 from ..assembly import Frame, FrameAssembly
-from ..byte_budget import ByteBudget, budget_for
+from ..byte_budget import SenderBudgets
 from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, decode_request
 from ..errors import CodecError, Co3sopError
 from ..grid import BENCHMARK_RANGES
@@ -109,7 +109,7 @@ class Vehicle(ManagedNode):
         self._requests: dict[int, Request] = {}  # requesting ego -> its latest request map
         self._request_subs: dict[str, object] = {}
         self._request_timer = None
-        self._budgets: dict[int | None, ByteBudget] = {}  # recipient ego (None: every ego) -> its byte budget
+        self._budgets: SenderBudgets | None = None
 
     def configure(self) -> None:
         p = self.params
@@ -212,13 +212,11 @@ class Vehicle(ManagedNode):
             self.codec = replace(self.codec, **{CODEC_FIELDS[k]: v for k, v in values.items()})
         except CodecError as exc:
             raise Co3sopError(str(exc)) from None
-        self._budgets = {}  # saved bytes were saved under the previous budget
+        self._budgets = SenderBudgets(self.codec)  # bytes saved under the previous budget do not carry over
 
     def _encode_for(self, out, ego: int | None, request: np.ndarray | None):
         """One message's encoding for `ego` (None: every ego), within its byte budget where the codec averages one."""
-        if ego not in self._budgets:
-            self._budgets[ego] = budget_for(self.codec)
-        budget = self._budgets[ego]
+        budget = self._budgets.of(ego)
         enc = encode_output(out, self.cfg.feature_grid, budget.config(self.codec) if budget else self.codec, request)
         if budget:
             budget.spend(enc.budget_bytes)
