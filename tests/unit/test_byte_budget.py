@@ -97,4 +97,10 @@ def test_a_receiver_that_joins_later_starts_where_the_messages_for_all_left_its_
     assert late is not everyone and late.allowance() == 100
     late.spend(10)
     assert everyone.allowance() == 100 and budgets.of(7).allowance() == 190
-    assert SenderBudgets(FeatureCodecConfig("int8", "request", max_bytes=100)).of(3) is None  # each message capped alone
+    assert budgets.config(7).max_bytes == 190
+    budgets.spend(7, 190)
+    assert budgets.config(7).max_bytes == 100
+    capped = SenderBudgets(FeatureCodecConfig("int8", "request", max_bytes=100))  # each message capped alone
+    assert capped.of(3) is None and capped.config(3) is capped.cfg
+    capped.spend(3, 100)
+    assert capped.config(3).max_bytes == 100

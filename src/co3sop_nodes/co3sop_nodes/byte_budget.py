@@ -69,3 +69,14 @@ class SenderBudgets:
             shared = self._budgets.get(None)
             self._budgets[receiver] = replace(shared) if shared is not None else budget_for(self.cfg)
         return self._budgets[receiver]
+
+    def config(self, receiver: int | None) -> FeatureCodecConfig:
+        """`cfg` for the next message to `receiver`: its max_bytes the allowance where the budget is a rate."""
+        budget = self.of(receiver)
+        return budget.config(self.cfg) if budget else self.cfg
+
+    def spend(self, receiver: int | None, used: int) -> None:
+        """A message of `used` bytes went to `receiver`."""
+        budget = self.of(receiver)
+        if budget:
+            budget.spend(used)

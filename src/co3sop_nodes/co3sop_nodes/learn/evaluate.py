@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..byte_budget import ByteBudget, budget_for
+from ..byte_budget import SenderBudgets
 from ..cli.common import progress, run
 from ..codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
 from ..collaboration import COMM_RANGE
@@ -66,7 +66,7 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
     confusions, sent = {}, []
-    budgets: dict[tuple, ByteBudget | None] = {}  # (scenario, sender, ego) -> the sender's budget towards that ego
+    senders: dict[tuple, SenderBudgets] = {}  # (scenario, sender) -> its byte budgets, one per ego
     cache = {} if cache is None else cache
     controlled = ControlledInputs(dataset, inputs)
     bar = progress(len(dataset), desc, "sample")
@@ -107,10 +107,11 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
             out = vehicle(record)
             if codec is not None:
                 wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)
-                budget = budgets.setdefault((sample.key[:2], record.cav_id, sample.ego.cav_id), budget_for(codec))
-                out, size = through_codec(out, model.cfg.feature_grid, budget.config(codec) if budget else codec, wanted)
-                if budget:
-                    budget.spend(size)
+                key = (sample.key[:2], record.cav_id)
+                if key not in senders:
+                    senders[key] = SenderBudgets(codec)
+                out, size = through_codec(out, model.cfg.feature_grid, senders[key].config(sample.ego.cav_id), wanted)
+                senders[key].spend(sample.ego.cav_id, size)
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
         pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)

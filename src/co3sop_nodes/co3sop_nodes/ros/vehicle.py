@@ -216,10 +216,8 @@ class Vehicle(ManagedNode):
 
     def _encode_for(self, out, ego: int | None, request: np.ndarray | None):
         """One message's encoding for `ego` (None: every ego), within its byte budget where the codec averages one."""
-        budget = self._budgets.of(ego)
-        enc = encode_output(out, self.cfg.feature_grid, budget.config(self.codec) if budget else self.codec, request)
-        if budget:
-            budget.spend(enc.budget_bytes)
+        enc = encode_output(out, self.cfg.feature_grid, self._budgets.config(ego), request)
+        self._budgets.spend(ego, enc.budget_bytes)
         return enc
 
     def _mounts_known(self, parts: dict) -> bool:
