@@ -35,6 +35,8 @@ CODECS = {  # the neighbours' vehicle parameters
     "int8 dense": ["codec.dtype:=int8", "codec.selection:=dense"],
     "request map, 64 KB": ["codec.dtype:=int8", "codec.selection:=request", "codec.max_bytes:=65536"],
     "request map, 64 KB, rank 8": ["codec.dtype:=int8", "codec.selection:=request", "codec.max_bytes:=65536", "codec.rank:=8"],
+    "request map, 64 KB with 256 KB bursts, rank 8, int4": ["codec.dtype:=int4", "codec.selection:=request", "codec.max_bytes:=65536",
+                                                            "codec.burst_bytes:=262144", "codec.rank:=8"],
 }
 
 

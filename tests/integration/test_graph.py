@@ -167,16 +167,18 @@ def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[st
                 for _, channel, message in make_reader(f).iter_messages() if re.fullmatch(topic_pattern, channel.topic)]
 
 
-@pytest.mark.parametrize("rank, budget, burst", [(0, 20000, 0), (8, 20000, 0), (8, 4000, 16000)], ids=["channels", "rank8", "rank8-burst"])
-def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, rank, budget, burst):
+@pytest.mark.parametrize("dtype, rank, budget, burst", [("int8", 0, 20000, 0), ("int8", 8, 20000, 0), ("int4", 8, 4000, 16000)],
+                         ids=["channels", "rank8", "rank8-int4-burst"])
+def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dtype, rank, budget, burst):
     """A request map reaches the vehicles (a stand-in's from before the first frame, then the ego's own after each
     frame); each vehicle answers it with the voxels it weighs highest under its byte budget, addressed to the ego;
     what arrives is what the same computation gives offline, byte for byte, and only where the ego asked. With
-    codec.rank the message carries 8 coefficients per voxel and its own basis; with codec.burst_bytes the budget is
-    an average per message (a token bucket, full at the start), what a message leaves unspent going to the next."""
+    codec.rank the message carries 8 coefficients per voxel (int4: two per byte) and its own basis; with
+    codec.burst_bytes the budget is an average per message (a token bucket, full at the start), what a message leaves
+    unspent going to the next."""
     bag, cavs = scenario
-    codec = FeatureCodecConfig("int8", "request", max_bytes=budget, burst_bytes=burst, rank=rank)
-    params = ["codec.dtype:=int8", "codec.selection:=request", f"codec.max_bytes:={budget}", f"codec.burst_bytes:={burst}",
+    codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, burst_bytes=burst, rank=rank)
+    params = [f"codec.dtype:={dtype}", "codec.selection:=request", f"codec.max_bytes:={budget}", f"codec.burst_bytes:={burst}",
               f"codec.rank:={rank}", "request_timeout:=60.0"]
     torch.set_num_threads(1)
     model, _ = load_model(shipped_checkpoint())
@@ -221,8 +223,8 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, ra
         expected = encode_output(out, fg, sender.config(codec) if sender else codec, wanted)
         if sender:
             sender.spend(expected.budget_bytes)
-        assert (enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale, enc.basis_rank, enc.basis, enc.basis_mean) == (
-            expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale, rank, expected.basis,
+        assert (enc.dtype, enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale, enc.basis_rank, enc.basis, enc.basis_mean) == (
+            dtype, expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale, rank, expected.basis,
             expected.basis_mean), f"cav {msg.agent_id}"
         sent = decode_features(enc).confidence.reshape(-1) > 0
         assert (wanted.reshape(-1)[sent] > 0).all()  # only voxels the ego asked for (none where it asked nothing in view)

@@ -96,6 +96,31 @@ def _assert_error(info, exc_type, *fragments: str) -> None:
         assert fragment in message, f"{fragment!r} not in error message {message!r}"
 
 
+QUANT_LEVELS = {"int8": 127, "int4": 7}  # q in [-L, L]
+
+
+def _wire_values(values_raw: bytes, dtype: str, rows: int, n: int) -> np.ndarray:
+    """Independent reading of the values payload as VoxelFeatures.msg documents it: (rows, n) of dtype's values
+    (int4: two per byte, the first in the low nibble, two's complement)."""
+    if dtype != "int4":
+        return np.frombuffer(values_raw, FEATURE_DTYPES[dtype]).reshape(rows, n)
+    packed = np.frombuffer(values_raw, np.uint8)
+    assert len(packed) == -(-rows * n // 2)
+    nibbles = np.stack([packed & 15, packed >> 4], axis=1).reshape(-1).astype(np.int16)
+    assert not (rows * n) % 2 or nibbles[-1] == 0  # padding clear
+    return np.where(nibbles >= 8, nibbles - 16, nibbles)[: rows * n].astype(np.int8).reshape(rows, n)
+
+
+def _quant_range(values: np.ndarray, dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) per row of (R, N) float64 values that the quantiser spans: min..max for int8; for int4 the mean
+    +- 3 standard deviations within min..max."""
+    lo, hi = values.min(axis=1), values.max(axis=1)
+    if dtype == "int4":
+        mean, spread = values.mean(axis=1), 3 * values.std(axis=1)
+        lo, hi = np.maximum(lo, mean - spread), np.minimum(hi, mean + spread)
+    return lo, hi
+
+
 def _raw_field(payload: bytes, codec_name: str) -> bytes:
     """Independent decompression of one wire payload (not via codec._decompress)."""
     if codec_name == "none" or not payload:
@@ -176,16 +201,16 @@ def _check_values(dtype, carried_in, carried_out, enc):
         if carried_in.shape[1] == 0:
             return
         vin = carried_in.astype(np.float64)
-        lo, hi = vin.min(axis=1), vin.max(axis=1)
+        lo, hi = _quant_range(vin, dtype)
         mag = np.maximum(np.abs(lo), np.abs(hi))
-        # the scale is as tight as 255 levels allow (not just "some" scale)...
-        assert np.all(scale <= (hi - lo) / 254 * (1 + 4 * EPS32) + 1e-44)
+        # the scale is as tight as 2L + 1 levels allow over the quantised range (not just "some" scale)...
+        assert np.all(scale <= (hi - lo) / (2 * QUANT_LEVELS[dtype]) * (1 + 4 * EPS32) + 1e-44)
         assert np.all(np.abs(offset - (hi + lo) / 2) <= 2 * EPS32 * mag + 1e-44)
-        # ...and every carried value is within half a step of its original
-        err = np.abs(carried_out.astype(np.float64) - vin)
+        # ...and every carried value is within half a step of its original, brought into that range
+        err = np.abs(carried_out.astype(np.float64) - np.clip(vin, lo[:, None], hi[:, None]))
         bound = scale / 2 + 4 * EPS32 * mag + 1e-37
         bad = err > bound[:, None]
-        assert not bad.any(), f"int8 error {err[bad]} over bound {np.broadcast_to(bound[:, None], err.shape)[bad]}"
+        assert not bad.any(), f"{dtype} error {err[bad]} over bound {np.broadcast_to(bound[:, None], err.shape)[bad]}"
 
 
 def _check_confidence(dtype, conf_in, conf_out):
@@ -204,19 +229,20 @@ def _check_sizes_and_wire(enc, features, confidence, cfg, mask):
     v = mask.size
     n = int(mask.sum())
     itemsize = FEATURE_DTYPES[cfg.dtype].itemsize
+    quantized = cfg.dtype in QUANT_LEVELS
     assert enc.channels == channels and enc.dtype == cfg.dtype and enc.codec == cfg.codec
     assert enc.sparse == (cfg.selection != "dense")
     assert enc.num_voxels == n
-    assert enc.values_raw_size == channels * n * itemsize
+    assert enc.values_raw_size == (-(-channels * n // 2) if cfg.dtype == "int4" else channels * n * itemsize)
     assert enc.voxel_mask_raw_size == (-(-v // 8) if enc.sparse else 0)
-    conf_itemsize = 1 if cfg.dtype == "int8" else itemsize
+    conf_itemsize = 1 if quantized else itemsize
     # has_confidence: the sender had a confidence volume; then the payload
     # carries one value per carried voxel, even when none is carried
     assert enc.has_confidence is (confidence is not None)
     assert enc.confidence_raw_size == (n * conf_itemsize if enc.has_confidence else 0)
     if not enc.has_confidence:
         assert enc.confidence == b""
-    if cfg.dtype != "int8":
+    if not quantized:
         assert enc.quant_scale == () and enc.quant_offset == ()
     assert enc.payload_bytes == len(enc.voxel_mask) + len(enc.values) + len(enc.confidence)
     assert enc.raw_bytes == enc.voxel_mask_raw_size + enc.values_raw_size + enc.confidence_raw_size
@@ -237,22 +263,27 @@ def _check_sizes_and_wire(enc, features, confidence, cfg, mask):
         np.testing.assert_array_equal(bits[:v].astype(bool), mask)
         assert not bits[v:].any()
     carried = features.reshape(channels, -1)[:, mask]
-    wire = np.frombuffer(values_raw, FEATURE_DTYPES[cfg.dtype]).reshape(channels, n)
-    if cfg.dtype == "int8":
-        assert wire.min(initial=0) >= -127  # symmetric levels
+    wire = _wire_values(values_raw, cfg.dtype, channels, n)
+    if quantized:
+        levels = QUANT_LEVELS[cfg.dtype]
+        assert wire.min(initial=0) >= -levels and wire.max(initial=0) <= levels  # symmetric levels
         # value = q * quant_scale[c] + quant_offset[c], the float32 parameters
         # applied in float64 (near float32's limits float32 arithmetic overflows)
         scale = np.asarray(enc.quant_scale, np.float32).astype(np.float64)[:, None]
         offset = np.asarray(enc.quant_offset, np.float32).astype(np.float64)[:, None]
         approx = wire.astype(np.float64) * scale + offset
-        err = np.abs(approx - carried.astype(np.float64))
+        target = carried.astype(np.float64)
+        if n:
+            lo, hi = _quant_range(target, cfg.dtype)
+            target = np.clip(target, lo[:, None], hi[:, None])
+        err = np.abs(approx - target)
         bound = scale / 2 + 4 * EPS32 * np.abs(carried.astype(np.float64)).max(axis=1, keepdims=True, initial=0) + 1e-37
         assert np.all(err <= bound)
     else:
         np.testing.assert_array_equal(wire, carried.astype(FEATURE_DTYPES[cfg.dtype]))
     if enc.has_confidence:
         carried_conf = confidence.reshape(-1)[mask]
-        if cfg.dtype == "int8":  # uint8 = round(255 * c)
+        if quantized:  # uint8 = round(255 * c)
             np.testing.assert_array_equal(np.frombuffer(conf_raw, np.uint8), np.rint(carried_conf * 255))
         else:
             np.testing.assert_array_equal(
@@ -308,10 +339,10 @@ def test_feature_round_trip(setting):
 
 
 def test_all_settings_are_covered():
-    # 3 dtypes x 4 selections x 2 codecs x {with, without confidence}, minus threshold without confidence
+    # 4 dtypes x 4 selections x 2 codecs x {with, without confidence}, minus threshold without confidence
     # ("request" without a request map ranks as "topk": what a vehicle sends before the first request arrives)
-    assert len(ALL_SETTINGS) == 3 * 4 * 2 * 2 - 3 * 2
-    assert set(FEATURE_DTYPES) == {"float32", "float16", "int8"}
+    assert len(ALL_SETTINGS) == 4 * 4 * 2 * 2 - 4 * 2
+    assert set(FEATURE_DTYPES) == {"float32", "float16", "int8", "int4"}
     assert set(SELECTIONS) == {"dense", "topk", "threshold", "request"}
     assert set(CODECS) == {"zstd", "none"}
 
@@ -408,6 +439,31 @@ def test_int8_constant_channel_is_exact():
     enc = encode_features(f, None, grid, FeatureCodecConfig(dtype="int8"))
     assert enc.quant_scale[0] == 0.0
     np.testing.assert_array_equal(decode_features(enc).features[0], f[0])
+
+
+def test_int4_packs_two_values_a_byte_and_spends_its_levels_on_the_bulk():
+    """Half of int8's payload; an outlier saturates instead of coarsening every other value's step."""
+    rng = np.random.default_rng(11)
+    grid = _grid((8, 8, 5))  # 320 voxels: an odd count of values below (3 rows x 107 voxels)
+    f = rng.normal(size=(3, *grid.dims)).astype(np.float32)
+    conf = rng.uniform(0, 0.9, size=grid.dims).astype(np.float32)
+    f[0, 0, 0, 0], conf[0, 0, 0] = 8.0, 1.0  # an outlier among standard normals, surely sent
+    cfg = FeatureCodecConfig("int4", "topk", topk=107, codec="none")
+    enc = encode_features(f, conf, grid, cfg)
+    int8 = encode_features(f, conf, grid, FeatureCodecConfig("int8", "topk", topk=107, codec="none"))
+    assert enc.values_raw_size == len(enc.values) == 161 and int8.values_raw_size == 321
+    np.testing.assert_array_equal(enc.voxel_mask, int8.voxel_mask)
+    np.testing.assert_array_equal(enc.confidence, int8.confidence)  # uint8 confidence, as int8's
+    dec = decode_features(enc)
+    mask = dec.mask.reshape(-1)
+    assert mask[0]
+    sent, got = f.reshape(3, -1)[:, mask].astype(np.float64), dec.features.reshape(3, -1)[:, mask]
+    scale = np.asarray(enc.quant_scale, np.float64)
+    assert scale[0] < 0.7 * (sent[0].max() - sent[0].min()) / 14  # finer than 15 levels over min..max
+    assert got[0, 0] == pytest.approx(enc.quant_offset[0] + 7 * scale[0], rel=1e-6) and got[0, 0] < 5  # saturated
+    bulk = np.abs(sent) < 2.5
+    assert np.all(np.abs(got - sent)[bulk] <= np.broadcast_to(scale[:, None], sent.shape)[bulk] / 2 + 1e-6)
+    assert FeatureCodecConfig("int4", "request", max_bytes=65536, rank=12).name == "int4-request64KB-pca12-zstd"
 
 
 def test_int8_confidence_levels():
@@ -1228,11 +1284,11 @@ def test_rank_wire_layout_decodes_independently(dtype, selection):
     enc = encode_features(features, confidence, grid, cfg, np.ones(grid.dims, np.float32))
     n = enc.num_voxels
     assert (enc.basis_rank, enc.rows, len(enc.basis), len(enc.basis_mean)) == (rank, rank, 12 * rank, 12)
-    assert enc.values_raw_size == rank * n * FEATURE_DTYPES[dtype].itemsize
-    assert len(enc.quant_scale) == (rank if dtype == "int8" else 0)
+    assert enc.values_raw_size == (-(-rank * n // 2) if dtype == "int4" else rank * n * FEATURE_DTYPES[dtype].itemsize)
+    assert len(enc.quant_scale) == (rank if dtype in QUANT_LEVELS else 0)
     assert enc.budget_bytes == enc.payload_bytes + 4 * (len(enc.quant_scale) + len(enc.quant_offset) + 12 * rank + 12)
-    wire = np.frombuffer(_raw_field(enc.values, cfg.codec), FEATURE_DTYPES[dtype]).reshape(rank, n).astype(np.float64)
-    if dtype == "int8":
+    wire = _wire_values(_raw_field(enc.values, cfg.codec), dtype, rank, n).astype(np.float64)
+    if dtype in QUANT_LEVELS:
         wire = wire * np.asarray(enc.quant_scale, np.float64)[:, None] + np.asarray(enc.quant_offset, np.float64)[:, None]
     basis = np.asarray(enc.basis, np.float64).reshape(12, rank)
     np.testing.assert_allclose(basis.T @ basis, np.eye(rank), atol=1e-6)  # orthonormal directions

@@ -229,12 +229,12 @@ def _plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    colours = plt.get_cmap("tab20").colors  # one per codec (the default cycle repeats after 10)
+    fig, ax = plt.subplots(figsize=(9.5, 4.5))
+    colours = plt.get_cmap("tab20").colors  # one per codec (the default cycle repeats after 10; int4's own marker after 20)
     for i, (name, r) in enumerate(results.items()):
         low, high = r["gain_kept"]["ci95"]
         kept = r["gain_kept"]["ratio"]
-        marker = "s" if "request" in name else "o"
+        marker = "D" if name.startswith("int4") else "s" if "request" in name else "o"
         ax.errorbar(r["bytes"], 100 * kept, yerr=[[100 * (kept - low)], [100 * (high - kept)]], fmt=marker, capsize=3, label=name,
                     color=colours[i % len(colours)], markerfacecolor="none" if "pca" in name else None)
     for name, size in PAPER_SIZES.items():
@@ -247,7 +247,7 @@ def _plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
     ax.set_ylabel("collaboration gain kept (%)")
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=6, loc="lower right")
+    ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes: no point hidden
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
