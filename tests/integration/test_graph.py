@@ -23,7 +23,7 @@ from conftest import executable
 
 from co3sop_nodes import topics
 from co3sop_nodes.bags import read_frames
-from co3sop_nodes.byte_budget import budget_for
+from co3sop_nodes.byte_budget import SenderBudgets
 from co3sop_nodes.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.learn.bag_eval import predict_bag, vehicle_outputs
 from co3sop_nodes.model.checkpoint import export_model, load_model, shipped_checkpoint
@@ -213,16 +213,15 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     for _, msg in sorted(addressed, key=lambda tm: (tm[1].agent_id, stamp_to_ns(tm[1].header.stamp))):  # each sender's in order
         enc = features_from_msg(msg)
         assert enc.budget_bytes <= (burst or budget)
-        sender = budgets.setdefault(msg.agent_id, budget_for(codec))
+        sender = budgets.setdefault(msg.agent_id, SenderBudgets(codec))
         spent[msg.agent_id] = spent.get(msg.agent_id, []) + [enc.budget_bytes]
         assert sum(spent[msg.agent_id]) <= (burst or budget) + (len(spent[msg.agent_id]) - 1) * budget  # a token bucket's bound
         request = requests[used[msg.agent_id, stamp_to_ns(msg.header.stamp)]]
         need = decode_request(request_from_msg(request))
         out, world_from_vehicle = outputs[stamp_to_ns(msg.header.stamp)][msg.agent_id]
         wanted = request_for_neighbour(need, pose_from_msg(request.lidar_pose).matrix(), world_from_vehicle, fg)
-        expected = encode_output(out, fg, sender.config(codec) if sender else codec, wanted)
-        if sender:
-            sender.spend(expected.budget_bytes)
+        expected = encode_output(out, fg, sender.config(cavs[0]), wanted)
+        sender.spend(cavs[0], expected.budget_bytes)
         assert (enc.dtype, enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale, enc.basis_rank, enc.basis, enc.basis_mean) == (
             dtype, expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale, rank, expected.basis,
             expected.basis_mean), f"cav {msg.agent_id}"

@@ -262,7 +262,7 @@ def _values_raw_size(dtype: str, count: int) -> int:
 
 def _pack_int4(q: np.ndarray) -> bytes:
     """int8 values in [-8, 7] (flat order) -> two per byte, the first in the low nibble."""
-    nibbles = (q.reshape(-1).astype(np.int16) & 0xF).astype(np.uint8)
+    nibbles = q.reshape(-1).view(np.uint8) & 0xF  # two's complement: the low 4 bits
     if nibbles.size % 2:
         nibbles = np.append(nibbles, np.uint8(0))
     return (nibbles[0::2] | (nibbles[1::2] << 4)).tobytes()
@@ -273,7 +273,7 @@ def _unpack_int4(raw: bytes, count: int) -> np.ndarray:
     packed = np.frombuffer(raw, np.uint8)
     nibbles = np.empty(2 * packed.size, np.uint8)
     nibbles[0::2], nibbles[1::2] = packed & 0xF, packed >> 4
-    return ((nibbles[:count].astype(np.int16) ^ 8) - 8).astype(np.int8)  # two's complement of 4 bits
+    return (nibbles[:count].view(np.int8) ^ 8) - 8  # two's complement of 4 bits
 
 
 def _confidence_dtype(dtype: str) -> np.dtype:
