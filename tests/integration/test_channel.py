@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ from conftest import executable
 from co3sop_nodes import channel as ch
 from co3sop_nodes import topics
 from co3sop_nodes.channel import Channel, ChannelError, Link
+from co3sop_nodes.ros.dds import channel_environment
 from co3sop_nodes.scoring import message_counts
 
 FRAMES = 5
@@ -131,6 +133,33 @@ def test_missing_tools_are_named(monkeypatch, tmp_path):
         Channel({"ego": Link(10.0)})
     with pytest.raises(ChannelError, match="loss must be in"):
         Link(10.0, loss=1.5)
+
+
+def transports(member: str | None) -> dict[str, dict[str, str]]:
+    """The transports of the Fast DDS profile a channel member's processes get: type -> its settings."""
+    env = channel_environment(member)
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"  # discovery across the bridge
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.parse(env["FASTRTPS_DEFAULT_PROFILES_FILE"]).getroot()
+    found = {}
+    for descriptor in root.iterfind(".//f:transport_descriptor", ns):
+        found[descriptor.findtext("f:type", namespaces=ns)] = {child.tag.split("}")[1]: child.text for child in descriptor}
+    participant = root.find(".//f:participant", ns)
+    assert participant.get("is_default_profile") == "true"
+    assert participant.findtext(".//f:useBuiltinTransports", namespaces=ns) == "false"
+    used = {t.text for t in participant.iterfind(".//f:userTransports/f:transport_id", ns)}
+    assert used == {t["transport_id"] for t in found.values()}
+    return found
+
+
+def test_neighbours_share_no_memory_and_every_process_takes_the_same_udp_messages():
+    # the ego's car and the simulator (its sensors): shared memory among themselves (the ego's lossless feature
+    # volume never crosses a network stack) and UDP to the neighbours; a neighbour: UDP only, or shared memory
+    # would bypass its link. Fast DDS sizes its receive buffers by maxMessageSize: one process sending larger
+    # datagrams than the others accept would reach none of them (as a profile with the default 64 KB did)
+    onboard, simulator, neighbour = transports("ego"), transports(None), transports("cav637")
+    assert set(onboard) == set(simulator) == {"SHM", "UDPv4"} and set(neighbour) == {"UDPv4"}
+    assert {p["UDPv4"]["maxMessageSize"] for p in (onboard, neighbour, simulator)} == {"1400"}
 
 
 # --- the demo graph over the channel ---------------------------------------------------------------------

@@ -358,8 +358,9 @@ def encode_features(
 
 
 def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
-    """The most best-scored voxels whose encoding fits cfg.max_bytes (bisection on their count: the size grows
-    with it, up to compression noise, so the result always fits and is within a few voxels of the largest)."""
+    """The most best-scored voxels whose encoding fits cfg.max_bytes: all the candidates when they fit (one
+    encoding; under a request map they often do), else bisection on their count (the size grows with it, up to
+    compression noise, so the result always fits and is within a few voxels of the largest)."""
     score = _score(features, confidence, request)
     order = np.argsort(-score, kind="stable")
     if request is not None:
@@ -370,7 +371,10 @@ def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig
     def encoded(k: int) -> EncodedFeatures:
         return _encode(features, confidence, grid, cfg, np.sort(order[:k]), basis)
 
-    lo, hi = 0, len(order)
+    best = encoded(len(order))
+    if best.budget_bytes <= cfg.max_bytes:
+        return best
+    lo, hi = 0, len(order)  # hi as if the full count were untried: the same bisection, the same voxels, as without the shortcut
     best = encoded(0)
     if best.budget_bytes > cfg.max_bytes:
         raise CodecError(f"max_bytes {cfg.max_bytes}: even an empty selection takes {best.budget_bytes} bytes")

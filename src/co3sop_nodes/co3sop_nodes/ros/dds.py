@@ -158,15 +158,22 @@ def flush_publishers(node: Node, publishers, timeout: float = 5.0) -> None:
             node.get_logger().warning(f"{pub.topic_name}: not every subscriber acknowledged the last messages")
 
 
-def fastdds_profile_path() -> str:
-    """The shipped Fast DDS profile (large shared-memory segment)."""
-    return os.path.join(get_package_share_directory(PACKAGE), "config", "fastdds.xml")
+def fastdds_profile_path(name: str = "fastdds.xml") -> str:
+    """A shipped Fast DDS profile; by default the one every process uses (large shared-memory segment)."""
+    return os.path.join(get_package_share_directory(PACKAGE), "config", name)
 
 
-def channel_environment() -> dict[str, str]:
-    """What every DDS process of an emulated V2X channel needs (channel.py): UDP only, discovery past localhost."""
-    return {"FASTRTPS_DEFAULT_PROFILES_FILE": os.path.join(get_package_share_directory(PACKAGE), "config", "fastdds_udp.xml"),
-            "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
+def channel_environment(member: str | None) -> dict[str, str]:
+    """What a DDS process of an emulated V2X channel (channel.py) needs: discovery past localhost and the Fast DDS
+    profile of where it runs. The ego's car (member "ego": the fusion node, its own encoder, the recorder) and the
+    machine's side (None: the simulator, which stands for the ego's sensors too, and the launcher): shared memory
+    among themselves, UDP to the neighbours (fastdds_onboard.xml), so the ego's own lossless feature volume never
+    crosses a network stack. A neighbour: UDP only (fastdds_udp.xml), so everything it exchanges crosses a link
+    (shared memory would bypass them: every namespace sees the same /dev/shm). All UDP takes RTPS messages of at
+    most 1400 bytes: Fast DDS sizes its receive buffers by that limit, so a process sending larger datagrams would
+    reach nobody."""
+    profile = "fastdds_onboard.xml" if member in ("ego", None) else "fastdds_udp.xml"
+    return {"FASTRTPS_DEFAULT_PROFILES_FILE": fastdds_profile_path(profile), "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
 
 
 def configure_environment() -> None:

@@ -22,7 +22,10 @@ each neighbour in its own network namespace, their transmit limited to
 --channel-rate Mbit/s of real time (times --rate, so that the link keeps its
 real-time meaning at a slower playback) with --channel-loss percent of their
 packets dropped at random; the player and this launcher stay on the machine's
-side, unshaped. DDS runs over UDP only there (config/fastdds_udp.xml).
+side, unshaped. A neighbour's DDS runs over UDP only (config/fastdds_udp.xml);
+the ego's processes and the player share memory among themselves, as one car's
+computers and sensors would (config/fastdds_onboard.xml), and reach the
+neighbours over UDP.
 Namespaces are removed on exit, SIGINT and SIGTERM included.
 """
 
@@ -81,10 +84,10 @@ def executable(name: str) -> str:
 class Process:
     """A child process whose output is echoed with a prefix (or swallowed)."""
 
-    def __init__(self, label: str, argv: list[str], echo: bool = True):
+    def __init__(self, label: str, argv: list[str], echo: bool = True, env: dict[str, str] | None = None):
         self.label = label
         self._echo = echo
-        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ),
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})},
                                      start_new_session=True)  # Ctrl-C on the demo reaches the demo only; it stops the children
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -210,7 +213,7 @@ def main(args: list[str] | None = None) -> int:
     if opts.channel_rate is not None:
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)
         channel = Channel({member: link for member in ["ego", *(f"cav{c}" for c in cavs[1:])]})
-        os.environ.update(channel_environment())  # before any DDS participant, the supervisor's included
+        os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
         say(f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} Mbit/s of real time "
             f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost")
     with channel or contextlib.nullcontext():
@@ -226,21 +229,23 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
     """The nodes started (inside the channel's namespaces where there is one), the bag played, the recording scored."""
     ego = cavs[0]
 
-    def on(member: str, argv: list[str]) -> list[str]:
-        return channel.wrap(member, argv) if channel else argv
+    echo = not opts.quiet
+
+    def on(member: str, label: str, argv: list[str]) -> Process:
+        """argv started in `member`'s car: on a channel, in its namespace with its DDS profile."""
+        return Process(label, channel.wrap(member, argv), echo, channel_environment(member)) if channel else Process(label, argv, echo)
 
     model = ["-p", f"checkpoint:={checkpoint}", "-p", "autostart:=false"]  # the demo drives the lifecycle
     ros_params = [x for p in opts.params for x in ("-p", p)]
-    echo = not opts.quiet
     ego_params = [x for p in opts.ego_params for x in ("-p", p)]
     shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]  # the layout's camera panels
-    recorder = Process("recorder", on("ego", [executable("recorder"), "--out", str(mcap), "--topics", *DEFAULT_TOPICS, *shown]), echo)
-    nodes = {"/ego": Process("ego", on("ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params]), echo)}
+    recorder = on("ego", "recorder", [executable("recorder"), "--out", str(mcap), "--topics", *DEFAULT_TOPICS, *shown])
+    nodes = {"/ego": on("ego", "ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params])}
     # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
     lossless = [x for p in LOSSLESS for x in ("-p", p)]
     for c in cavs:
-        nodes[topics.vehicle_node(c)] = Process(f"vehicle {c}", on("ego" if c == ego else f"cav{c}", [
-            executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)]), echo)
+        nodes[topics.vehicle_node(c)] = on("ego" if c == ego else f"cav{c}", f"vehicle {c}", [
+            executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)])
     player = None
     supervisor = Supervisor("demo", alive=lambda: next((f"{p.label} exited with code {p.proc.returncode}" for p in [recorder, *nodes.values()]
                                                         if p.proc.poll() is not None), None))
