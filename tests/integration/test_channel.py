@@ -160,6 +160,10 @@ def test_neighbours_share_no_memory_and_every_process_takes_the_same_udp_message
     onboard, simulator, neighbour = transports("ego"), transports(None), transports("cav637")
     assert set(onboard) == set(simulator) == {"SHM", "UDPv4"} and set(neighbour) == {"UDPv4"}
     assert {p["UDPv4"]["maxMessageSize"] for p in (onboard, neighbour, simulator)} == {"1400"}
+    # shared memory carries 1400-byte fragments too (Fast DDS fragments at its transports' smallest message size):
+    # its port queue must hold two of the ego's own lossless volumes (32 x 64x64x6 float32 at 51.2 m), or a
+    # best-effort reader loses most of them
+    assert int(onboard["SHM"]["port_queue_capacity"]) * 1400 >= 2 * 32 * 64 * 64 * 6 * 4
 
 
 # --- the demo graph over the channel ---------------------------------------------------------------------

@@ -358,9 +358,10 @@ def encode_features(
 
 
 def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
-    """The most best-scored voxels whose encoding fits cfg.max_bytes: all the candidates when they fit (one
-    encoding; under a request map they often do), else bisection on their count (the size grows with it, up to
-    compression noise, so the result always fits and is within a few voxels of the largest)."""
+    """The most best-scored voxels whose encoding fits cfg.max_bytes: bisection on their count (the size grows
+    with it, up to compression noise, so the result always fits and is within a few voxels of the largest). Each
+    try costs a compression: once half of the candidates fit, all of them are tried (under a request map they often
+    fit: three encodings instead of log2 of the candidates; where they do not, the bisection goes on unchanged)."""
     score = _score(features, confidence, request)
     order = np.argsort(-score, kind="stable")
     if request is not None:
@@ -371,18 +372,21 @@ def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig
     def encoded(k: int) -> EncodedFeatures:
         return _encode(features, confidence, grid, cfg, np.sort(order[:k]), basis)
 
-    best = encoded(len(order))
-    if best.budget_bytes <= cfg.max_bytes:
-        return best
-    lo, hi = 0, len(order)  # hi as if the full count were untried: the same bisection, the same voxels, as without the shortcut
+    lo, hi = 0, len(order)
     best = encoded(0)
     if best.budget_bytes > cfg.max_bytes:
         raise CodecError(f"max_bytes {cfg.max_bytes}: even an empty selection takes {best.budget_bytes} bytes")
+    tried_all = False
     while lo < hi:
         mid = (lo + hi + 1) // 2
         enc = encoded(mid)
         if enc.budget_bytes <= cfg.max_bytes:
             lo, best = mid, enc
+            if not tried_all and lo < hi:
+                tried_all = True
+                enc = encoded(hi)
+                if enc.budget_bytes <= cfg.max_bytes:
+                    return enc
         else:
             hi = mid - 1
     return best
