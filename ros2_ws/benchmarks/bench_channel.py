@@ -1,7 +1,7 @@
 """Benchmark through the emulated V2X channel: link rate x loss x codec, the demo graph once per cell.
 
     ros2_ws/benchmarks/bench_channel.py [--bag BAG] [--link 6 27 100] [--loss 0 5] [--reliability reliable best_effort]
-        [--play-rate 0.25] [--out results/bench_channel]
+        [--play-rate 0.25] [--repeats 1] [--out results/bench_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/channel.py). Each cell runs
 `demo --channel-rate LINK --channel-loss LOSS --rate PLAY_RATE` with the
@@ -40,8 +40,8 @@ CODECS = {  # the neighbours' vehicle parameters
 }
 
 
-def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str) -> dict:
-    out = opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}"
+def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str, run: int = 0) -> dict:
+    out = opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}{f'-run{run}' if run else ''}"
     qos = f"features_reliability:={reliability}"
     argv = [demo, "--out", str(out), "--quiet", "--rate", f"{opts.play_rate:g}", "--channel-rate", f"{link:g}",
             "--channel-loss", f"{loss:g}", "--params", *CODECS[codec], qos, "--ego-params", qos] + (["--bag", str(opts.bag)] if opts.bag else [])
@@ -72,6 +72,7 @@ def main() -> int:
     parser.add_argument("--reliability", nargs="+", default=list(RELIABILITIES), choices=list(RELIABILITIES),
                         help="the features' QoS")
     parser.add_argument("--play-rate", type=float, default=0.25, help="the bag's play rate (the link is scaled by it)")
+    parser.add_argument("--repeats", type=int, default=1, help="runs of each cell (a row each, then their median)")
     parser.add_argument("--out", type=Path, default=Path("results/bench_channel"))
     opts = parser.parse_args()
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
@@ -84,10 +85,16 @@ def main() -> int:
         for loss in opts.loss:
             for codec in opts.codecs:
                 for reliability in opts.reliability:
-                    r = cell(demo, opts, link, loss, codec, reliability)
-                    results.append(r)
-                    rows.append(f"| {link:g} | {loss:g} | {codec} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
-                                f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |")
+                    runs = [cell(demo, opts, link, loss, codec, reliability, run) for run in (range(1, opts.repeats + 1) if opts.repeats > 1 else [0])]
+                    results.extend(runs)
+                    for i, r in enumerate(runs, 1):
+                        label = f"{codec} (run {i})" if opts.repeats > 1 else codec
+                        rows.append(f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
+                                    f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |")
+                    if opts.repeats > 1:
+                        m = {k: float(np.median([r[k] for r in runs])) for k in ("fused", "bytes", "latency_p50", "latency_p95", "miou24", "miou23")}
+                        rows.append(f"| {link:g} | {loss:g} | {codec} (median of {opts.repeats}) | {reliability.replace('_', ' ')} | {100 * m['fused']:.0f} | "
+                                    f"{m['bytes']:,.0f} | {m['latency_p50']:.0f} / {m['latency_p95']:.0f} | {100 * m['miou24']:.2f} | {100 * m['miou23']:.2f} | - |")
     text = "\n".join(rows)
     print(text)
     opts.out.mkdir(parents=True, exist_ok=True)
