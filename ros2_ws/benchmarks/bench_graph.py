@@ -6,9 +6,12 @@
 
 Runs the demo graph (player + 3 vehicles + ego + recorder, separate processes
 over DDS, at the demo's rate) once per V2X codec setting of the neighbours
-(the ego's own encoder is lossless, as in `demo`) and once with the ego's
-vehicle alone (what collaboration adds), then reads the
-recordings: ego and vehicle diagnostics on /diagnostics give bytes received
+(dense, top-k by their own confidence, request maps at several byte budgets;
+the ego's own encoder is lossless, as in `demo`) and once with the ego's
+vehicle alone (what collaboration adds: the share of it each codec keeps,
+printed and drawn against its bytes in OUT/bench_graph_codecs.png with the
+papers' message sizes marked; one scene, so no interval: `evaluate --ablation
+codec` has them over the test split), then reads the recordings: ego and vehicle diagnostics on /diagnostics give bytes received
 per agent-frame, stage times and CPU time per frame (time.process_time of the
 frame's work) and wall-clock marks on this host's clock; `score` gives mIoU.
 Latency = ego's /ego/occupancy publication - the first sensor message of that
@@ -35,16 +38,28 @@ from pathlib import Path
 import numpy as np
 from ament_index_python.packages import get_package_prefix
 
+from co3sop_nodes.codec import FeatureCodecConfig
+from co3sop_nodes.learn.evaluate import plot_codecs
+from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 from co3sop_nodes.scoring import read_recording
 
-SETTINGS = {  # name -> `demo` arguments (--params: the neighbours' vehicle parameters); the lossless reference first
-    "float32-dense-none": ["--params", "codec.dtype:=float32", "codec.selection:=dense", "codec.compression:=none"],
-    "float16-dense-zstd": ["--params", "codec.dtype:=float16", "codec.selection:=dense"],
-    "int8-dense-zstd": ["--params", "codec.dtype:=int8", "codec.selection:=dense"],
-    "int8-topk4096-zstd": ["--params", "codec.dtype:=int8", "codec.selection:=topk", "codec.topk:=4096"],
-    "int8-topk1024-zstd": ["--params", "codec.dtype:=int8", "codec.selection:=topk", "codec.topk:=1024"],
-    "ego-alone-no-v2x": ["--vehicles", "1"],  # what collaboration adds: only the ego's own vehicle runs
-}
+# The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps
+# (the ego's previous frame's) at several budgets, as `evaluate --ablation codec` compares them offline
+CODECS = (
+    FeatureCodecConfig("float32", "dense", codec="none"),
+    FeatureCodecConfig("float16", "dense"),
+    FeatureCodecConfig("int8", "dense"),
+    FeatureCodecConfig("int8", "topk", topk=4096),
+    FeatureCodecConfig("int8", "topk", topk=1024),
+    FeatureCodecConfig("int8", "topk", max_bytes=65536),
+    FeatureCodecConfig("int8", "request", max_bytes=65536),
+    FeatureCodecConfig("int4", "request", max_bytes=65536, burst_bytes=262144, rank=8),
+    FeatureCodecConfig("int4", "request", max_bytes=32768, rank=8),
+    FeatureCodecConfig("int4", "request", max_bytes=16384, rank=8),
+)
+ALONE = "ego-alone-no-v2x"  # what collaboration adds: only the ego's own vehicle runs
+SETTINGS = {**{cfg.name: ["--params", *(f"{param}:={getattr(cfg, field)}" for param, field in CODEC_FIELDS.items())] for cfg in CODECS},
+            ALONE: ["--vehicles", "1"]}  # name -> `demo` arguments (--params: the neighbours' vehicle parameters)
 # the ego's fast paths against its reference paths (PyTorch warp and sampling, dense head, reference cloud), same codec,
 # same slow rate: stage ratios
 PATHS = {"ego-fast-paths": ["--rate", "0.04"], "ego-reference-paths": ["--rate", "0.04", "--ego-params", "reference_paths:=true"]}
@@ -149,18 +164,30 @@ def main() -> int:
         score = json.loads((out / "score.json").read_text())
         results[name] = {**measure(out / "demo.mcap"), "miou": score["co3sop-readme"]["miou"], "miou_code": score["co3sop-code"]["miou"]}
     ref = results[opts.settings[0]]
+    alone = results.get(ALONE)
+    # gain kept: (codec - alone) / (lossless - alone) in mIoU 1..23, as `evaluate --ablation codec` computes it, on this
+    # one scene (no interval: that needs the test split's scenarios, offline)
+    gain = ref["miou_code"] - alone["miou_code"] if alone else float("nan")
+    for r in results.values():
+        r["gain_kept"] = (r["miou_code"] - alone["miou_code"]) / gain if alone and gain > 0 else float("nan")
     print(f"\n| V2X feature codec (neighbours) | bytes per neighbour-frame | vs {opts.settings[0]} | mIoU co3sop-readme | change (points) | "
-          "latency p50 / p95 (ms) | DDS share p50 |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+          "mIoU co3sop-code | gain kept (%) | latency p50 / p95 (ms) | DDS share p50 |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, r in results.items():
         print(f"| {name} | {r['bytes_per_agent_frame']:,.0f} | {r['bytes_per_agent_frame'] / ref['bytes_per_agent_frame'] if ref['bytes_per_agent_frame'] else 0:.3f} | "
-              f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | "
-              f"{100 * r['dds_share_p50']:.1f} % |")
+              f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {100 * r['miou_code']:.2f} | {100 * r['gain_kept']:.0f} | "
+              f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {100 * r['dds_share_p50']:.1f} % |")
+    opts.out.mkdir(parents=True, exist_ok=True)
+    if alone and gain > 0:
+        curve = {name: {"bytes": r["bytes_per_agent_frame"], "gain_kept": {"ratio": r["gain_kept"], "ci95": (r["gain_kept"], r["gain_kept"])}}
+                 for name, r in results.items() if name != ALONE}
+        plot_codecs(opts.out / "bench_graph_codecs.png", curve, "the node graph on the demo scene: gain kept per neighbours' codec "
+                    "(one scene, no interval)")
+        print(f"\nThe curve: {opts.out / 'bench_graph_codecs.png'}")
     cpu_setting = CPU_SETTING if CPU_SETTING in results else opts.settings[-1]
     r = results[cpu_setting]
     print(f"\nCPU time per frame (ms, median) with {cpu_setting}: " + ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_ms_per_frame"].items()))
     print("ego stages (ms, median): " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f}" for k, v in r["ego_stage_ms"].items()))
-    opts.out.mkdir(parents=True, exist_ok=True)
     (opts.out / "bench_graph.json").write_text(json.dumps(results, indent=2) + "\n")
     return 0
 

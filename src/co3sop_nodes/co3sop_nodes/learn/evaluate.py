@@ -215,15 +215,16 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
             "motion (none on the ego's first frame of a scenario, where a vehicle weighs by its own confidence alone): the "
             "last column leaves those first frames out.\n\n" + "\n".join(rows))
     _write(opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results})
-    _plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
+    plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
 
 
 # What the papers' collaborators send per neighbour-frame (issue 17): the curve is read against them
 PAPER_SIZES = {"Co3SOP (dense float32)": 18.9e6, "CoHFF": 0.78e6, "VOGS-CP": 0.27e6}
 
 
-def _plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
-    """Share of the collaboration gain kept against bytes per neighbour-frame (log scale), with intervals."""
+def plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
+    """Share of the collaboration gain kept against bytes per neighbour-frame (log scale), with intervals: results[codec
+    name] = {"bytes": ..., "gain_kept": {"ratio": ..., "ci95": (low, high)}}."""
     import matplotlib
 
     matplotlib.use("Agg")
