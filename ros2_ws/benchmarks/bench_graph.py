@@ -38,25 +38,17 @@ from pathlib import Path
 import numpy as np
 from ament_index_python.packages import get_package_prefix
 
-from co3sop_nodes.codec import FeatureCodecConfig
+from co3sop_nodes.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.learn.evaluate import plot_codecs
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 from co3sop_nodes.scoring import read_recording
 
 # The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps
-# (the ego's previous frame's) at several budgets, as `evaluate --ablation codec` compares them offline
-CODECS = (
-    FeatureCodecConfig("float32", "dense", codec="none"),
-    FeatureCodecConfig("float16", "dense"),
-    FeatureCodecConfig("int8", "dense"),
-    FeatureCodecConfig("int8", "topk", topk=4096),
-    FeatureCodecConfig("int8", "topk", topk=1024),
-    FeatureCodecConfig("int8", "topk", max_bytes=65536),
-    FeatureCodecConfig("int8", "request", max_bytes=65536),
-    FeatureCodecConfig("int4", "request", max_bytes=65536, burst_bytes=262144, rank=8),
-    FeatureCodecConfig("int4", "request", max_bytes=32768, rank=8),
-    FeatureCodecConfig("int4", "request", max_bytes=16384, rank=8),
-)
+# (the ego's previous frame's) at several budgets, among those `evaluate --ablation codec` compares offline
+OFFLINE = {cfg.name: cfg for cfg in (*STANDARD_FEATURE_SETTINGS, *BUDGET_FEATURE_SETTINGS, *RANK_FEATURE_SETTINGS)}
+CODECS = [OFFLINE[name] for name in (
+    "float32-dense-none", "float16-dense-zstd", "int8-dense-zstd", "int8-topk4096-zstd", "int8-topk1024-zstd", "int8-topk64KB-zstd",
+    "int8-request64KB-zstd", "int4-request64KB-burst256KB-pca8-zstd", "int4-request32KB-pca8-zstd", "int4-request16KB-pca8-zstd")]
 ALONE = "ego-alone-no-v2x"  # what collaboration adds: only the ego's own vehicle runs
 SETTINGS = {**{cfg.name: ["--params", *(f"{param}:={getattr(cfg, field)}" for param, field in CODEC_FIELDS.items())] for cfg in CODECS},
             ALONE: ["--vehicles", "1"]}  # name -> `demo` arguments (--params: the neighbours' vehicle parameters)
