@@ -87,14 +87,13 @@ def main() -> int:
                 for reliability in opts.reliability:
                     runs = [cell(demo, opts, link, loss, codec, reliability, run) for run in (range(1, opts.repeats + 1) if opts.repeats > 1 else [0])]
                     results.extend(runs)
-                    for i, r in enumerate(runs, 1):
-                        label = f"{codec} (run {i})" if opts.repeats > 1 else codec
-                        rows.append(f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
-                                    f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |")
+                    labelled = [(f"{codec} (run {i})" if opts.repeats > 1 else codec, r) for i, r in enumerate(runs, 1)]
                     if opts.repeats > 1:
-                        m = {k: float(np.median([r[k] for r in runs])) for k in ("fused", "bytes", "latency_p50", "latency_p95", "miou24", "miou23")}
-                        rows.append(f"| {link:g} | {loss:g} | {codec} (median of {opts.repeats}) | {reliability.replace('_', ' ')} | {100 * m['fused']:.0f} | "
-                                    f"{m['bytes']:,.0f} | {m['latency_p50']:.0f} / {m['latency_p95']:.0f} | {100 * m['miou24']:.2f} | {100 * m['miou23']:.2f} | - |")
+                        median = {k: float(np.median([r[k] for r in runs])) for k in ("fused", "bytes", "latency_p50", "latency_p95", "miou24", "miou23")}
+                        labelled.append((f"{codec} (median of {opts.repeats})", {**median, "lost": "-"}))
+                    rows += [f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
+                             f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |"
+                             for label, r in labelled]
     text = "\n".join(rows)
     print(text)
     opts.out.mkdir(parents=True, exist_ok=True)
