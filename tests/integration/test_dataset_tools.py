@@ -110,6 +110,14 @@ def test_tools_explain_bad_paths_without_traceback(tmp_path):
         assert result.returncode == 2 and "error:" in result.stderr and "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("option", [("--frames", "0"), ("--image-size", "0x48"), ("--lidar-steps", "-1"), ("--vehicles", "-1"),
+                                    ("--workers", "0"), ("--cavs", "0")])
+def test_generate_refuses_impossible_settings_before_writing(tmp_path, option):
+    result = tool("generate", "--out", str(tmp_path / "data"), "--splits", "test=1", *option)
+    assert result.returncode == 2 and result.stderr.startswith(f"generate: error: {option[0]}"), result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "data").exists()
+
+
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory):
     out = tmp_path_factory.mktemp("gen")

@@ -211,6 +211,10 @@ def main(args: list[str] | None = None) -> int:
         raise DatasetError(f"--cavs {opts.cavs!r} / --image-size {opts.image_size!r}: expected N or MIN-MAX / WIDTHxHEIGHT") from None
     if not 1 <= cav_range[0] <= cav_range[1] <= 7:
         raise DatasetError(f"--cavs {opts.cavs!r}: between 1 and 7 CAVs")
+    for option, value, least in (("--frames", opts.frames, 1), ("--vehicles", opts.vehicles, 0), ("--lidar-steps", opts.lidar_steps, 1),
+                                 ("--image-size width", width, 1), ("--image-size height", height, 1), ("--workers", opts.workers, 1)):
+        if value < least:  # e.g. 0 frames would write empty scenarios that every reader then rejects
+            raise DatasetError(f"{option} {value}: must be at least {least}")
     shard, shards = parse_shard(opts.shard)
     jobs, skipped = [], 0
     every = [(split, index) for split, count in splits.items() for index in range(count)]
