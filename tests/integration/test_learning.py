@@ -153,6 +153,9 @@ def test_train_explains_bad_input(tmp_path):
     for command in ("train", "evaluate"):
         result = tool(command, "--data", str(tmp_path), "--device", "gpu", "--out", str(tmp_path / "run"))
         assert result.returncode == 2 and "--device 'gpu': not a device" in result.stderr and "Traceback" not in result.stderr
+    for option, value, needs in (("--steps", "0", "at least 1"), ("--lr", "-1e-3", "above 0"), ("--sample-fraction", "0", "in (0, 1]")):
+        result = tool("train", "--data", str(tmp_path), f"{option}={value}", "--out", str(tmp_path / "run"))
+        assert result.returncode == 2 and f"train: error: {option} " in result.stderr and needs in result.stderr, result.stderr
 
 
 @pytest.fixture(scope="module")

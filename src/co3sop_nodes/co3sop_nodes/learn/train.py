@@ -227,6 +227,13 @@ def main(args: list[str] | None = None) -> int:
     world = distributed.world_from_env()
     if opts.batch < 1 or opts.batch % world.size:
         raise Co3sopError(f"--batch {opts.batch}: must be a positive multiple of the {world.size} torchrun processes")
+    for option, value, ok, needs in (("--steps", opts.steps, opts.steps >= 1, "at least 1"),
+                                     ("--save-every", opts.save_every, opts.save_every >= 1, "at least 1"),
+                                     ("--lr", opts.lr, opts.lr > 0, "above 0"),
+                                     ("--sample-fraction", opts.sample_fraction, 0 < opts.sample_fraction <= 1, "in (0, 1]"),
+                                     ("--threads", opts.threads, opts.threads is None or opts.threads >= 1, "at least 1")):
+        if not ok:  # refused before the dataset is read, which takes minutes
+            raise Co3sopError(f"{option} {value}: must be {needs}")
     torch.set_num_threads(opts.threads or (2 if world.size == 1 else max(1, (os.cpu_count() or 1) // world.local_size)))
     device = distributed.device_for(world, opts.device)
     seed_everything(opts.seed)
