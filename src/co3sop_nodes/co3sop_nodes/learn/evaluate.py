@@ -320,6 +320,8 @@ def main(args: list[str] | None = None) -> int:
     opts.command = shlex.join(["evaluate", *(sys.argv[1:] if args is None else args)])  # recorded beside every table
     if opts.collaborators is not None and opts.collaborators < 0:
         parser.error("--collaborators must be 0 or more")
+    if opts.threads < 1:
+        parser.error("--threads must be 1 or more")
     torch.set_num_threads(opts.threads)
     device = select_device(opts.device)
     table: dict[str, dict] = {}
