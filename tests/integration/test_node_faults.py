@@ -210,6 +210,11 @@ def test_score_and_recover_explain_bad_files(tmp_path):
     (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_wait:=two"], "parameter max_wait"),
     (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
     (["demo", "--model", "no-such-model"], "no installed checkpoint 'no-such-model.pt'"),
+    (["demo", "--rate", "0"], "demo: error: --rate 0.0: must be above 0"),
+    (["demo", "--vehicles", "0"], "demo: error: --vehicles 0: at least 1"),
+    (["monitor", "--period", "0"], "monitor: error: --period must be above 0"),
+    (["recorder", "--out", "x.mcap", "--flush-period", "0"], "recorder: error: --chunk-size must be at least 1 byte, --flush-period above 0"),
+    (["recorder", "--out", "x.mcap", "--topics", "(["], "recorder: error: --topics '([': not a regular expression"),
 ])
 def test_nodes_explain_bad_parameters(argv, message):
     done = subprocess.run([executable(argv[0]), *argv[1:]], capture_output=True, text=True, timeout=120)

@@ -195,6 +195,10 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(args)
     if opts.channel_rate is None and opts.channel_loss:
         parser.error("--channel-loss needs --channel-rate")
+    if opts.rate is not None and not opts.rate > 0:
+        parser.error(f"--rate {opts.rate}: must be above 0")
+    if opts.vehicles < 1:
+        parser.error(f"--vehicles {opts.vehicles}: at least 1 (the ego's)")
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = model_path(opts.model)

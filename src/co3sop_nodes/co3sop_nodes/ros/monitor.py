@@ -184,6 +184,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=0.0, help="exit after this many seconds (0: never)")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
+    if not opts.period > 0 or opts.count < 0 or opts.duration < 0:
+        parser.error("--period must be above 0, --count and --duration 0 or more")
     return spin_node(lambda: Monitor(opts.topics, opts.period, opts.count, opts.duration), argv, "monitor")
 
 

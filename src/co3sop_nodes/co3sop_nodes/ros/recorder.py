@@ -93,6 +93,13 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--flush-period", type=float, default=1.0, help="seconds between flushes of a partly filled chunk")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
+    if opts.chunk_size < 1 or not opts.flush_period > 0:
+        parser.error("--chunk-size must be at least 1 byte, --flush-period above 0 s")
+    for topic in opts.topics:
+        try:
+            re.compile(topic)
+        except re.error as exc:
+            parser.error(f"--topics {topic!r}: not a regular expression ({exc})")
     recorder = None
 
     def make() -> Node:
