@@ -1,10 +1,16 @@
-"""learn/report.py's reading of a LiDAR gain short of its goal (ROS-free)."""
+"""learn/report.py: its reading of a LiDAR gain short of its goal, its errors on damaged evaluation JSON (ROS-free)."""
 
 from __future__ import annotations
 
 import json
+import re
+import shutil
+from pathlib import Path
 
-from co3sop_nodes.learn.report import why_short
+import pytest
+
+from co3sop_nodes.errors import Co3sopError
+from co3sop_nodes.learn.report import main, why_short
 
 
 def test_a_short_gain_is_set_against_what_the_collaborators_see(tmp_path):
@@ -20,3 +26,35 @@ def test_a_short_gain_is_set_against_what_the_collaborators_see(tmp_path):
     assert "by 1.66 points only (3.60 % -> 5.26 %" in text
     # the three classes that gain the most hit voxels, most first: building 120, road 100, vehicle 15 (pole 4)
     assert "building +0.12 points, road +10.00 points, vehicle +3.00 points" in text and "pole" not in text
+
+
+SHIPPED = Path(__file__).resolve().parents[2] / "src/co3sop_nodes/doc/evaluation"
+
+
+@pytest.mark.parametrize("name, text, says", [
+    ("tiny-lidar_76.8m_collaboration.json", '{"title": ', "not JSON"),
+    ("tiny-lidar_76.8m_collaboration.json", "[1, 2]", "a JSON list, not an object"),
+    ("tiny-lidar_76.8m_collaboration.json", '{"a": 1}', "no title, reference, differences, off, on"),
+    ("tiny-lidar_76.8m_inputs.json", None, "no blank.per_scenario"),
+    ("tiny-lidar_76.8m_distance.json", None, ".difference.co3sop-code"),
+    ("ego-stage/evaluation.json", '{"splits": ["test"], "command": "evaluate"}', "no a scored run"),
+])
+def test_a_damaged_evaluation_is_named_not_a_traceback(tmp_path, name, text, says):
+    results = tmp_path / "evaluation"
+    shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", results / "tiny-lidar-76.8m-s1")
+    page = tmp_path / "results.md"
+    assert main([str(results), "--out", str(page)]) == 0  # the shipped evidence makes a page
+    before = page.read_text()
+    damaged = results / "tiny-lidar-76.8m-s1" / name
+    if text is None:  # drop one field the page reads
+        data = json.loads(damaged.read_text())
+        if "bins" in data:
+            del next(iter(data["bins"].values()))["difference"]["co3sop-code"]
+        else:
+            del data["blank"]["per_scenario"]
+        text = json.dumps(data)
+    damaged.write_text(text)
+    with pytest.raises(Co3sopError, match=re.escape(str(damaged))) as caught:
+        main([str(results), "--out", str(page)])
+    assert says in str(caught.value)
+    assert page.read_text() == before  # the previous page is kept

@@ -41,9 +41,60 @@ def span(low_high: list[float]) -> str:
     return f"[{pct(low_high[0])}, {pct(low_high[1])}]"
 
 
+# what the page reads from each JSON it is given, so a damaged or foreign file is named, never a traceback
+SUMMARY = ("frames", "per_class_iou", *(s for s in SCORES if s != "geometry"), "ci95", "per_scenario")
+ABLATION = ("title", "reference", "differences")  # any ablation (inputs, collaborators, pose_noise)
+NEEDS = {"collaboration": (*ABLATION, "off", "on"), "evaluation": (), "distance": ("title", "command", "bins"),
+         "observed": ("splits", "range", "samples", "all", "classes")}
+META = {"title", "command", "trained", "reference", "differences", "splits"}  # beside the scored runs
+
+
+def _missing_runs(runs: dict) -> list[str]:
+    """Scored runs (Bootstrap summaries) lacking a field this page reads."""
+    if not runs:
+        return ["a scored run"]
+    return [name if not isinstance(r, dict) else f"{name}.{k}" for name, r in runs.items()
+            for k in SUMMARY if not isinstance(r, dict) or k not in r][:5]
+
+
+def _missing_gains(gains: object, where: str) -> list[str]:
+    """Paired differences ({name: {score: {delta, ci95}}}) lacking the mIoU 1..23 this page prints."""
+    if not isinstance(gains, dict):
+        return [where]
+    return [f"{where}.{name}.co3sop-code" for name, d in gains.items()
+            if not (isinstance(d, dict) and isinstance(d.get("co3sop-code"), dict) and {"delta", "ci95"} <= d["co3sop-code"].keys())]
+
+
+def read_json(path: Path, kind: str) -> dict:
+    """`evaluate`'s (or observed.py's) JSON of one kind at `path`, checked for the fields this page reads."""
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise Co3sopError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise Co3sopError(f"{path}: not {kind} JSON (a JSON {type(data).__name__}, not an object)")
+    missing = [k for k in NEEDS.get(kind, ABLATION) if k not in data]
+    if not missing and kind == "distance":
+        bins = data["bins"] if isinstance(data["bins"], dict) else {}
+        missing += _missing_runs({f"bins.{b}.{side}": v.get(side) if isinstance(v, dict) else None
+                                  for b, v in bins.items() for side in ("off", "on")})
+        missing += _missing_gains({f"{b}.difference": v.get("difference") if isinstance(v, dict) else None for b, v in bins.items()}, "bins")
+    elif not missing and kind != "observed":
+        runs = {k: v for k, v in data.items() if k not in META}
+        missing += _missing_runs(runs)
+        if kind != "evaluation":
+            missing += [] if data["reference"] in runs else [f"the reference run {data['reference']!r}"]
+            missing += _missing_gains(data["differences"], "differences")
+        if kind == "collaboration" and "on" not in data["differences"]:
+            missing.append("differences.on")
+    if missing:
+        raise Co3sopError(f"{path}: not {kind} JSON as evaluate writes it: no " + ", ".join(missing))
+    return data
+
+
 def _load(folder: Path, kind: str) -> dict | None:
     found = sorted(folder.glob(f"*_{kind}.json"))
-    return json.loads(found[0].read_text()) if found else None
+    return read_json(found[0], kind) if found else None
 
 
 def recipe(report: dict) -> str:
@@ -75,8 +126,8 @@ def scored_alone(folder: Path, name: str) -> tuple[dict, dict] | None:
     path = folder / name / "evaluation.json"
     if not path.is_file():
         return None
-    made = json.loads(path.read_text())
-    return made, next(v for v in made.values() if isinstance(v, dict) and "per_scenario" in v)
+    made = read_json(path, "evaluation")
+    return made, next(v for k, v in made.items() if k not in META)
 
 
 def mean_sd(x: np.ndarray) -> str:
@@ -141,7 +192,7 @@ def why_short(observed: Path) -> str:
     """What bounds a LiDAR gain: the share of occupied voxels the collaborators' returns add to the ego's."""
     if not observed.is_file():
         return ""
-    data = json.loads(observed.read_text())
+    data = read_json(observed, "observed")
     seen, classes = data["all"], data["classes"]
     added = {name: c["ego+collaborators"] - c["ego"] for name, c in classes.items()}
     top = sorted(added, key=lambda n: -added[n] * classes[n]["voxels"])[:3]  # most voxels added
@@ -200,7 +251,7 @@ def observed_section(results: Path) -> list[str]:
            "--range R --out .../observed-R.json`). Fusion can only add what the neighbours see and the ego does not,",
            "and what a model infers around it; building interiors are occupied but seen by no one.", ""]
     for path in found:
-        data = json.loads(path.read_text())
+        data = read_json(path, "observed")
         out += [observed_table(data, f"{'+'.join(data['splits'])}, {data['range']}"), ""]
     return out
 
@@ -215,7 +266,7 @@ def validate_section(results: Path) -> list[str]:
            "option its settings name (`ros2_ws/run_protocol.sh`).", "",
            "| option | model | training steps | off | on | gain on - off [95 % interval] | command |", "|---|---|---|---:|---:|---|---|"]
     for path in found:
-        r = json.loads(path.read_text())
+        r = read_json(path, "collaboration")
         gain = r["differences"]["on"]["co3sop-code"]
         model = " ".join(path.stem.split("_")[:2])  # evaluate names its JSON <preset>_<range>_<ablation>
         out.append(f"| {path.parent.name} | {model} | {recipe(r)} | {pct(point(r['off'], 'co3sop-code'))} | {pct(point(r['on'], 'co3sop-code'))} | "
