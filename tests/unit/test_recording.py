@@ -7,6 +7,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from co3sop_nodes.bags import occupancy_message, typestore
+from co3sop_nodes.cli.info import main as info
 from co3sop_nodes.codec import encode_labels
 from co3sop_nodes.errors import DatasetError
 from co3sop_nodes.grid import BENCHMARK_RANGES
@@ -57,13 +58,13 @@ def test_recover_refuses_what_is_not_mcap(tmp_path):
         recover(tmp_path / "none.mcap")
 
 
-def test_score_pairs_by_stamp_and_agent_and_counts_missed_frames(tmp_path):
+def recording(path):
+    """Two CAVs' ground truth (10 rows of road) at stamps 1..3 and the ego's predictions of agent 1."""
     store = typestore()
     truth = np.zeros(GRID.dims, np.uint8)
     truth[:10] = 7
     half = truth.copy()
     half[5:10] = 0
-    path = tmp_path / "run.mcap"
     with McapRecorder(path) as rec:
         for stamp in (1, 2, 3):
             rec.write("/cav_1/ground_truth/occupancy_50m", TYPE, message(store, 1, stamp, truth), stamp)
@@ -71,8 +72,26 @@ def test_score_pairs_by_stamp_and_agent_and_counts_missed_frames(tmp_path):
         rec.write("/ego/occupancy", TYPE, message(store, 1, 1, truth), 10)  # perfect
         rec.write("/ego/occupancy", TYPE, message(store, 1, 2, half), 11)  # half the road
         rec.write("/ego/occupancy", TYPE, message(store, 1, 9, truth), 12)  # no ground truth
+    return path
+
+
+def test_score_pairs_by_stamp_and_agent_and_counts_missed_frames(tmp_path):
+    path = recording(tmp_path / "run.mcap")
     result = score(read_recording(path))
     assert result.range_name == "51.2m" and result.scored == 3  # only the ego's ground truth counts
     assert result.missed == [(1, 3)] and result.unmatched == [(1, 9)]
     # road: 10 + 5 + 0 predicted right of 30 in truth, nothing else predicted as road
     assert result.summary["per_class_iou"]["road"] == pytest.approx(15 / 30)
+
+
+def test_info_summarises_a_recording(tmp_path, capsys):
+    path = recording(tmp_path / "run.mcap")
+    assert info([str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "recording: 9 messages" in text and "CAVs [1, 2]" in text and "frames" not in text
+    assert f"| /ego/occupancy | {TYPE} | 3 |" in text and f"| /cav_2/ground_truth/occupancy_50m | {TYPE} | 3 |" in text
+    road = 6 * 10 * GRID.dims[1] * GRID.dims[2]  # two agents' ground truth at three stamps (predictions are not truth)
+    assert f"| 7 road | {road} (" in text
+    (tmp_path / "bad.mcap").write_bytes(b"hello")
+    with pytest.raises(DatasetError, match="bad.mcap: damaged or not a MCAP recording"):
+        info([str(tmp_path / "bad.mcap")])

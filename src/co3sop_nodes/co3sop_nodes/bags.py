@@ -321,6 +321,14 @@ def open_reader(path: Path) -> BagReader:
     return BagReader(path, "rosbag2 bag")
 
 
+def open_recording(path: Path) -> BagReader:
+    """A `recorder` MCAP file (one file, no metadata.yaml), read with co3sop_msgs' types; not yet opened."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such recording")
+    return BagReader(path, "MCAP recording", f"; if the recorder crashed, run `recover {path}` first", typestore())
+
+
 def header_stamp_ns(header) -> int:
     """A deserialized std_msgs/Header's stamp in ns."""
     return header.stamp.sec * 10**9 + header.stamp.nanosec

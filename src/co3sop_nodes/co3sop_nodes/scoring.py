@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import topics
-from .bags import BagReader, header_stamp_ns, occupancy_labels, typestore
+from .bags import BagReader, header_stamp_ns, occupancy_labels, open_recording
 from .errors import DatasetError
 from .grid import BENCHMARK_RANGES, GridSpec
 from .metrics import Confusion
@@ -36,10 +36,7 @@ class Recording:
 
 
 def _open(path: Path) -> BagReader:
-    path = Path(path)
-    if not path.exists():
-        raise DatasetError(f"{path}: no such recording")
-    reader = BagReader(path, "MCAP recording", f"; if the recorder crashed, run `recover {path}` first", typestore())
+    reader = open_recording(path)
     reader.open()
     return reader
 

@@ -1,9 +1,9 @@
-"""`info`: summarise a bag, a folder of bags, or an OPV2V/Co3SOP dataset folder.
+"""`info`: summarise a bag, a folder of bags, a recording, or an OPV2V/Co3SOP dataset folder.
 
     ros2 run co3sop_nodes info PATH [--no-counts]
 
-Prints scenarios, CAVs, frames, topics (bags), and per-class voxel counts of
-the ground truth per benchmark range.
+Prints scenarios, CAVs, frames, topics (bags and `recorder`'s MCAP files), and
+per-class voxel counts of the ground truth per benchmark range.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import opv2v, topics
-from ..bags import occupancy_labels, open_reader
+from ..bags import occupancy_labels, open_reader, open_recording
 from ..classes import CLASS_NAMES, NUM_CLASSES
 from ..errors import DatasetError
 from .common import progress, run
@@ -41,9 +41,11 @@ def _count(labels: np.ndarray) -> np.ndarray:
 
 
 def bag_info(path: Path, counts: bool) -> str:
+    """A bag folder, or a recording (one MCAP file): its topics, CAVs, frames and ground-truth classes."""
     rows, cavs, stamps = [], set(), set()
     class_counts: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(NUM_CLASSES + 1, np.int64))
-    with open_reader(path) as reader:
+    recording = path.is_file()
+    with open_recording(path) if recording else open_reader(path) as reader:
         for conn in sorted(reader.connections, key=lambda c: c.topic):
             rows.append(f"| {conn.topic} | {conn.msgtype} | {conn.msgcount} |")
             if (cav := topics.split_cav_topic(conn.topic)) is not None:
@@ -59,7 +61,8 @@ def bag_info(path: Path, counts: bool) -> str:
                 with reader.about(conn, stamp):
                     labels, grid = occupancy_labels(msg)
                 class_counts[f"{grid.extent[0]:.1f}m"] += _count(labels)
-    out = [f"# {path}", f"bag: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}; {len(stamps)} frames", "",
+    frames = f"; {len(stamps)} frames" if stamps or not recording else ""  # a recording has no sensor poses
+    out = [f"# {path}", f"{'recording' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}{frames}", "",
            "| topic | type | messages |", "|---|---|---:|", *rows]
     if class_counts:
         out += ["", "Ground-truth voxels per class:", "", class_table(class_counts)]
@@ -90,13 +93,13 @@ def folder_info(root: Path, counts: bool) -> str:
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="info", description=__doc__.split("\n\n")[1])
-    parser.add_argument("path", type=Path, help="a bag folder, a folder of bags, or an OPV2V root")
+    parser.add_argument("path", type=Path, help="a bag folder, a folder of bags, a recording (.mcap), or an OPV2V root")
     parser.add_argument("--no-counts", action="store_true", help="skip the per-class voxel counts (faster)")
     opts = parser.parse_args(args)
     path: Path = opts.path
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder")
-    if (path / "metadata.yaml").is_file():
+    if path.is_file() or (path / "metadata.yaml").is_file():
         print(bag_info(path, not opts.no_counts))
     elif bags := sorted(p.parent for p in path.glob("**/metadata.yaml")):
         for bag in bags:
