@@ -88,7 +88,7 @@ def test_info_summarises_a_recording(tmp_path, capsys):
     path = recording(tmp_path / "run.mcap")
     assert info([str(path)]) == 0
     text = capsys.readouterr().out
-    assert "recording: 9 messages" in text and "CAVs [1, 2]" in text and "frames" not in text
+    assert "MCAP file: 9 messages" in text and "CAVs [1, 2]" in text and "frames" not in text
     assert f"| /ego/occupancy | {TYPE} | 3 |" in text and f"| /cav_2/ground_truth/occupancy_50m | {TYPE} | 3 |" in text
     road = 6 * 10 * GRID.dims[1] * GRID.dims[2]  # two agents' ground truth at three stamps (predictions are not truth)
     assert f"| 7 road | {road} (" in text

@@ -62,7 +62,7 @@ def bag_info(path: Path, counts: bool) -> str:
                     labels, grid = occupancy_labels(msg)
                 class_counts[f"{grid.extent[0]:.1f}m"] += _count(labels)
     frames = f"; {len(stamps)} frames" if stamps or not recording else ""  # a recording has no sensor poses
-    out = [f"# {path}", f"{'recording' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}{frames}", "",
+    out = [f"# {path}", f"{'MCAP file' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}{frames}", "",
            "| topic | type | messages |", "|---|---|---:|", *rows]
     if class_counts:
         out += ["", "Ground-truth voxels per class:", "", class_table(class_counts)]
