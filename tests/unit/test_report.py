@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import main, why_short
+from co3sop_nodes.learn.report import collect, goals, main, why_short
 
 
 def test_a_short_gain_is_set_against_what_the_collaborators_see(tmp_path):
@@ -58,3 +58,12 @@ def test_a_damaged_evaluation_is_named_not_a_traceback(tmp_path, name, text, say
         main([str(results), "--out", str(page)])
     assert says in str(caught.value)
     assert page.read_text() == before  # the previous page is kept
+
+
+def test_the_lidar_gain_goal_is_judged_only_where_the_issue_sets_it(tmp_path):
+    for run in ("tiny-lidar-25.6m-s1", "tiny-lidar-76.8m-s1"):
+        shutil.copytree(SHIPPED / run, tmp_path / run)
+    lines = goals(collect(tmp_path), tmp_path)
+    near, far = (next(line for line in lines if f", {rng}, " in line) for rng in ("25.6m", "76.8m"))
+    assert "no goal at this range (issue 12 sets +3.00 at 51.2m and 76.8m)" in near and "**" not in near
+    assert "against the goal of +3.00" in far and ("**met**" in far or "**not met" in far)
