@@ -176,13 +176,14 @@ def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> l
         mean = float(np.mean([g["delta"] for g in gains]))
         above = all(g["ci95"][0] > 0 for g in gains)
         about = f"- {name}, {rng}, {steps} ({len(seeds)} seed{'s' * (len(seeds) > 1)}): "
+        intervals = f"every seed's gain interval above zero: {'yes' if above else 'no'}"
         if model_preset(name).modality == "camera":
             if rng != "51.2m":
                 continue
             score, goal, what = float(np.mean([point(r["on"], "co3sop-code") for r in reports])), CAMERA_GOAL, "mIoU 1..23 with collaboration"
         elif rng not in GAIN_GOAL_RANGES:
-            lines.append(about + f"mean gain {pct(mean)}; every seed's gain interval above zero: {'yes' if above else 'no'}; no goal at "
-                         f"this range (issue 12 sets +{pct(GAIN_GOAL)} at {' and '.join(GAIN_GOAL_RANGES)})."
+            lines.append(about + f"mean gain {pct(mean)}; {intervals}; no goal at this range (issue 12 sets +{pct(GAIN_GOAL)} at "
+                         f"{' and '.join(GAIN_GOAL_RANGES)})."
                          + why_short(results / f"observed-{rng}.json"))
             continue
         else:
@@ -190,7 +191,7 @@ def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> l
         verdict = ("met" if above else "not met: an interval reaches zero") if score >= goal else f"not met: short by {pct(goal - score)} points"
         lines.append(about + f"{what} {pct(score)} against the goal of {'+' * (what == 'mean gain')}{pct(goal)}"
                      + ("" if what == "mean gain" else f" (gain {pct(mean)})")
-                     + f"; every seed's gain interval above zero: {'yes' if above else 'no'}; **{verdict}**."
+                     + f"; {intervals}; **{verdict}**."
                      + (why_short(results / f"observed-{rng}.json") if what == "mean gain" and score < goal else ""))
     return lines
 
