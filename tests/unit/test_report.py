@@ -1,4 +1,4 @@
-"""learn/report.py: its reading of a LiDAR gain short of its goal, its errors on damaged evaluation JSON (ROS-free)."""
+"""learn/report.py: its reading of a LiDAR gain short of its goal, its Table 2, its errors on damaged evaluation JSON (ROS-free)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import collect, goals, main, why_short
+from co3sop_nodes.learn.report import collect, goals, main, method, table2_section, why_short
+from co3sop_nodes.model.config import PRESETS
 
 
 def test_a_short_gain_is_set_against_what_the_collaborators_see(tmp_path):
@@ -67,3 +68,28 @@ def test_the_lidar_gain_goal_is_judged_only_where_the_issue_sets_it(tmp_path):
     near, far = (next(line for line in lines if f", {rng}, " in line) for rng in ("25.6m", "76.8m"))
     assert "no goal at this range (issue 12 sets +3.00 at 51.2m and 76.8m)" in near and "**" not in near
     assert "against the goal of +3.00" in far and ("**met**" in far or "**not met" in far)
+
+
+def test_every_preset_is_named_as_the_papers_table_2_names_its_method():
+    names = {name: method(name) for name in PRESETS}
+    assert names["tiny-sscnet"] == names["sscnet"] == "SSCNet" and names["tiny-lmscnet"] == names["lmscnet"] == "LMSCNet"
+    assert names["tiny-occformer"] == names["occformer"] == "OccFormer"
+    assert names["tiny-single"] == names["surroundocc"] == "SurroundOcc"
+    assert names["tiny"] == names["small"] == names["paper"] == "Co3SOP-Base" and names["tiny-lidar"] == "Co3SOP-Base (LiDAR)"
+
+
+def test_table_2_puts_each_run_under_its_method_and_range(tmp_path):
+    for run in ("tiny-lidar-76.8m-s1", "tiny-sscnet-51.2m-s1"):
+        shutil.copytree(SHIPPED / run, tmp_path / run)
+    for seed in (1, 2):  # two seeds at one range: mean ± sd, not an interval
+        shutil.copytree(SHIPPED / f"tiny-lidar-51.2m-s{seed}", tmp_path / f"tiny-lidar-51.2m-s{seed}")
+    rows = [line for line in table2_section(tmp_path, collect(tmp_path)) if line.startswith("| ") and "preset" not in line]
+    sscnet, lidar = rows  # the paper's order: the baselines, then Co3SOP-Base
+    alone = json.loads((tmp_path / "tiny-sscnet-51.2m-s1/alone/evaluation.json").read_text())
+    scores = next(v for k, v in alone.items() if isinstance(v, dict) and "ci95" in v)
+    low, high = scores["ci95"]["co3sop-code"]
+    assert sscnet.startswith("| SSCNet | tiny-sscnet | lidar | - | ") and f"[{100 * low:.2f}, {100 * high:.2f}] (seed 1)" in sscnet
+    assert sscnet.endswith("| 13.21 / 9.58 / 10.04 |")
+    cells = lidar.split(" | ")
+    assert cells[:4] == ["| Co3SOP-Base (LiDAR)", "tiny-lidar", "lidar", "-"] and cells[-1] == "- |"
+    assert cells[4].endswith("(2 seeds)") and " ± " in cells[4] and cells[5].endswith("(seed 1)")
