@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import collect, goals, main, method, table2_section, why_short
+from co3sop_nodes.learn.report import collect, goals, main, method, render, table2_section, why_short
 from co3sop_nodes.model.config import PRESETS
 
 
@@ -93,3 +93,11 @@ def test_table_2_puts_each_run_under_its_method_and_range(tmp_path):
     cells = lidar.split(" | ")
     assert cells[:4] == ["| Co3SOP-Base (LiDAR)", "tiny-lidar", "lidar", "-"] and cells[-1] == "- |"
     assert cells[4].endswith("(2 seeds)") and " ± " in cells[4] and cells[5].endswith("(seed 1)")
+
+
+def test_the_shipped_results_page_is_what_report_makes_of_the_shipped_evaluation(monkeypatch):
+    """results.md is never edited by hand: the committed page equals report's output on the committed JSON."""
+    root = SHIPPED.parents[3]
+    monkeypatch.chdir(root)
+    results, page = Path("src/co3sop_nodes/doc/evaluation"), Path("src/co3sop_nodes/doc/results.md")
+    assert render(results, f"report {results} --out {page}") + "\n" == page.read_text()
