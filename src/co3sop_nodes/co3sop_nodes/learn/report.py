@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ import numpy as np
 from ..cli.common import run
 from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError
+from ..grid import BENCHMARK_RANGES
 from ..metrics import SCORES, Bootstrap, confusions_of, markdown_table, point
 from ..model.config import preset as model_preset
 from .evaluate import distance_table
@@ -130,6 +132,15 @@ def scored_alone(folder: Path, name: str) -> tuple[dict, dict] | None:
     return made, next(v for k, v in made.items() if k not in META)
 
 
+def single_agent_runs(results: Path) -> Iterator[tuple[Path, re.Match, dict, dict]]:
+    """(folder, its name's match, evaluation JSON, scores) of every single-agent run under `results` scored alone."""
+    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
+        m = RUN_NAME.fullmatch(folder.name)
+        scored = scored_alone(folder, "alone") if m else None
+        if scored is not None:
+            yield folder, m, *scored
+
+
 def mean_sd(x: np.ndarray) -> str:
     return pct(x.mean()) + (f" ± {100 * x.std(ddof=1):.2f}" if len(x) > 1 else "")
 
@@ -213,8 +224,6 @@ def why_short(observed: Path) -> str:
 # The paper's Table 2 mIoU at 25.6 / 51.2 / 76.8 m (on its CARLA data: a reference for the methods' order, not their level)
 PAPER_TABLE2 = {"SSCNet": (13.21, 9.58, 10.04), "LMSCNet": (24.92, 20.35, 17.62), "OccFormer": (29.48, 25.41, 24.12),
                 "SurroundOcc": (28.71, 25.76, 24.68), "Co3SOP-Base": (30.04, 27.50, 27.00)}
-RANGES = ("25.6m", "51.2m", "76.8m")
-
 
 def method(name: str) -> str:
     """The paper's name for the method a preset builds (its Table 2 columns)."""
@@ -232,42 +241,36 @@ def table2_section(results: Path, runs: dict[tuple[str, str, str], dict[int, Pat
     cells: dict[str, dict[str, list[str]]] = {}
     for (name, rng, _), seeds in runs.items():
         on = {seed: _load(f, "collaboration")["on"] for seed, f in seeds.items()}
-        cells.setdefault(name, {}).setdefault(rng, []).append(
-            f"{mean_sd(np.array([point(r, 'co3sop-code') for r in on.values()]))} ({len(on)} seeds)" if len(on) > 1
-            else "".join(f"{pct(point(r, 'co3sop-code'))} {span(r['ci95']['co3sop-code'])} (seed {seed})" for seed, r in on.items()))
-    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
-        m = RUN_NAME.fullmatch(folder.name)
-        scored = scored_alone(folder, "alone") if m else None
-        if scored is not None:
-            alone = scored[1]
-            cells.setdefault(m["preset"], {}).setdefault(m["range"], []).append(
-                f"{pct(point(alone, 'co3sop-code'))} {span(alone['ci95']['co3sop-code'])} (seed {m['seed']})")
+        if len(on) > 1:
+            cell = f"{mean_sd(np.array([point(r, 'co3sop-code') for r in on.values()]))} ({len(on)} seeds)"
+        else:
+            (seed, r), = on.items()
+            cell = f"{pct(point(r, 'co3sop-code'))} {span(r['ci95']['co3sop-code'])} (seed {seed})"
+        cells.setdefault(name, {}).setdefault(rng, []).append(cell)
+    for _, m, _, alone in single_agent_runs(results):
+        cells.setdefault(m["preset"], {}).setdefault(m["range"], []).append(
+            f"{pct(point(alone, 'co3sop-code'))} {span(alone['ci95']['co3sop-code'])} (seed {m['seed']})")
     order = [*PAPER_TABLE2, "Co3SOP-Base (LiDAR)"]
     rows = []
     for name in sorted(cells, key=lambda n: (order.index(method(n)), n)):
         paper = PAPER_TABLE2.get(method(name))
         rows.append(f"| {method(name)} | {name} | {model_preset(name).modality} | "
-                    + " | ".join("; ".join(cells[name].get(rng, [])) or "-" for rng in RANGES)
+                    + " | ".join("; ".join(cells[name].get(rng, [])) or "-" for rng in BENCHMARK_RANGES)
                     + f" | {' / '.join(f'{v:.2f}' for v in paper) if paper else '-'} |")
     return ["## Table 2: every method at the three ranges (mIoU 1..23, %, test)", "",
             "The paper's Table 2 in its layout, from the runs on this page: single-agent models scored alone,",
             "Co3SOP-Base with its collaborators; one seed with its 95 % interval, several as mean ± sd over seeds.",
             "The paper's figures are on its CARLA data with its models' full sizes: compare the order of the",
             "methods, not their level. `-`: not run under the protocol yet.", "",
-            "| method | preset | modality | " + " | ".join(RANGES) + " | the paper (25.6 / 51.2 / 76.8 m) |",
-            "|---|---|---|" + "---:|" * len(RANGES) + "---:|", *rows, ""]
+            "| method | preset | modality | " + " | ".join(BENCHMARK_RANGES) + " | the paper (25.6 / 51.2 / 76.8 m) |",
+            "|---|---|---|" + "---:|" * len(BENCHMARK_RANGES) + "---:|", *rows, ""]
 
 
 def single_agent_section(results: Path) -> list[str]:
     """The single-agent models (the paper's Table 2 baselines: no fusion) scored alone, one row per run, with the
     input controls of their first seed."""
     rows, controls = [], []
-    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
-        m = RUN_NAME.fullmatch(folder.name)
-        scored = scored_alone(folder, "alone") if m else None
-        if scored is None:
-            continue
-        made, alone = scored
+    for folder, m, made, alone in single_agent_runs(results):
         rows.append(f"| {m['preset']} | {m['range']} | {recipe(alone)} | {m['seed']} | "
                     + " | ".join(f"{pct(point(alone, s))} {span(alone['ci95'][s])}" for s in SCORES) + f" | `{made.get('command', '')}` |")
         controls += compact(_load(folder, "inputs"), f"Input controls: {folder.name}")
