@@ -2,7 +2,8 @@
 # The benchmark protocol end to end, resumable (re-run it after an interruption):
 #   1. data:     the dataset of config/benchmark.yaml (train 48 / validate 4 / test 8 scenarios)
 #   2. train:    each model's two stages (ego, then fusion from it) on `train`, for every seed; a single-agent
-#                preset (a Table 2 baseline: tiny-occformer, tiny-sscnet, ...) has its one stage only
+#                preset (a Table 2 baseline: tiny-occformer, tiny-sscnet, ...; or tiny-sscnet-early, the
+#                early-fusion reference) has its one stage only
 #   3. evaluate: every trained model on `test`, with 95 % intervals over test scenarios, the
 #                collaboration, collaborators, pose-noise and input-control ablations
 #   4. report:   src/co3sop_nodes/doc/results.md from the evaluation JSON (no hand-typed figure)
@@ -55,6 +56,11 @@ single() {
   python -c 'import sys; from co3sop_nodes.model.config import preset; sys.exit(0 if not preset(sys.argv[1]).fusion else 1)' "$1"
 }
 
+# early PRESET: whether the preset merges the collaborators' scans before one network (scored off / on like fusion)
+early() {
+  python -c 'import sys; from co3sop_nodes.model.config import preset; sys.exit(0 if preset(sys.argv[1]).early_fusion else 1)' "$1"
+}
+
 # train STEPS ARGS... --out DIR: skipped when DIR has done STEPS (or has a model and no state), resumed (or
 # extended: a finished run given more steps continues the same sample order) when DIR/state.pt exists
 train() {
@@ -86,7 +92,7 @@ for step in "${STEPS[@]}"; do
       # extended) after its marker is evaluated again
       runs | while read -r preset range seed; do
         run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
-        if single "$preset"; then  # alone, and the input controls for the first seed
+        if single "$preset" && ! early "$preset"; then  # alone, and the input controls for the first seed
           if [ ! "$out/.done-alone" -nt "$run/model.pt" ]; then
             "$LIB/evaluate" --model "$run/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/alone"
             touch "$out/.done-alone"
@@ -105,6 +111,7 @@ for step in "${STEPS[@]}"; do
           "$LIB/evaluate" --model "$run/model.pt" --data "$DATA" --splits test --device "$DEVICE" --out "$out" --ablation "$ablation"
           touch "$out/.done-$ablation"
         done
+        single "$preset" && continue  # early fusion: no ego stage to score
         if [ ! "$out/.done-ego-stage" -nt "$run-ego/model.pt" ]; then
           "$LIB/evaluate" --model "$run-ego/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/ego-stage"
           touch "$out/.done-ego-stage"

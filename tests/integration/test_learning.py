@@ -145,6 +145,25 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert bad.returncode == 2 and "no <preset>-<range>-s<seed> folder" in bad.stderr and page.read_text() == text
 
 
+def test_early_fusion_trains_in_one_stage_and_is_scored_off_and_on(small_split, tmp_path):
+    """tiny-sscnet-early from the command line: trained on the merged scans, no fusion stage, evaluated off / on."""
+    data = str(small_split / "data")
+    common = ("--data", data, "--threads", "2", "--sample-fraction", "0.05", "--device", "cpu")
+    early = tmp_path / "early"
+    done = tool("train", *common, "--preset", "tiny-sscnet-early", "--stage", "ego", "--steps", "2", "--out", str(early))
+    assert done.returncode == 0, done.stderr
+    refused = tool("train", *common, "--stage", "fusion", "--init", str(early / "model.pt"), "--steps", "1", "--out", str(tmp_path / "fusion"))
+    assert refused.returncode == 2 and "needs a model with fusion" in refused.stderr
+    done = tool("evaluate", "--model", str(early / "model.pt"), "--data", data, "--splits", "validate", "--ablation", "collaboration",
+                "--out", str(tmp_path / "results"))
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "results" / "tiny-sscnet-early_51.2m_collaboration.json").read_text())
+    assert report["off"]["frames"] == report["on"]["frames"] == 4 and "co3sop-code" in report["differences"]["on"]
+    refused = tool("evaluate", "--model", str(early / "model.pt"), "--data", data, "--splits", "validate", "--ablation", "codec",
+                   "--out", str(tmp_path / "results"))
+    assert refused.returncode == 2 and "receives no features to encode" in refused.stderr and "Traceback" not in refused.stderr
+
+
 def test_train_explains_bad_input(tmp_path):
     result = tool("train", "--data", str(tmp_path), "--stage", "fusion", "--out", str(tmp_path / "run"))
     assert result.returncode == 2 and "--init" in result.stderr and "Traceback" not in result.stderr

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.model.checkpoint import export_model, load_model, save_training_state
+from co3sop_nodes.model.checkpoint import export_model, load_graph_model, load_model, save_training_state
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
 from co3sop_nodes.model.model import build_model
 
@@ -36,6 +36,16 @@ def test_export_and_load(tmp_path, half):
             torch.testing.assert_close(x, y, atol=5e-2, rtol=5e-2)
         else:
             torch.testing.assert_close(x, y, atol=0, rtol=0)
+
+
+def test_the_graph_refuses_an_early_fusion_model_that_offline_evaluation_loads(tmp_path):
+    """Its vehicles share voxel features; an early-fusion model needs the collaborators' scans before it."""
+    for name in ("tiny-sscnet-early", "tiny-lidar"):
+        export_model(tmp_path / f"{name}.pt", build_model(preset(name, **SMALL)), {})
+    assert load_model(tmp_path / "tiny-sscnet-early.pt")[0].cfg.early_fusion
+    with pytest.raises(Co3sopError, match="tiny-sscnet-early.pt: tiny-sscnet-early is an early-fusion reference"):
+        load_graph_model(tmp_path / "tiny-sscnet-early.pt")
+    assert load_graph_model(tmp_path / "tiny-lidar.pt")[0].cfg.name == "tiny-lidar"
 
 
 def test_training_state_round_trip(tmp_path):

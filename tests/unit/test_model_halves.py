@@ -125,6 +125,11 @@ def test_presets_and_feature_grid():
     assert lidar.fusion and lidar.modality == "lidar" and lidar.lidar == preset("tiny-sscnet").lidar
     assert replace(lidar, name="tiny", modality="camera", lidar=tiny.lidar) == tiny
     assert preset("tiny", max_collaborators=2).max_collaborators == 2
+    early = preset("tiny-sscnet-early")  # tiny-sscnet itself, fed the merged scans
+    assert early.early_fusion and replace(early, name="tiny-sscnet", early_fusion=False) == preset("tiny-sscnet")
+    for bad in ({"fusion": True}, {"modality": "camera"}):  # early fusion merges scans before a single-agent model
+        with pytest.raises(Co3sopError, match="early_fusion"):
+            preset("tiny-sscnet-early", **bad)
     with pytest.raises(Co3sopError):
         preset("no-such-model")
 

@@ -76,6 +76,22 @@ def test_every_preset_is_named_as_the_papers_table_2_names_its_method():
     assert names["tiny-occformer"] == names["occformer"] == "OccFormer"
     assert names["tiny-single"] == names["surroundocc"] == "SurroundOcc"
     assert names["tiny"] == names["small"] == names["paper"] == "Co3SOP-Base" and names["tiny-lidar"] == "Co3SOP-Base (LiDAR)"
+    assert names["tiny-sscnet-early"] == "Early fusion (LiDAR)"
+
+
+def test_the_early_fusion_reference_has_no_goal_and_is_set_beside_a_short_lidar_gain(tmp_path):
+    for run in ("tiny-lidar-76.8m-s1", "tiny-lidar-25.6m-s1"):
+        shutil.copytree(SHIPPED / run, tmp_path / run)
+    shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", tmp_path / "tiny-sscnet-early-76.8m-s1")  # any collaboration evidence
+    gain = json.loads((tmp_path / "tiny-sscnet-early-76.8m-s1/tiny-lidar_76.8m_collaboration.json").read_text())["differences"]["on"]["co3sop-code"]
+    lines = goals(collect(tmp_path), tmp_path)
+    assert not any(line.startswith("- tiny-sscnet-early") for line in lines)  # a reference, judged against no goal
+    near, far = (next(line for line in lines if line.startswith(f"- tiny-lidar, {rng}")) for rng in ("25.6m", "76.8m"))
+    said = f"gains {100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}] (seed 1) over its own scan alone."
+    assert "Early fusion (tiny-sscnet-early: the collaborators' scans merged" in far and said in far
+    assert "Early fusion" not in near  # none run at 25.6 m
+    rows = [line for line in table2_section(tmp_path, collect(tmp_path)) if line.startswith("| ") and "preset" not in line]
+    assert rows[-1].startswith("| Early fusion (LiDAR) | tiny-sscnet-early | lidar | - | - | ")  # after Co3SOP-Base
 
 
 def test_table_2_puts_each_run_under_its_method_and_range(tmp_path):

@@ -8,7 +8,7 @@ read once from the OPV2V folder and kept in memory.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +16,9 @@ import numpy as np
 from .. import opv2v
 from ..collaboration import nearest_collaborators
 from ..errors import DatasetError
+from ..grid import GridSpec
 from ..model.config import ModelConfig
-from ..model.inputs import camera_inputs, lidar_occupancy
+from ..model.inputs import camera_inputs, lidar_occupancy, merged_occupancy
 
 @dataclass
 class AgentRecord:
@@ -33,6 +34,13 @@ class Sample:
     ego: AgentRecord
     others: list[AgentRecord]  # nearest first
     neighbour_from_ego: np.ndarray  # (A, 4, 4)
+
+
+def early_fused(sample: Sample, grid: GridSpec, scan=lambda record: record.inputs["occupancy"]) -> Sample:
+    """The sample as an early-fusion model sees it: the ego's scan merged with its collaborators' (`scan`: an
+    agent's (1, X, Y, Z) occupancy, its own by default, or an input control's), and no collaborator left to fuse."""
+    merged = merged_occupancy(scan(sample.ego), [scan(a) for a in sample.others], sample.neighbour_from_ego, grid)
+    return replace(sample, ego=replace(sample.ego, inputs={"occupancy": merged}), others=[], neighbour_from_ego=np.zeros((0, 4, 4)))
 
 
 class OccupancyDataset:

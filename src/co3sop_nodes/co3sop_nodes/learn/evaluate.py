@@ -28,6 +28,7 @@ import math
 import shlex
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,8 @@ import torch
 from ..byte_budget import SenderBudgets
 from ..cli.common import progress, run
 from ..codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
-from ..collaboration import COMM_RANGE
+from ..collaboration import COMM_RANGE, noisy_relative
+from ..errors import Co3sopError
 from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
@@ -45,7 +47,7 @@ from ..model.outputs import through_codec
 from ..model.request import request_for_neighbour, request_of
 from ..model.predict import predict_frame
 from .controls import INPUT_CONTROLS, ControlledInputs
-from .dataset import OccupancyDataset, Sample
+from .dataset import OccupancyDataset, Sample, early_fused
 from .device import add_device_argument, select_device
 
 
@@ -63,6 +65,9 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
     filled as the result with the samples whose ego was there the frame before (those a request map reaches:
     every one but the ego's first frame of a scenario).
     """
+    early = model.cfg.early_fusion
+    if early and codec is not None:
+        raise Co3sopError(f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no features to encode")
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
     confusions, sent = {}, []
@@ -98,12 +103,25 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
             agent = dataset.frames[frame - 1][1][j]
             return request_of(vehicle(agent, frame - 1, j).confidence), agent.world_from_lidar
 
-        ego = vehicle(sample.ego)
+        others = sample.others
+        if early:  # the collaborators' scans merged into the ego's (where the pose noise puts them), then the model alone
+            key, noisy = (f, sample.ego.cav_id, inputs, tuple(a.cav_id for a in others)), bool(mu or sigma)
+            ego = None if noisy else cache.get(key)  # a noisy merge is drawn anew each time, never kept
+            if ego is None:
+                placed = [noisy_relative(sample.ego.world_from_lidar, a.world_from_lidar, mu, sigma, rng) for a in others]
+                merged = early_fused(replace(sample, neighbour_from_ego=np.reshape(placed, (-1, 4, 4))), model.cfg.grid,
+                                     lambda r: controlled(f, position[r.cav_id])["occupancy"])
+                ego = model.vehicle(**to_batch(merged.ego.inputs, device))
+                if not noisy:
+                    cache[key] = ego
+            others = []
+        else:
+            ego = vehicle(sample.ego)
         # a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on a
         # scenario's first frame: the neighbour then weighs by its own confidence alone)
         request = previous_request(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
         candidates = {}
-        for record in sample.others:
+        for record in others:
             out = vehicle(record)
             if codec is not None:
                 wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)

@@ -13,15 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..classes import CLASS_NAMES, NUM_CLASSES
-from ..model.inputs import lidar_occupancy
+from ..model.inputs import merged_occupancy
 from .dataset import OccupancyDataset
-
-
-def hits_in_ego_grid(occupancy: np.ndarray, ego_from_neighbour: np.ndarray, grid) -> np.ndarray:
-    """(X, Y, Z) bool: the ego-grid voxels a neighbour's occupied voxels (its own grid, same spec) fall in."""
-    centres = np.asarray(grid.origin) + (np.argwhere(occupancy) + 0.5) * grid.voxel_size  # (N, 3), neighbour's LiDAR frame
-    moved = centres @ ego_from_neighbour[:3, :3].T + ego_from_neighbour[:3, 3]
-    return lidar_occupancy(moved, grid)[0].astype(bool)  # binned as the ego's own returns are
 
 
 def observed(dataset: OccupancyDataset) -> dict:
@@ -30,9 +23,7 @@ def observed(dataset: OccupancyDataset) -> dict:
     for i in range(len(dataset)):
         s = dataset.sample(i)
         ego = s.ego.inputs["occupancy"][0].astype(bool)  # (X, Y, Z)
-        union = ego.copy()
-        for other, neighbour_from_ego in zip(s.others, s.neighbour_from_ego):
-            union |= hits_in_ego_grid(other.inputs["occupancy"][0], np.linalg.inv(neighbour_from_ego), grid)
+        union = merged_occupancy(s.ego.inputs["occupancy"], [a.inputs["occupancy"] for a in s.others], s.neighbour_from_ego, grid)[0] > 0
         labels = s.ego.labels
         occupied = (labels > 0) & (labels < NUM_CLASSES)
         total += np.bincount(labels[occupied], minlength=NUM_CLASSES)

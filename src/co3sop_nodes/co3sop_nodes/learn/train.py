@@ -42,7 +42,7 @@ from ..model.mask_loss import mask_classification_loss
 from ..model.occformer import class_scores, log_scores
 from ..model.model import VehicleOutput, build_model
 from ..cli.common import progress, run
-from .dataset import OccupancyDataset
+from .dataset import OccupancyDataset, early_fused
 from . import distributed
 from .device import add_device_argument
 
@@ -106,8 +106,11 @@ class _Forward(torch.nn.Module):
         return VehicleOutput(out.features.float(), out.confidence.float())
 
     def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
-        sample = self.dataset.sample(i, 0 if self.stage == "ego" else None)
+        early = self.model.cfg.early_fusion  # the collaborators' scans join the ego's before the model: nothing fused after it
+        sample = self.dataset.sample(i, 0 if self.stage == "ego" and not early else None)
         f, _ = self.dataset.index[i]
+        if early:
+            sample = early_fused(sample, self.model.cfg.grid)
         ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
         others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
         rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None

@@ -85,3 +85,14 @@ def load_model(path: Path) -> tuple[Co3SOP, dict]:
         raise Co3sopError(f"{path}: its weights do not fit its config ({exception_line(exc)})") from None
     return model.eval(), data
 
+
+def load_graph_model(path: Path) -> tuple[Co3SOP, dict]:
+    """load_model for the node graph, whose vehicles share voxel features: an early-fusion model (the
+    collaborators' scans merged before it, an offline reference) has no place there and is refused."""
+    model, data = load_model(path)
+    if model.cfg.early_fusion:
+        raise Co3sopError(f"{path}: {model.cfg.name} is an early-fusion reference (collaborators' LiDAR scans merged before the "
+                          "model); the node graph shares voxel features: score it with `evaluate`, run the graph with a "
+                          "Co3SOP-Base checkpoint")
+    return model, data
+

@@ -62,6 +62,9 @@ class ModelConfig:
     downsample: int = 4  # the feature volume is 1/4 of the label grid per axis
     image_attention: AttentionConfig = field(default_factory=AttentionConfig)
     fusion: bool = True  # collaborate (Co3SOP-Base); False: single agent (SurroundOcc / LMSCNet / SSCNet)
+    # LiDAR single agent only: the collaborators' scans join the ego's before the model (early fusion, OPV2V's
+    # raw-data sharing), the reference of what the neighbours' sensing itself adds; offline only (the graph shares features)
+    early_fusion: bool = False
     fusion_attention: AttentionConfig = field(default_factory=AttentionConfig)
     max_collaborators: int = 6
     head_channels: tuple[int, int, int] = (32, 16, 8)  # per output scale: 1/4, 1/2, 1
@@ -70,6 +73,10 @@ class ModelConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     # (origin, voxel size, dims) of a grid other than the benchmark range's (custom extents, small tests)
     custom_grid: tuple | None = None
+
+    def __post_init__(self):
+        if self.early_fusion and (self.modality != "lidar" or self.fusion):
+            raise Co3sopError(f"{self.name}: early_fusion merges LiDAR scans before a single-agent model (modality lidar, fusion off)")
 
     @property
     def grid(self) -> GridSpec:
@@ -122,6 +129,9 @@ PRESETS["tiny-sscnet"] = replace(PRESETS["tiny"], name="tiny-sscnet", modality="
 # Collaborative LiDAR Co3SOP-Base: the SSCNet-style LiDAR vehicle half with the same warp, hybrid mask,
 # masked deformable fusion and head, trained in the paper's two stages.
 PRESETS["tiny-lidar"] = replace(PRESETS["tiny-sscnet"], name="tiny-lidar", fusion=True)
+# Early fusion with the same SSCNet-style network: what sharing the scans themselves adds, set against tiny-lidar's
+# shared features (the same neighbours' information: each scan as the occupied voxels of its own grid).
+PRESETS["tiny-sscnet-early"] = replace(PRESETS["tiny-sscnet"], name="tiny-sscnet-early", early_fusion=True)
 PRESETS["lmscnet"] = replace(PRESETS["paper"], name="lmscnet", modality="lidar", fusion=False, lidar=LidarConfig("lmscnet", 128))
 PRESETS["sscnet"] = replace(PRESETS["paper"], name="sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 128))
 # OccFormer (camera, single agent): the same camera lifting, then its dual-path transformer encoder and mask

@@ -45,6 +45,29 @@ def lidar_occupancy(points: np.ndarray, grid: GridSpec) -> np.ndarray:
     return occ[None]
 
 
+def hits_in_ego_grid(occupancy: np.ndarray, ego_from_neighbour: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """(X, Y, Z) bool: the ego-grid voxels a neighbour's occupied voxels (its own grid, same spec) fall in.
+
+    The neighbour's occupied voxels' centres are carried into the ego's LiDAR frame and binned as the ego's own
+    returns are, so they land within half a voxel of where its returns were.
+    """
+    centres = np.asarray(grid.origin) + (np.argwhere(occupancy) + 0.5) * grid.voxel_size  # (N, 3), neighbour's LiDAR frame
+    moved = centres @ ego_from_neighbour[:3, :3].T + ego_from_neighbour[:3, 3]
+    return lidar_occupancy(moved, grid)[0].astype(bool)
+
+
+def merged_occupancy(ego: np.ndarray, others: list[np.ndarray], neighbour_from_ego: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """(1, X, Y, Z) uint8: the ego's LiDAR occupancy with its collaborators' joined in, for an early-fusion model.
+
+    ego and others[a]: (1, X, Y, Z) uint8 occupancy, each in its own agent's LiDAR frame; neighbour_from_ego: (A, 4, 4).
+    Each collaborator's scan reaches the ego as its occupied voxels (1 bit per voxel of its own grid).
+    """
+    merged = ego[0].astype(bool)  # (X, Y, Z)
+    for occupancy, n_from_e in zip(others, neighbour_from_ego):
+        merged |= hits_in_ego_grid(occupancy[0], np.linalg.inv(n_from_e), grid)
+    return merged.astype(np.uint8)[None]
+
+
 def to_batch(inputs: dict, device: torch.device | str = "cpu") -> dict:
     """One agent's numpy inputs -> VehicleHalf keyword tensors with a batch dimension of 1, on `device`."""
     return {k: torch.from_numpy(v)[None].to(device) for k, v in inputs.items()}

@@ -53,7 +53,7 @@ from ..cli.common import run
 from ..errors import Co3sopError
 from ..foxglove import CAMERAS, write_layout
 from ..model import pace
-from ..model.checkpoint import load_model, read_checkpoint, shipped_checkpoint
+from ..model.checkpoint import load_graph_model, shipped_checkpoint
 from ..scoring import message_counts
 from .dds import channel_environment
 from .recorder import DEFAULT_TOPICS
@@ -127,9 +127,8 @@ def bag_period(bag: Path, frames: int) -> float:
         return (reader.end_time - reader.start_time) / 1e9 / max(1, frames - 1) if frames > 1 else 0.1
 
 
-def measured_rate(checkpoint: Path, vehicles: int, period: float) -> float:
+def measured_rate(model, vehicles: int, period: float) -> float:
     """The playback rate this machine keeps up with for `vehicles` vehicles and the ego (model.pace), to 2 digits."""
-    model, _ = load_model(checkpoint)
     cost = pace.frame_cost(model)
     n = pace.cores()
     rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n)) / 100
@@ -202,7 +201,8 @@ def main(args: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = model_path(opts.model)
-    sensors = read_checkpoint(checkpoint)["config"]["modality"]
+    model, _ = load_graph_model(checkpoint)  # refused here, before any node starts, if the graph cannot run it
+    sensors = model.cfg.modality
     bag = ensure_scenario(opts)
     cavs, frames = bag_contents(bag)
     cavs = cavs[: opts.vehicles]
@@ -212,7 +212,7 @@ def main(args: list[str] | None = None) -> int:
     say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego cav {ego}; recording to {mcap}")
     say(f"model {checkpoint} ({sensors})")
     if opts.rate is None:
-        opts.rate = measured_rate(checkpoint, len(cavs), bag_period(bag, frames))
+        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames))
     channel = None
     if opts.channel_rate is not None:
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)

@@ -39,7 +39,7 @@ from ..codec import decode_features, encode_labels, encode_request
 from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from ..geometry import Pose
-from ..model.checkpoint import load_model, shipped_checkpoint
+from ..model.checkpoint import load_graph_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
@@ -108,7 +108,7 @@ class Ego(ManagedNode):
 
     def configure(self) -> None:
         p = self.params
-        self.model, _ = load_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
+        self.model, _ = load_graph_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.pairing: Pairing[str, Received] = Pairing(self.own_topic)

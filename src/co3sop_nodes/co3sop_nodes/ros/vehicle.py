@@ -37,7 +37,7 @@ from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, deco
 from ..errors import CodecError, Co3sopError
 from ..grid import BENCHMARK_RANGES
 from ..geometry import Pose
-from ..model.checkpoint import load_model, shipped_checkpoint
+from ..model.checkpoint import load_graph_model, shipped_checkpoint
 from ..model.predict import compile_kernels
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
@@ -114,7 +114,7 @@ class Vehicle(ManagedNode):
     def configure(self) -> None:
         p = self.params
         checkpoint = p["checkpoint"]
-        self.model, _ = load_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        self.model, _ = load_graph_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
         self.cfg = cfg = self.model.cfg
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
             wanted = p[name]
