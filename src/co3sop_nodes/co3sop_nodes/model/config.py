@@ -129,6 +129,10 @@ PRESETS["tiny-sscnet"] = replace(PRESETS["tiny"], name="tiny-sscnet", modality="
 # Collaborative LiDAR Co3SOP-Base: the SSCNet-style LiDAR vehicle half with the same warp, hybrid mask,
 # masked deformable fusion and head, trained in the paper's two stages.
 PRESETS["tiny-lidar"] = replace(PRESETS["tiny-sscnet"], name="tiny-lidar", fusion=True)
+# The same with three fusion layers, the depth of Co3SOP's released voxel fusion (a query that has read its
+# neighbours once chooses where to read them again): tried on `validate` and not taken, its gain there is smaller
+# (results.md, "Choices made on validate").
+PRESETS["tiny-lidar-f3"] = replace(PRESETS["tiny-lidar"], name="tiny-lidar-f3", fusion_attention=AttentionConfig(layers=3))
 # Early fusion with the same SSCNet-style network: what sharing the scans themselves adds, set against tiny-lidar's
 # shared features (the same neighbours' information: each scan as the occupied voxels of its own grid).
 PRESETS["tiny-sscnet-early"] = replace(PRESETS["tiny-sscnet"], name="tiny-sscnet-early", early_fusion=True)
