@@ -14,7 +14,9 @@
 # evaluation: the JSON behind results.md is committed), PRESETS ("tiny-lidar"), RANGES ("51.2m 76.8m"),
 # SEEDS ("1 2 3"; the first only beyond 51.2 m), EGO_STEPS (1200), FUSION_STEPS (2400), SCHEDULE (constant),
 # FIRST_SEED_ABLATIONS ("inputs collaborators pose-noise distance": only for the first seed; every seed gets
-# collaboration and its ego stage alone). Choices of steps and presets were made on `validate`;
+# collaboration and its ego stage alone), TAG (none: appended as -TAG to each run's folder under RESULTS, so a
+# second recipe of the same preset, range and seed, trained under another RUNS, is kept beside the first).
+# Choices of steps and presets were made on `validate`;
 # `test` is only evaluated here. CPU by default; `--device` follows `DEVICE` (auto).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -91,7 +93,7 @@ for step in "${STEPS[@]}"; do
       # one marker per evaluation, so an interrupted step resumes where it stopped; a model trained (or
       # extended) after its marker is evaluated again
       runs | while read -r preset range seed; do
-        run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed"
+        run="$RUNS/$preset-$range-s$seed" out="$RESULTS/$preset-$range-s$seed${TAG:+-$TAG}"
         if single "$preset" && ! early "$preset"; then  # alone, and the input controls for the first seed
           if [ ! "$out/.done-alone" -nt "$run/model.pt" ]; then
             "$LIB/evaluate" --model "$run/model.pt" --collaborators 0 --data "$DATA" --splits test --device "$DEVICE" --out "$out/alone"

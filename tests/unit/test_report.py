@@ -111,6 +111,20 @@ def test_table_2_puts_each_run_under_its_method_and_range(tmp_path):
     assert cells[4].endswith("(2 seeds)") and " ± " in cells[4] and cells[5].endswith("(seed 1)")
 
 
+def test_a_second_recipe_of_a_run_is_kept_beside_the_first_and_named_in_table_2(tmp_path):
+    shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", tmp_path / "tiny-lidar-76.8m-s1")
+    tagged = tmp_path / "tiny-lidar-76.8m-s1-ego3600"  # run_protocol.sh's TAG: the same preset, range and seed
+    shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", tagged)
+    made = tagged / "tiny-lidar_76.8m_collaboration.json"
+    data = json.loads(made.read_text())
+    data["trained"][0]["steps"] = 3600
+    made.write_text(json.dumps(data))
+    runs = collect(tmp_path)
+    assert set(runs) == {("tiny-lidar", "76.8m", "ego 1200 + fusion 2400 steps"), ("tiny-lidar", "76.8m", "ego 3600 + fusion 2400 steps")}
+    lidar, = (line for line in table2_section(tmp_path, runs) if line.startswith("| Co3SOP-Base (LiDAR)"))
+    assert "(seed 1, ego 1200 + fusion 2400 steps); " in lidar and lidar.count("(seed 1, ego 3600 + fusion 2400 steps)") == 1
+
+
 def test_the_shipped_results_page_is_what_report_makes_of_the_shipped_evaluation(monkeypatch):
     """results.md is never edited by hand: the committed page equals report's output on the committed JSON."""
     root = SHIPPED.parents[3]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -30,7 +31,8 @@ from ..model.config import preset as model_preset
 from .evaluate import distance_table
 from .observed import observed_table
 
-RUN_NAME = re.compile(r"(?P<preset>.+)-(?P<range>\d+\.\dm)-s(?P<seed>\d+)")
+# a run's folder: <preset>-<range>-s<seed>, and -<tag> for a second recipe of the same run (run_protocol.sh's TAG)
+RUN_NAME = re.compile(r"(?P<preset>.+)-(?P<range>\d+\.\dm)-s(?P<seed>\d+)(?:-(?P<tag>[A-Za-z0-9]+))?")
 SCORE_NAMES = {"co3sop-code": "mIoU 1..23 (Co3SOP code)", "co3sop-readme": "mIoU 24 classes (Co3SOP README)",
                "surroundocc": "mIoU present classes (SurroundOcc)", "geometry": "geometry IoU"}
 
@@ -254,14 +256,15 @@ def table2_section(results: Path, runs: dict[tuple[str, str, str], dict[int, Pat
     """The paper's Table 2 in its layout: every method at the three ranges, mIoU 1..23 on `test` (single-agent
     models alone, collaborative ones with their collaborators), one seed with its interval, several as mean ± sd."""
     cells: dict[str, dict[str, list[str]]] = {}
-    for (name, rng, _), seeds in runs.items():
+    recipes = Counter((name, rng) for name, rng, _ in runs)  # a cell with several recipes names each one's steps
+    for (name, rng, steps), seeds in runs.items():
         on = {seed: _load(f, "collaboration")["on"] for seed, f in seeds.items()}
         if len(on) > 1:
-            cell = f"{mean_sd(np.array([point(r, 'co3sop-code') for r in on.values()]))} ({len(on)} seeds)"
+            value, who = mean_sd(np.array([point(r, 'co3sop-code') for r in on.values()])), f"{len(on)} seeds"
         else:
             (seed, r), = on.items()
-            cell = f"{pct(point(r, 'co3sop-code'))} {span(r['ci95']['co3sop-code'])} (seed {seed})"
-        cells.setdefault(name, {}).setdefault(rng, []).append(cell)
+            value, who = f"{pct(point(r, 'co3sop-code'))} {span(r['ci95']['co3sop-code'])}", f"seed {seed}"
+        cells.setdefault(name, {}).setdefault(rng, []).append(f"{value} ({who}{', ' + steps if recipes[name, rng] > 1 else ''})")
     for _, m, _, alone in single_agent_runs(results):
         cells.setdefault(m["preset"], {}).setdefault(m["range"], []).append(
             f"{pct(point(alone, 'co3sop-code'))} {span(alone['ci95']['co3sop-code'])} (seed {m['seed']})")
