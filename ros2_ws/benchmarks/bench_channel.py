@@ -1,7 +1,7 @@
 """Benchmark through the emulated V2X channel: link rate x loss x codec, the demo graph once per cell.
 
     ros2_ws/benchmarks/bench_channel.py [--bag BAG] [--link 6 27 100] [--loss 0 5] [--reliability reliable best_effort]
-        [--play-rate 0.25] [--repeats 1] [--out results/bench_channel]
+        [--play-rate 0.25] [--repeats 1] [--model tiny-lidar|CKPT] [--out results/bench_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/channel.py). Each cell runs
 `demo --channel-rate LINK --channel-loss LOSS --rate PLAY_RATE` with the
@@ -30,6 +30,7 @@ from ament_index_python.packages import get_package_prefix
 from bench_graph import measure_diagnostics
 
 from co3sop_nodes.ros.dds import RELIABILITIES
+from co3sop_nodes.ros.demo import DEFAULT_MODEL
 
 CODECS = {  # the neighbours' vehicle parameters
     "int8 dense": ["codec.dtype:=int8", "codec.selection:=dense"],
@@ -43,7 +44,7 @@ CODECS = {  # the neighbours' vehicle parameters
 def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str, run: int = 0) -> dict:
     out = opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}{f'-run{run}' if run else ''}"
     qos = f"features_reliability:={reliability}"
-    argv = [demo, "--out", str(out), "--quiet", "--rate", f"{opts.play_rate:g}", "--channel-rate", f"{link:g}",
+    argv = [demo, "--out", str(out), "--quiet", "--model", opts.model, "--rate", f"{opts.play_rate:g}", "--channel-rate", f"{link:g}",
             "--channel-loss", f"{loss:g}", "--params", *CODECS[codec], qos, "--ego-params", qos] + (["--bag", str(opts.bag)] if opts.bag else [])
     print(f"[bench_channel] {link:g} Mbit/s, {loss:g} % loss, {codec}, {reliability}", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
@@ -74,6 +75,7 @@ def main() -> int:
     parser.add_argument("--play-rate", type=float, default=0.25, help="the bag's play rate (the link is scaled by it)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each cell (a row each, then their median)")
     parser.add_argument("--out", type=Path, default=Path("results/bench_channel"))
+    parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)")
     opts = parser.parse_args()
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
     rows = [f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); 3 vehicles + ego.", "",

@@ -1,6 +1,6 @@
 """Benchmark of the node graph: bytes on the wire and mIoU per feature codec, latency, CPU per node, DDS share.
 
-    ros2_ws/benchmarks/bench_graph.py [--bag BAG] [--out results/bench_graph] [--settings ...]
+    ros2_ws/benchmarks/bench_graph.py [--bag BAG] [--model tiny-lidar|CKPT] [--out results/bench_graph] [--settings ...]
     ros2_ws/benchmarks/bench_graph.py --rates 0.25 0.5 1      (rate sweep: frames fused and latency per rate)
     ros2_ws/benchmarks/bench_graph.py --paths                 (the ego's reference paths vs its fast paths)
 
@@ -40,6 +40,7 @@ from ament_index_python.packages import get_package_prefix
 
 from co3sop_nodes.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.learn.evaluate import plot_codecs
+from co3sop_nodes.ros.demo import DEFAULT_MODEL
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 from co3sop_nodes.scoring import read_recording
 
@@ -93,7 +94,7 @@ def run_demo(demo: Path, opts, name: str, args: list[str], complete: bool = True
     """The demo graph with `args` into opts.out/name; its completed process and output folder. complete: the demo must
     succeed (every frame fused and recorded); else a recording is enough (a rate sweep counts what was fused)."""
     out = opts.out / name
-    argv = [str(demo), "--out", str(out), "--quiet", *args] + (["--bag", str(opts.bag)] if opts.bag else [])
+    argv = [str(demo), "--out", str(out), "--quiet", "--model", opts.model, *args] + (["--bag", str(opts.bag)] if opts.bag else [])
     print(f"[bench_graph] {name}: running the demo graph", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
     if not (out / "demo.mcap").exists() or (complete and done.returncode != 0):
@@ -141,6 +142,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[1])
     parser.add_argument("--bag", type=Path, help="default: the demo scenario")
     parser.add_argument("--out", type=Path, default=Path("results/bench_graph"))
+    parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)")
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
     parser.add_argument("--rates", nargs="*", type=float, help="sweep these playback rates (default codec) instead of the settings")
     parser.add_argument("--paths", action="store_true", help="the ego's reference paths against its fast paths instead of the settings")
