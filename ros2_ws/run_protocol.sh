@@ -50,7 +50,7 @@ runs() {
 
 # steps DIR: the steps DIR/state.pt has done (0 without one)
 steps() {
-  python -c 'import sys, torch; print(torch.load(sys.argv[1], weights_only=True)["step"])' "$1/state.pt" 2>/dev/null || echo 0
+  python -c 'import sys, torch; print(torch.load(sys.argv[1], weights_only=True, map_location="cpu")["step"])' "$1/state.pt" 2>/dev/null || echo 0
 }
 
 # single PRESET: whether the preset has no fusion (a single-agent baseline, trained in one stage)
