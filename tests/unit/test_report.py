@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import collect, goals, main, method, render, table2_section, why_short
+from co3sop_nodes.learn.report import collect, goals, main, method, render, table2_section, training, why_short
 from co3sop_nodes.model.config import PRESETS
 
 
@@ -123,6 +123,26 @@ def test_a_second_recipe_of_a_run_is_kept_beside_the_first_and_named_in_table_2(
     assert set(runs) == {("tiny-lidar", "76.8m", "ego 1200 + fusion 2400 steps"), ("tiny-lidar", "76.8m", "ego 3600 + fusion 2400 steps")}
     lidar, = (line for line in table2_section(tmp_path, runs) if line.startswith("| Co3SOP-Base (LiDAR)"))
     assert "(seed 1, ego 1200 + fusion 2400 steps); " in lidar and lidar.count("(seed 1, ego 3600 + fusion 2400 steps)") == 1
+
+
+def test_each_run_says_how_its_weights_were_trained_and_a_resume_that_did_nothing_is_left_out(tmp_path):
+    run = tmp_path / "tiny-lidar-76.8m-s1"
+    shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", run)
+    made = run / "tiny-lidar_76.8m_collaboration.json"
+    data = json.loads(made.read_text())
+    ego, fusion = data["trained"]
+    data["trained"] = [ego, {**fusion, "steps": 1750, "command": "train --stage fusion --device cuda"},
+                       {**fusion, "from_step": 1750, "command": "train --stage fusion --resume"},
+                       {**fusion, "from_step": fusion["steps"], "command": "train --stage fusion --resume --again"}]
+    made.write_text(json.dumps(data))
+    lines = training({1: run})
+    seed, = (line for line in lines if line.startswith("- seed 1: "))
+    assert seed.count("; then ") == 2 and f"`{ego['command']}` (ego stage, started at step 0 of {ego['steps']})" in seed
+    assert "`train --stage fusion --device cuda` (fusion stage, started at step 0 of 1750)" in seed
+    assert f"`train --stage fusion --resume` (fusion stage, started at step 1750 of {fusion['steps']})" in seed and "--again" not in seed
+    data["trained"] = []
+    made.write_text(json.dumps(data))
+    assert training({1: run}) == []  # nothing recorded: nothing claimed
 
 
 def test_the_shipped_results_page_is_what_report_makes_of_the_shipped_evaluation(monkeypatch):

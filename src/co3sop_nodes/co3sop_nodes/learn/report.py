@@ -5,7 +5,7 @@
 RESULTS holds one folder per trained run, named <preset>-<range>-s<seed> (as
 ros2_ws/run_protocol.sh writes them), each with the ablation JSON files of
 `evaluate` on the test split. The page gives, per preset and range: the
-collaboration gain of every seed with its 95 % paired bootstrap interval over
+commands that trained each seed, the collaboration gain of every seed with its 95 % paired bootstrap interval over
 test scenarios, the mean and spread over seeds, the input controls, and for
 the first seed the per-class table, the number of collaborators, pose noise and
 the gain by the nearest collaborator's distance.
@@ -363,6 +363,25 @@ def distance_reading(bins: dict, rng: str) -> list[str]:
             "of it: the share of samples in the far bins bounds the average gain this dataset allows."]
 
 
+def training(seeds: dict[int, Path]) -> list[str]:
+    """The train commands behind each seed's weights, as `evaluate` recorded them from the checkpoint: a run trained
+    in pieces, or on another machine (its device, its own copy of the data), says so. A resume of a finished run
+    (it trained no step) is left out; records older than `from_step` give the total steps only."""
+    def steps(t: dict) -> str:
+        return f"{t['stage']} stage, started at step {t['from_step']} of {t['steps']}" if "from_step" in t else f"{t['stage']} stage, {t['steps']} steps"
+
+    lines, elsewhere = [], False
+    for seed, folder in seeds.items():
+        made = [t for t in _load(folder, "collaboration").get("trained", []) if t.get("from_step", -1) < t["steps"]]
+        elsewhere |= any(" /tmp/" in t["command"] for t in made)
+        lines += [f"- seed {seed}: " + "; then ".join(f"`{t['command']}` ({steps(t)})" for t in made)] if made else []
+    if not lines:
+        return []
+    return ["#### Training commands", "",
+            *(["Folders under /tmp: the same dataset recipe generated, and the run started, on the machine with a GPU that trained it.", ""]
+              if elsewhere else []), *lines, ""]
+
+
 def render(results: Path, command: str) -> str:
     runs = collect(results)
     out = ["# Benchmark results (test split)", "",
@@ -382,7 +401,7 @@ def render(results: Path, command: str) -> str:
            *table2_section(results, runs), *single_agent_section(results), *validate_section(results), *observed_section(results)]
     for (preset, rng, steps), seeds in runs.items():
         first = seeds[min(seeds)]
-        out += [f"## {preset}, {rng}, {steps}", ""]
+        out += [f"## {preset}, {rng}, {steps}", "", *training(seeds)]
         out += compact(_load(first, "inputs"), f"Input controls (seed {min(seeds)})")
         for seed, folder in seeds.items():
             out += compact(_load(folder, "collaboration"), f"Collaboration off / on (seed {seed})")
