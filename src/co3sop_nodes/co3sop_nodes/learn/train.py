@@ -178,6 +178,20 @@ class Trainer:
         return distributed.mean_over_world(self.world, logged, self.device)
 
 
+def keep_log_until(csv_path: Path, step: int) -> None:
+    """Drop the rows after `step` from a run's log: an interrupted run logged steps past its last saved state,
+    which its resume trains again (the log then shows each step once, as the weights saw it)."""
+    if not csv_path.is_file():
+        return
+    with open(csv_path, newline="") as f:
+        lines = f.read().splitlines(keepends=True)
+    kept = lines[:1] + [line for row, line in zip(csv.DictReader(lines), lines[1:]) if int(row["step"]) <= step]
+    if len(kept) < len(lines):
+        tmp = csv_path.with_name(f".{csv_path.name}.tmp")
+        tmp.write_text("".join(kept))
+        tmp.replace(csv_path)  # atomic: an interruption leaves the whole log
+
+
 def plot_losses(csv_path: Path, png_path: Path) -> None:
     import matplotlib
 
@@ -279,6 +293,8 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
         {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
          "splits": opts.splits, "batch": opts.batch, "processes": world.size}]
     log_path = opts.out / "log.csv"
+    if world.main:
+        keep_log_until(log_path, start)
     fields = None
     # one sample per step in one process: the voxels of the loss drawn from one stream (as every earlier run);
     # otherwise each sample's from its place in the order, whichever process takes it
