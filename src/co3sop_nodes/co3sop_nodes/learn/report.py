@@ -5,10 +5,11 @@
 RESULTS holds one folder per trained run, named <preset>-<range>-s<seed> (as
 ros2_ws/run_protocol.sh writes them), each with the ablation JSON files of
 `evaluate` on the test split. The page gives, per preset and range: the
-commands that trained each seed, the collaboration gain of every seed with its 95 % paired bootstrap interval over
-test scenarios, the mean and spread over seeds, the input controls, and for
-the first seed the per-class table, the number of collaborators, pose noise and
-the gain by the nearest collaborator's distance.
+commands that trained each seed, the collaboration gain of every seed with
+its 95 % paired bootstrap interval over test scenarios, the mean and spread
+over seeds, the input controls, and for the first seed the per-class table,
+the number of collaborators, pose noise and the gain by the nearest
+collaborator's distance.
 """
 
 from __future__ import annotations
