@@ -151,3 +151,13 @@ def test_the_shipped_results_page_is_what_report_makes_of_the_shipped_evaluation
     monkeypatch.chdir(root)
     results, page = Path("src/co3sop_nodes/doc/evaluation"), Path("src/co3sop_nodes/doc/results.md")
     assert render(results, f"report {results} --out {page}") + "\n" == page.read_text()
+
+
+def test_a_goal_met_at_51_2_m_with_fewer_than_3_seeds_says_so(tmp_path):
+    shutil.copytree(SHIPPED / "small-51.2m-s1", tmp_path / "small-51.2m-s1")
+    line, = goals(collect(tmp_path), tmp_path)
+    assert "**met on 1 seed; a headline model at 51.2m needs 3**" in line
+    for seed in (2, 3):  # the same evidence under three seeds: the goal is met outright
+        shutil.copytree(SHIPPED / "small-51.2m-s1", tmp_path / f"small-51.2m-s{seed}")
+    line, = goals(collect(tmp_path), tmp_path)
+    assert "(3 seeds)" in line and line.endswith("**met**.")

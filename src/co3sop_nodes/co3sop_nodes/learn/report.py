@@ -176,11 +176,13 @@ def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
 GAIN_GOAL = 0.03  # issue 12: a collaborative LiDAR gain of at least +3 mIoU points (1..23), every interval above zero
 GAIN_GOAL_RANGES = ("51.2m", "76.8m")  # ... at these ranges; none at 25.6 m (the paper's own gain there: +0.68)
 CAMERA_GOAL = 0.15  # issue 12: the camera model at least 15 mIoU (1..23) at 51.2 m, its gain's interval above zero
+HEADLINE = ("51.2m", 3)  # issue 12: a headline model at 51.2 m is trained with at least 3 seeds
 
 
 def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> list[str]:
     """Per model and range, against its goal: the LiDAR model's mean gain (at GAIN_GOAL_RANGES), the camera model's
-    mIoU at 51.2 m; and whether every seed's gain interval excludes zero. A LiDAR gain short of its goal, or at a
+    mIoU at 51.2 m; and whether every seed's gain interval excludes zero. A goal reached at 51.2 m with fewer seeds than
+    a headline model needs (HEADLINE) is met on those seeds only, and says so. A LiDAR gain short of its goal, or at a
     range without one, is set against what the collaborators' LiDAR adds there (observed-<range>.json), where
     it was measured."""
     lines = []
@@ -205,6 +207,8 @@ def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> l
         else:
             score, goal, what = mean, GAIN_GOAL, "mean gain"
         verdict = ("met" if above else "not met: an interval reaches zero") if score >= goal else f"not met: short by {pct(goal - score)} points"
+        if verdict == "met" and rng == HEADLINE[0] and len(seeds) < HEADLINE[1]:
+            verdict = f"met on {len(seeds)} seed{'s' * (len(seeds) > 1)}; a headline model at {rng} needs {HEADLINE[1]}"
         lines.append(about + f"{what} {pct(score)} against the goal of {'+' * (what == 'mean gain')}{pct(goal)}"
                      + ("" if what == "mean gain" else f" (gain {pct(mean)})")
                      + f"; {intervals}; **{verdict}**."
