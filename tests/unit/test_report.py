@@ -1,4 +1,4 @@
-"""learn/report.py: its reading of a LiDAR gain short of its goal, its Table 2, its errors on damaged evaluation JSON (ROS-free)."""
+"""learn/report.py: its reading of a LiDAR gain short of its goal, its Table 2 and ablations across ranges, its errors on damaged evaluation JSON (ROS-free)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import collect, goals, main, method, render, table2_section, training, why_short
+from co3sop_nodes.learn.report import (PAPER_POSE_NOISE, across_ranges, collect, goals, main, method, render, table2_section,
+                                       training, why_short)
+from co3sop_nodes.metrics import point
 from co3sop_nodes.model.config import PRESETS
 
 
@@ -161,3 +163,22 @@ def test_a_goal_met_at_51_2_m_with_fewer_than_3_seeds_says_so(tmp_path):
         shutil.copytree(SHIPPED / "small-51.2m-s1", tmp_path / f"small-51.2m-s{seed}")
     line, = goals(collect(tmp_path), tmp_path)
     assert "(3 seeds)" in line and line.endswith("**met**.")
+
+
+def test_an_ablation_is_set_out_across_the_three_ranges_as_the_paper_does(tmp_path):
+    for rng in ("51.2m", "76.8m"):
+        shutil.copytree(SHIPPED / f"tiny-lidar-{rng}-s1-ego3600", tmp_path / f"tiny-lidar-{rng}-s1-ego3600")
+    shutil.copytree(SHIPPED / "tiny-lidar-25.6m-s1", tmp_path / "tiny-lidar-25.6m-s1")  # no pose-noise run: no table
+    lines = across_ranges(collect(tmp_path), "pose_noise", "Pose noise", "what the paper says", PAPER_POSE_NOISE)
+    assert lines[0] == "## Pose noise at the three ranges (mIoU 1..23, %, test)" and "what the paper says" in lines
+    assert [line for line in lines if line.startswith("### ")] == ["### tiny-lidar, ego 3600 + fusion 2400 steps (seed 1)"]
+    far = json.loads((tmp_path / "tiny-lidar-76.8m-s1-ego3600/tiny-lidar_76.8m_pose_noise.json").read_text())
+    d = far["differences"]["mu=0.5"]["co3sop-code"]
+    row = next(line for line in lines if line.startswith("| mu=0.5 |")).split(" | ")
+    assert row[1] == "-"  # not run at 25.6 m
+    assert row[3] == f"{100 * point(far['mu=0.5'], 'co3sop-code'):.2f} ({100 * d['delta']:.2f} [{100 * d['ci95'][0]:.2f}, {100 * d['ci95'][1]:.2f}])"
+    assert row[4] == "29.30 / 26.20 / 26.15 |"
+    assert next(line for line in lines if line.startswith("| mu=0.0 |")).split(" | ")[3].replace(".", "").isdigit()  # the reference: no difference
+    assert across_ranges(collect(tmp_path), "collaborators", "Collaborators", "") != []
+    shutil.rmtree(tmp_path / "tiny-lidar-51.2m-s1-ego3600"), shutil.rmtree(tmp_path / "tiny-lidar-76.8m-s1-ego3600")
+    assert across_ranges(collect(tmp_path), "pose_noise", "Pose noise", "") == []  # nothing ran it: no section
