@@ -303,10 +303,12 @@ def across_ranges(runs: dict[tuple[str, str, str], dict[int, Path]], kind: str, 
     ablation's reference and its interval; `said`: what the paper reports of it; `paper`, where given, its
     figures per setting."""
     found: dict[tuple[str, str], dict[str, dict]] = {}
+    seeds_of: dict[tuple[str, str], set[int]] = {}
     for (name, rng, steps), seeds in runs.items():
         report = _load(seeds[min(seeds)], kind)
         if report:
-            found.setdefault((name, steps), {})[rng] = report | {"seed": min(seeds)}
+            found.setdefault((name, steps), {})[rng] = report
+            seeds_of.setdefault((name, steps), set()).add(min(seeds))
     out = []
     for (name, steps), by_range in found.items():
         settings = list(dict.fromkeys(k for r in by_range.values() for k, v in r.items() if isinstance(v, dict) and "ci95" in v))
@@ -324,8 +326,7 @@ def across_ranges(runs: dict[tuple[str, str, str], dict[int, Path]], kind: str, 
                              + (f" ({pct(d['co3sop-code']['delta'])} {span(d['co3sop-code']['ci95'])})" if d else ""))
             rows.append(f"| {setting} | " + " | ".join(cells)
                         + (f" | {' / '.join(f'{v:.2f}' for v in paper[setting]) if setting in paper else '-'} |" if paper else " |"))
-        seeds = sorted({r["seed"] for r in by_range.values()})
-        out += [f"### {name}, {steps} (seed {', '.join(map(str, seeds))})", "", *rows, ""]
+        out += [f"### {name}, {steps} (seed {', '.join(map(str, sorted(seeds_of[name, steps])))})", "", *rows, ""]
     if not out:
         return []
     return [f"## {what} at the three ranges (mIoU 1..23, %, test)", "",
