@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import (PAPER_POSE_NOISE, across_ranges, collect, goals, main, method, render, table2_section,
-                                       training, why_short)
+from co3sop_nodes.learn.report import (PAPER_POSE_NOISE, across_ranges, collect, goals, levers_section, main, method, render,
+                                       table2_section, training, why_short)
 from co3sop_nodes.metrics import point
 from co3sop_nodes.model.config import PRESETS
 
@@ -182,3 +182,23 @@ def test_an_ablation_is_set_out_across_the_three_ranges_as_the_paper_does(tmp_pa
     assert across_ranges(collect(tmp_path), "collaborators", "Collaborators", "") != []
     shutil.rmtree(tmp_path / "tiny-lidar-51.2m-s1-ego3600"), shutil.rmtree(tmp_path / "tiny-lidar-76.8m-s1-ego3600")
     assert across_ranges(collect(tmp_path), "pose_noise", "Pose noise", "") == []  # nothing ran it: no section
+
+
+def test_ego_stages_scored_alone_on_validate_are_paired_row_by_row(tmp_path):
+    made = {"splits": ["validate"], "command": "evaluate --collaborators 0"}
+    for seed in (1, 2, 3):  # three checkpoints scored in one call, as `evaluate --model A B C` writes them
+        one = json.loads((SHIPPED / f"tiny-51.2m-s{seed}/ego-stage/evaluation.json").read_text())
+        made[f"tiny 51.2m, 0 collaborators (s{seed})"] = next(v for k, v in one.items() if k not in ("splits", "command"))
+    (tmp_path / "validate/levers").mkdir(parents=True)
+    (tmp_path / "validate/levers/evaluation.json").write_text(json.dumps(made))
+    lines = levers_section(tmp_path)
+    assert lines[0] == "## Ego stages alone on validate" and "### levers" in lines and "Made by `evaluate --collaborators 0`." in lines
+    rows = [line.split(" | ") for line in lines if line.startswith("| `")]
+    assert len(rows) == 3 and rows[0][4:] == ["reference", "- |"] and all(r[1] == "ego 1200 steps" for r in rows)
+    score = [float(r[2].split()[0]) for r in rows]
+    first, above = (float(rows[2][c].split()[0]) for c in (4, 5))
+    assert first == pytest.approx(score[2] - score[0], abs=0.011) and above == pytest.approx(score[2] - score[1], abs=0.011)
+    low, high = (float(x) for x in rows[2][5].split("[")[1].rstrip("] |").split(", "))
+    assert low <= above <= high
+    shutil.rmtree(tmp_path / "validate")
+    assert levers_section(tmp_path) == []  # none evaluated: no section

@@ -10,7 +10,10 @@ its 95 % paired bootstrap interval over test scenarios, the mean and spread
 over seeds, the input controls, and for the first seed the per-class table,
 the number of collaborators, pose noise and the gain by the nearest
 collaborator's distance; the number of collaborators and pose noise are also
-set out across the three ranges, as the paper's figure and table do.
+set out across the three ranges, as the paper's figure and table do. Choices
+made on `validate` (RESULTS/validate/<choice>/) close the page: fusion
+recipes by their collaboration gain, and single-agent checkpoints scored alone
+(one `evaluate` call with several --model), paired row by row.
 """
 
 from __future__ import annotations
@@ -402,6 +405,35 @@ def validate_section(results: Path) -> list[str]:
     return out + [""]
 
 
+def levers_section(results: Path) -> list[str]:
+    """Single-agent checkpoints scored alone on `validate` (RESULTS/validate/<choice>/evaluation.json: one `evaluate`
+    call with several --model and --collaborators 0), each row paired with the first and with the row above."""
+    found = sorted((results / "validate").glob("*/evaluation.json"))
+    if not found:
+        return []
+    out = ["## Ego stages alone on validate", "",
+           "Single-agent checkpoints (a collaborative model's ego stage) scored with no collaborator on `validate`",
+           "(never `test`), one `evaluate` call per table; each difference in mIoU 1..23 is paired over the same",
+           "resampled scenarios.", ""]
+    for path in found:
+        made = read_json(path, "evaluation")
+        scored = [s for name, s in made.items() if name not in META]
+        out += [f"### {path.parent.name}", "", f"Made by `{made.get('command', '')}`.", "",
+                "| model | training steps | mIoU 1..23 | geometry IoU | vs the first row | vs the row above |",
+                "|---|---|---:|---:|---:|---:|"]
+        for i, s in enumerate(scored):
+            boot = Bootstrap(list(s["per_scenario"]))
+
+            def versus(other: dict, s=s, boot=boot) -> str:
+                d = boot.difference(confusions_of(s), confusions_of(other))["co3sop-code"]
+                return f"{pct(d['delta'])} {span(d['ci95'])}"
+
+            out.append(f"| `{s.get('model', '?')}` | {recipe(s)} | {pct(point(s, 'co3sop-code'))} {span(s['ci95']['co3sop-code'])} | "
+                       f"{pct(point(s, 'geometry'))} | " + (f"{versus(scored[0])} | {versus(scored[i - 1])} |" if i else "reference | - |"))
+        out.append("")
+    return out
+
+
 def distance_reading(bins: dict, rng: str) -> list[str]:
     """The distance table in one sentence: where the gain comes from, and how many samples have no one to help."""
     total = sum(b["samples"] for b in bins.values())
@@ -455,7 +487,8 @@ def render(results: Path, command: str) -> str:
            *across_ranges(runs, "pose_noise", "Pose noise (sigma 0.02 m, neighbours only)",
                           "The paper's column: its camera Co3SOP-Base on its CARLA data (compare the trend, not the level).",
                           PAPER_POSE_NOISE),
-           *single_agent_section(results), *validate_section(results), *observed_section(results)]
+           *single_agent_section(results), *validate_section(results), *levers_section(results),
+           *observed_section(results)]
     for (preset, rng, steps), seeds in runs.items():
         first = seeds[min(seeds)]
         out += [f"## {preset}, {rng}, {steps}", "", *training(seeds)]
