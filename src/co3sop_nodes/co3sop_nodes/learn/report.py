@@ -421,15 +421,15 @@ def levers_section(results: Path) -> list[str]:
         out += [f"### {path.parent.name}", "", f"Made by `{made.get('command', '')}`.", "",
                 "| model | training steps | mIoU 1..23 | geometry IoU | vs the first row | vs the row above |",
                 "|---|---|---:|---:|---:|---:|"]
+        boot = Bootstrap(list(scored[0]["per_scenario"]))  # one call: the same scenarios in every column
+
+        def versus(run: dict, reference: dict) -> str:
+            d = boot.difference(confusions_of(run), confusions_of(reference))["co3sop-code"]
+            return f"{pct(d['delta'])} {span(d['ci95'])}"
+
         for i, s in enumerate(scored):
-            boot = Bootstrap(list(s["per_scenario"]))
-
-            def versus(other: dict, s=s, boot=boot) -> str:
-                d = boot.difference(confusions_of(s), confusions_of(other))["co3sop-code"]
-                return f"{pct(d['delta'])} {span(d['ci95'])}"
-
             out.append(f"| `{s.get('model', '?')}` | {recipe(s)} | {pct(point(s, 'co3sop-code'))} {span(s['ci95']['co3sop-code'])} | "
-                       f"{pct(point(s, 'geometry'))} | " + (f"{versus(scored[0])} | {versus(scored[i - 1])} |" if i else "reference | - |"))
+                       f"{pct(point(s, 'geometry'))} | " + (f"{versus(s, scored[0])} | {versus(s, scored[i - 1])} |" if i else "reference | - |"))
         out.append("")
     return out
 
