@@ -59,6 +59,14 @@ def start(world: World, device: torch.device) -> None:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
 
 
+def finish(world: World) -> None:
+    """Waits at the end of a run until every process is there: rank 0 writes the checkpoint, the exported model
+    and the plot after the last step, and a process that left the group meanwhile could end the run under it
+    (torchrun stops the others when one exits badly)."""
+    if world.size > 1:
+        dist.barrier()
+
+
 def stop(world: World) -> None:
     if world.size > 1 and dist.is_initialized():
         dist.destroy_process_group()

@@ -258,7 +258,9 @@ def main(args: list[str] | None = None) -> int:
         raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
     distributed.start(world, device)
     try:
-        return _train(opts, args, world, device)
+        code = _train(opts, args, world, device)
+        distributed.finish(world)
+        return code
     finally:
         distributed.stop(world)
 
