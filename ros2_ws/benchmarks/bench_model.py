@@ -23,15 +23,18 @@ import resource
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
-from co3sop_nodes import native
+from co3sop_nodes.inference import PRECISIONS, InferencePath, cpu_bfloat16_unit
 from co3sop_nodes.learn.device import add_device_argument, select_device
 from co3sop_nodes.model import pace
 from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.model import VehicleOutput, build_model
 from co3sop_nodes.model.outputs import labels_from_logits
+from co3sop_nodes.model.predict import predict_frame
 from co3sop_nodes.model.warp import warp_compiled, warp_with_mask
 from timing import timed
 
@@ -111,8 +114,8 @@ def frame_table(repeats: int) -> str:
         for range_name in ("25.6m", "51.2m", "76.8m"):
             model = trained if range_name == trained.cfg.range else build_model(replace(trained.cfg, range=range_name)).eval()
             costs = []
-            for enabled in (False, True):
-                native.ENABLED = enabled
+            for compiled in (False, True):
+                model.use(InferencePath(compiled=compiled))
                 costs.append(pace.frame_cost(model, repeats))
             ref, fast = costs
             rates = [pace.sustainable_rate(c, 3, 0.1, 2) for c in costs]
@@ -120,6 +123,104 @@ def frame_table(repeats: int) -> str:
                         f"{1e3 * ref.ego_s:.0f} / {1e3 * fast.ego_s:.0f} | {ref.ego_s / fast.ego_s:.1f}x | {rates[0]:.2f} / {rates[1]:.2f} |")
             print(f"  frame {name} {range_name}: vehicle {1e3 * ref.vehicle_s:.0f} -> {1e3 * fast.vehicle_s:.0f} ms, "
                   f"ego {1e3 * ref.ego_s:.0f} -> {1e3 * fast.ego_s:.0f} ms", flush=True)
+    return "\n".join(rows)
+
+
+@torch.no_grad()
+def precision_table(device: torch.device, precisions: list[str], repeats: int) -> str:
+    """Each shipped model at 51.2 m, as the nodes run it on `device` (its compiled kernels on the CPU): wall time of
+    the vehicle half and of the ego's frame (2 neighbours 10 m away, fusion, labels) per precision, with the ratio
+    to float32 measured in the same run."""
+    rows = ["| model | precision | vehicle half ms | ego frame ms | vehicle: float32 / this | ego: float32 / this |",
+            "|---|---|---:|---:|---:|---:|"]
+    timed_on = on(device)
+    for name in ("tiny-lidar", "tiny", "small"):
+        model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
+        base = None
+        for precision in ["float32", *(p for p in precisions if p != "float32")]:
+            model.use(InferencePath(str(device), precision))
+            inputs = pace.shaped_inputs(model)
+            t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
+            others = {i: (VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)), pose)
+                      for i, pose in ((1, _shifted(10.0)), (2, _shifted(-10.0)))}
+            t_ego, _ = timed_on(lambda: predict_frame(model, ego, np.eye(4), others), repeats)
+            base = base or (t_vehicle, t_ego)
+            rows.append(f"| {name} | {precision} | {1e3 * t_vehicle:.1f} | {1e3 * t_ego:.1f} | {base[0] / t_vehicle:.2f}x | {base[1] / t_ego:.2f}x |")
+            print(f"  {name} {precision}: vehicle {1e3 * t_vehicle:.1f} ms, ego {1e3 * t_ego:.1f} ms", flush=True)
+    return "\n".join(rows)
+
+
+def _shifted(dx: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[0, 3] = dx
+    return pose
+
+
+def _flops(fn) -> int:
+    """Floating-point operations of the convolutions and matrix products `fn` runs (2 per multiply-add)."""
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return counter.get_total_flops()
+
+
+@torch.no_grad()
+def peak_table(repeats: int) -> tuple[str, float]:
+    """This CPU's throughput on one thread, measured here: a large matrix product and a 3x3x3 convolution of the
+    head's size (32 -> 32 channels over 128x128x12), float32 and bfloat16 (channels-last for the convolution, as
+    oneDNN wants it); the float32 matrix product's GFLOP/s is the peak the stages are held against."""
+    rows = ["| kernel | float32 GFLOP/s | bfloat16 GFLOP/s | bfloat16 / float32 |", "|---|---:|---:|---:|"]
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.randn(1024, 1024, generator=gen), torch.randn(1024, 1024, generator=gen)
+    conv = torch.nn.Conv3d(32, 32, 3, padding=1, bias=False)
+    x = torch.randn(1, 32, 128, 128, 12, generator=gen)
+    kernels = {"matrix product 1024^3": (lambda t: t[0] @ t[1], (a, b), 2 * 1024**3),
+               "conv3d 3x3x3, 32->32, 128x128x12": (None, None, 2 * 32 * 32 * 27 * 128 * 128 * 12)}
+    peak = 0.0
+    for name, (fn, args, flops) in kernels.items():
+        rates = []
+        for dtype in (torch.float32, torch.bfloat16):
+            if fn is None:
+                layer = conv.to(dtype=dtype, memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format)
+                xin = x.to(dtype).contiguous(memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format)
+                call = lambda layer=layer, xin=xin: layer(xin)  # noqa: E731
+            else:
+                targs = tuple(t.to(dtype) for t in args)
+                call = lambda targs=targs: fn(targs)  # noqa: E731
+            call()
+            t, _ = timed(call, repeats)
+            rates.append(flops / t / 1e9)
+        peak = peak or rates[0]
+        rows.append(f"| {name} | {rates[0]:.0f} | {rates[1]:.0f} | {rates[1] / rates[0]:.2f}x |")
+        print(f"  peak {name}: float32 {rates[0]:.0f}, bfloat16 {rates[1]:.0f} GFLOP/s", flush=True)
+    return "\n".join(rows), peak
+
+
+@torch.no_grad()
+def roofline_table(repeats: int, peak: float) -> str:
+    """Each shipped model's stages at 51.2 m on one thread as the nodes run them (compiled kernels, float32): FLOPs
+    per frame (the convolutions and matrix products, counted on the reference paths, which compute the same
+    products), time, GFLOP/s and the share of the measured float32 peak."""
+    rows = ["| model | stage | GFLOP per frame | ms | GFLOP/s | share of the float32 peak |", "|---|---|---:|---:|---:|---:|"]
+    for name in ("tiny-lidar", "tiny", "small"):
+        model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
+        inputs = pace.shaped_inputs(model)
+        ego = model.vehicle(**inputs)
+        others = [VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)) for i in (1, 2)]
+        rel = torch.eye(4)[None].repeat(1, 2, 1, 1)
+        rel[0, :, 0, 3] = torch.tensor([6.0, -9.0])
+        fused = model.ego.fuse(ego, others, rel)
+        stages = {"vehicle half": lambda: model.vehicle(**inputs), "fusion (2 neighbours)": lambda: model.ego.fuse(ego, others, rel),
+                  "head to labels": lambda: model.ego.head.labels(fused)}
+        reference = {"head to labels": lambda: model.ego.head(fused)[-1]}  # the labels path computes the full-resolution logits' products
+        for stage, fn in stages.items():
+            model.use(InferencePath(compiled=False))
+            flops = _flops(reference.get(stage, fn))
+            if stage == "head to labels":  # the dense pass's 1/4 and 1/2 classifiers are not on the labels path
+                flops -= sum(_flops(lambda c=c, f=f: c(f)) for c, f in zip(model.ego.head.classify[:2], model.ego.head.coarse(fused)))
+            model.use(InferencePath())
+            t, _ = timed(fn, repeats)
+            rows.append(f"| {name} | {stage} | {flops / 1e9:.2f} | {1e3 * t:.1f} | {flops / t / 1e9:.0f} | {flops / t / 1e9 / peak:.0%} |")
+            print(f"  roofline {name} {stage}: {flops / 1e9:.2f} GFLOP in {1e3 * t:.1f} ms", flush=True)
     return "\n".join(rows)
 
 
@@ -168,10 +269,25 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path)
     add_device_argument(parser)
+    parser.add_argument("--precisions", nargs="*", choices=PRECISIONS[1:], default=[],
+                        help="also time the shipped models at 51.2 m in these precisions against float32")
+    parser.add_argument("--precision-only", action="store_true", help="only the precision table")
+    parser.add_argument("--roofline", action="store_true", help="only this CPU's measured peak (one thread) and each shipped "
+                        "model's FLOPs and GFLOP/s per stage against it")
     opts = parser.parse_args()
     torch.set_num_threads(opts.threads)
     device = select_device(opts.device)
-    if device.type == "cuda":
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {opts.threads} threads"
+    precision = [f"### Precision: the shipped models at 51.2 m ({where}, median of {opts.repeats})",
+                 precision_table(device, opts.precisions, opts.repeats)] if opts.precisions else []
+    if opts.roofline:
+        torch.set_num_threads(1)
+        peaks, peak = peak_table(opts.repeats)
+        parts = [f"### This CPU's peak on one thread (median of {opts.repeats}; bfloat16 hardware: {cpu_bfloat16_unit() or 'none'})",
+                 peaks, "### Each stage against it (51.2 m, one thread, compiled kernels, float32)", roofline_table(opts.repeats, peak)]
+    elif opts.precision_only:
+        parts = precision
+    elif device.type == "cuda":
         where = f"{torch.cuda.get_device_name(device)}, median of {opts.repeats}"
         parts = [f"### GPU time per stage, preset `{opts.preset}` ({where})", stage_table(opts.preset, opts.repeats, device),
                  f"### Head to labels on the GPU: dense reference vs the per-parent loop (`{opts.preset}`)", head_table(opts.preset, opts.repeats, device),
@@ -182,6 +298,7 @@ def main() -> None:
                  f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads)", head_table(opts.preset, opts.repeats, device),
                  "### CPU per frame as the nodes compute it (shipped models, one thread, median)", frame_table(opts.repeats),
                  f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats, device)]
+    parts += [] if opts.precision_only or opts.roofline else precision
     parts.append(f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB.")
     text = "\n\n".join(parts)
     print(text)

@@ -7,6 +7,7 @@
     ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
     ros2 run co3sop_nodes evaluate ... --ablation inputs          # real vs blank vs shuffled sensors (input controls)
     ros2 run co3sop_nodes evaluate ... --ablation distance        # off vs on by the nearest collaborator's distance
+    ros2 run co3sop_nodes evaluate ... --precision bfloat16 --ablation precision   # bfloat16 vs float32, labels compared
     ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown
@@ -39,6 +40,7 @@ from ..cli.common import progress, run
 from ..codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
 from ..collaboration import COMM_RANGE, noisy_relative
 from ..errors import Co3sopError
+from ..inference import PRECISIONS, InferencePath, inference_path
 from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
 from ..model.checkpoint import load_model, shipped_checkpoint
 from ..model.inputs import to_batch
@@ -48,7 +50,7 @@ from ..model.request import request_for_neighbour, request_of
 from ..model.predict import predict_frame
 from .controls import INPUT_CONTROLS, ControlledInputs
 from .dataset import OccupancyDataset, Sample, early_fused
-from .device import add_device_argument, select_device
+from .device import add_device_argument
 
 
 
@@ -56,20 +58,25 @@ from .device import add_device_argument, select_device
 def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
              codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
              cache: dict | None = None, inputs: str = "real",
-             where: Callable[[Sample], bool] | None = None, later_frames: dict | None = None) -> tuple[dict, float]:
+             where: Callable[[Sample], bool] | None = None, later_frames: dict | None = None,
+             path: InferencePath | None = None, labels: dict | None = None) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
     `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
     `inputs` is one of learn.controls.INPUT_CONTROLS; `where` keeps only the samples it accepts (judged on the
     sample with every collaborator in range, whatever `collaborators` is). `later_frames`, where given, is
     filled as the result with the samples whose ego was there the frame before (those a request map reaches:
-    every one but the ego's first frame of a scenario).
+    every one but the ego's first frame of a scenario). `path`, where given, is the inference path the model
+    runs on from now on (`Co3SOP.use`: a cache is valid for one path only); `labels`, where given, is filled with
+    each sample's predicted labels by sample index.
     """
     early = model.cfg.early_fusion
     if early and codec is not None:
         raise Co3sopError(f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no features to encode")
     rng = np.random.default_rng(seed)
-    device = next(model.parameters()).device
+    if path is not None:
+        model.use(path)
+    device = model.path.torch_device
     confusions, sent = {}, []
     senders: dict[tuple, SenderBudgets] = {}  # (scenario, sender) -> its byte budgets, one per ego
     cache = {} if cache is None else cache
@@ -135,6 +142,8 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
         pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
         scenario = "/".join(sample.key[:2])
         confusions.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
+        if labels is not None:
+            labels[i] = pred.labels
         if later_frames is not None and previous_frame(f, sample.ego.cav_id) is not None:
             later_frames.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
         bar.update(1)
@@ -168,15 +177,17 @@ def _write(out: Path, name: str, text: str, data: dict) -> None:
     print(text)
 
 
-def _compare(opts, stem: str, heading: str, title: str, runs: dict[str, dict], reference: str, boot: Bootstrap) -> dict:
-    """Writes runs (per-scenario confusions) as one table with intervals, plus each run's paired difference to `reference`."""
+def _compare(opts, stem: str, heading: str, title: str, runs: dict[str, dict], reference: str, boot: Bootstrap,
+             note: str = "", extra: dict | None = None) -> dict:
+    """Writes runs (per-scenario confusions) as one table with intervals, plus each run's paired difference to `reference`
+    (and a `note` below it, `extra` in the JSON)."""
     summaries = {name: boot.summary(c) for name, c in runs.items()}
     differences = {name: boot.difference(c, runs[reference]) for name, c in runs.items() if name != reference}
     text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
             + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
-            + difference_table(differences, reference))
+            + difference_table(differences, reference) + (f"\n\n{note}" if note else ""))
     _write(opts.out, stem, text, {"title": title, "command": opts.command, "trained": opts.trained, "reference": reference, **summaries,
-                                  "differences": differences})
+                                  "differences": differences, **(extra or {})})
     return summaries
 
 
@@ -317,8 +328,28 @@ def distance_table(bins: dict) -> list[str]:
     return rows
 
 
+def _precision(opts, cfg, stem, title, measure, boot) -> None:
+    """--precision (reduced) against float32 on the same device: the paired mIoU difference and the share of voxels
+    whose label is the same."""
+    fast = opts.inference
+    if not fast.reduced:
+        raise Co3sopError("--ablation precision compares --precision bfloat16 or float16 with float32: name one of them")
+    reference = replace(fast, precision="float32")
+    labels: dict[str, dict] = {}
+    runs = {}
+    for path in (reference, fast):  # the model's own path last: it stays on it
+        labels[path.precision] = {}
+        runs[path.precision] = measure(path=path, shared={}, labels=labels[path.precision], desc=path.precision)[0]
+    same = sum(int((labels["float32"][i] == labels[fast.precision][i]).sum()) for i in labels["float32"])
+    total = sum(v.size for v in labels["float32"].values())
+    agreement = same / max(1, total)
+    _compare(opts, f"{stem}_precision", f"Inference precision ({fast.device})", title, runs, "float32", boot,
+             f"Labels equal to float32's on {100 * agreement:.2f} % of {total} voxels ({len(labels['float32'])} samples).",
+             {"device": fast.device, "label_agreement": agreement, "voxels": total})
+
+
 ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs,
-             "distance": _distance}
+             "distance": _distance, "precision": _precision}
 
 
 def main(args: list[str] | None = None) -> int:
@@ -334,6 +365,9 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     add_device_argument(parser)
+    parser.add_argument("--precision", default="float32", choices=PRECISIONS,
+                        help="inference precision (float32, the reference, by default; auto: what the machine computes fast)")
+    parser.add_argument("--reference-paths", action="store_true", help="the PyTorch reference paths instead of the compiled kernels")
     opts = parser.parse_args(args)
     opts.command = shlex.join(["evaluate", *(sys.argv[1:] if args is None else args)])  # recorded beside every table
     if opts.collaborators is not None and opts.collaborators < 0:
@@ -341,12 +375,12 @@ def main(args: list[str] | None = None) -> int:
     if opts.threads < 1:
         parser.error("--threads must be 1 or more")
     torch.set_num_threads(opts.threads)
-    device = select_device(opts.device)
+    opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
     table: dict[str, dict] = {}
     for path in opts.model or [shipped_checkpoint()]:
         model, checkpoint = load_model(path)
         opts.trained = checkpoint.get("meta", checkpoint).get("history", [])  # the train commands behind the weights, in the JSON
-        model.to(device)
+        model.use(opts.inference)
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg)
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"

@@ -54,8 +54,9 @@ def span(low_high: list[float]) -> str:
 SUMMARY = ("frames", "per_class_iou", *(s for s in SCORES if s != "geometry"), "ci95", "per_scenario")
 ABLATION = ("title", "reference", "differences")  # any ablation (inputs, collaborators, pose_noise)
 NEEDS = {"collaboration": (*ABLATION, "off", "on"), "evaluation": (), "distance": ("title", "command", "bins"),
+         "precision": (*ABLATION, "command", "float32", "device", "label_agreement", "voxels"),
          "observed": ("splits", "range", "samples", "all", "classes")}
-META = {"title", "command", "trained", "reference", "differences", "splits"}  # beside the scored runs
+META = {"title", "command", "trained", "reference", "differences", "splits", "device", "label_agreement", "voxels"}  # beside the scored runs
 
 
 def _missing_runs(runs: dict) -> list[str]:
@@ -434,6 +435,30 @@ def levers_section(results: Path) -> list[str]:
     return out
 
 
+def precision_section(results: Path) -> list[str]:
+    """Reduced-precision inference against float32 on the same device and samples (`evaluate --ablation precision`,
+    in results/precision/<model>-<precision>/)."""
+    found = sorted((results / "precision").glob("*/*_precision.json"))
+    if not found:
+        return []
+    lines = ["## Inference precision against float32 (mIoU over classes 1..23, %)", "",
+             "The shipped weights on every test sample, float32 and the reduced precision on the same device; the difference is",
+             "paired (the same resampled scenarios), the label agreement is over every voxel of every sample.", "",
+             "| model | range | device | precision | float32 | this precision | difference [95 % interval] | labels equal to float32's |",
+             "|---|---|---|---|---:|---:|---:|---:|"]
+    commands = []
+    for path in found:
+        report = read_json(path, "precision")
+        precision = next(iter(report["differences"]))
+        diff = report["differences"][precision]["co3sop-code"]
+        name, rng = path.stem.removesuffix("_precision").rsplit("_", 1)
+        lines.append(f"| {name} | {rng} | {report['device']} | {precision} | {pct(point(report['float32'], 'co3sop-code'))} | "
+                     f"{pct(point(report[precision], 'co3sop-code'))} | {pct(diff['delta'])} {span(diff['ci95'])} | "
+                     f"{100 * report['label_agreement']:.2f} % of {report['voxels']:,} |")
+        commands.append(f"    {report['command']}")
+    return [*lines, "", "Made by:", "", *commands, ""]
+
+
 def distance_reading(bins: dict, rng: str) -> list[str]:
     """The distance table in one sentence: where the gain comes from, and how many samples have no one to help."""
     total = sum(b["samples"] for b in bins.values())
@@ -487,7 +512,7 @@ def render(results: Path, command: str) -> str:
            *across_ranges(runs, "pose_noise", "Pose noise (sigma 0.02 m, neighbours only)",
                           "The paper's column: its camera Co3SOP-Base on its CARLA data (compare the trend, not the level).",
                           PAPER_POSE_NOISE),
-           *single_agent_section(results), *validate_section(results), *levers_section(results),
+           *single_agent_section(results), *precision_section(results), *validate_section(results), *levers_section(results),
            *observed_section(results)]
     for (preset, rng, steps), seeds in runs.items():
         first = seeds[min(seeds)]

@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..inference import InferencePath
 from . import deform_kernel
 
 
@@ -68,6 +69,7 @@ class DeformableAttention3d(nn.Module):
         self.value = nn.Linear(dims, dims)
         self.output = nn.Linear(dims, dims)
         self.register_buffer("scale", 1.0 / torch.tensor(extent_voxels, dtype=torch.float32), persistent=False)
+        self.path = InferencePath()  # set by Co3SOP.use
         nn.init.zeros_(self.offsets.weight)
         with torch.no_grad():  # initial offsets: points spread along the axes, 1..P voxels away
             direction = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32)
@@ -85,7 +87,7 @@ class DeformableAttention3d(nn.Module):
         logits = logits.masked_fill(~mask[:, :, None, :, None], float("-inf"))
         w = torch.softmax(logits.reshape(b, q, h, a * p), -1).view(b, q, h, a, p)
         w = torch.nan_to_num(w)  # a query with no agent allowed attends to nothing
-        if not torch.is_grad_enabled() and query.device.type == "cpu" and deform_kernel.available(c // h):
+        if self.path.kernels(query) and deform_kernel.available(c // h):
             # inference on the CPU: the compiled sampler, from the channels-last volumes (tested equal to sample_3d)
             threads = torch.get_num_threads()
             return self.output(torch.stack([deform_kernel.sample_3d(v[i], reference[i], offsets[i], self.scale, w[i], threads) for i in range(b)]))

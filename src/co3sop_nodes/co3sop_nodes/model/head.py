@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..inference import InferencePath
 from . import octant_kernel
 
 
@@ -34,6 +35,7 @@ class OccupancyHead(nn.Module):
         self.up2 = nn.ConvTranspose3d(c1, c2, 2, 2)
         self.point2 = nn.Conv3d(c2, c2, 1)
         self.classify = nn.ModuleList(nn.Conv3d(c, classes, 1) for c in channels)
+        self.path = InferencePath()  # set by Co3SOP.use
 
     def coarse(self, x):
         """x: (B, C, X/4, Y/4, Z/4) -> features at 1/4 and 1/2."""
@@ -66,13 +68,15 @@ class OccupancyHead(nn.Module):
 
         Per chunk of parent voxels at 1/2: the 8 octants' features (the transposed convolution's 8 kernel
         slices), the pointwise layers, the classifier, then argmax and the label's softmax probability.
-        compiled: the compiled kernel (default: on the CPU where it compiles) or the PyTorch loop.
+        compiled: the compiled kernel (default: as the model's inference path says, where it compiles) or the
+        PyTorch loop. The 1/2 features follow the path's precision; the last stage runs in float32.
         """
-        parents = self.parents(x)  # (B, P, C1)
+        with self.path.autocast():
+            parents = self.parents(x).float()  # (B, P, C1)
         b, (x1, y1, z1) = x.shape[0], (2 * n for n in x.shape[2:])
         c1, c2 = self.up2.in_channels, self.up2.out_channels
         if compiled is None:
-            compiled = x.device.type == "cpu" and octant_kernel.available(c1, c2, self.classify[2].out_channels)
+            compiled = self.path.kernels(x) and octant_kernel.available(c1, c2, self.classify[2].out_channels)
         if compiled:
             pairs = [octant_kernel.octant_labels(p, (x1, y1, z1), self.up2, self.point2, self.classify[2], torch.get_num_threads()) for p in parents]
             return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])

@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from ..grid import GridSpec
+from ..inference import InferencePath
 from . import deform_kernel
 from .deform_attn import sample_2d
 
@@ -41,6 +42,7 @@ class ImageCrossAttention(nn.Module):
         self.weights = nn.Linear(dims, heads * levels * points)
         self.value = nn.Linear(dims, dims)
         self.output = nn.Linear(dims, dims)
+        self.path = InferencePath()  # set by Co3SOP.use
         nn.init.zeros_(self.offsets.weight)
         with torch.no_grad():  # initial offsets on a small ring around the reference point
             angle = torch.arange(heads * points, dtype=torch.float32) * (2 * torch.pi / (heads * points))
@@ -56,7 +58,7 @@ class ImageCrossAttention(nn.Module):
         w = torch.softmax(self.weights(query).view(b, q, h, lv * p), -1).view(b, q, h, lv, p)
         values = [self.value(f.permute(0, 2, 3, 1)) for f in feats]  # L x (B*N, Hl, Wl, C)
         # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
-        compiled = not torch.is_grad_enabled() and query.device.type == "cpu" and deform_kernel.available(c // h)
+        compiled = self.path.kernels(query) and deform_kernel.available(c // h)
         if not compiled:
             shapes = torch.tensor([[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device)  # (L, 2) W, H
             off = offsets / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]

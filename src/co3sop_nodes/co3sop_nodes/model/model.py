@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..inference import InferencePath
 from .backbone import ResNet
 from .config import ModelConfig
 from .fpn import FPN
@@ -61,9 +62,16 @@ class VehicleHalf(nn.Module):
         else:
             raise ValueError(f"unknown modality {cfg.modality!r}")
         self.confidence = nn.Conv3d(c, 1, 1)
+        self.path = InferencePath()  # set by Co3SOP.use
 
     def forward(self, images=None, lidar2img=None, occupancy=None) -> VehicleOutput:
-        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4). LiDAR: occupancy (B, 1, X, Y, Z) 0/1."""
+        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4). LiDAR: occupancy (B, 1, X, Y, Z) 0/1.
+        Features and confidence in float32 whatever the path's precision (the wire's codecs take float32)."""
+        with self.path.autocast():
+            out = self._forward(images, lidar2img, occupancy)
+        return VehicleOutput(out.features.float().contiguous(), out.confidence.float().contiguous())
+
+    def _forward(self, images, lidar2img, occupancy) -> VehicleOutput:
         fg = self.cfg.feature_grid
         if self.cfg.modality == "camera":
             b, n = images.shape[:2]
@@ -91,12 +99,13 @@ class EgoHalf(nn.Module):
             self.head = OccFormerHead(cfg)
         else:
             raise ValueError(f"unknown head {cfg.head!r}")
+        self.path = InferencePath()  # set by Co3SOP.use
 
     def align(self, ego: VehicleOutput, others: list[VehicleOutput], neighbour_from_ego: torch.Tensor):
         """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
         fg = self.cfg.feature_grid
         feats, confs, masks = [], [], []
-        if not torch.is_grad_enabled() and ego.features.device.type == "cpu" and len(ego.features) == 1 and compiled_available():
+        if self.path.kernels(ego.features) and len(ego.features) == 1 and compiled_available():
             # inference on the CPU: the compiled warp, channels-last (the attention reads the features so)
             threads = torch.get_num_threads()
             for a, other in enumerate(others):
@@ -122,7 +131,9 @@ class EgoHalf(nn.Module):
         if self.fusion is None or not others:
             return ego.features
         feats, _, mask = self.align(ego, others, neighbour_from_ego)
-        return self.fusion(ego.features, feats, mask, dense=dense)
+        with self.path.autocast():
+            fused = self.fusion(ego.features, feats, mask, dense=dense)
+        return fused if torch.is_grad_enabled() else fused.float()
 
     def forward(self, ego: VehicleOutput, others=(), neighbour_from_ego: torch.Tensor | None = None,
                 sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:
@@ -140,6 +151,21 @@ class Co3SOP(nn.Module):
         self.cfg = cfg
         self.vehicle = VehicleHalf(cfg)
         self.ego = EgoHalf(cfg)
+        self.path = InferencePath()
+
+    def use(self, path: InferencePath) -> Co3SOP:
+        """Run inference on `path` from now on: the weights moved to its device, every module that chooses
+        between a compiled kernel and its reference, or autocasts, told so. In reduced precision the
+        convolutions' weights go channels-last (oneDNN's and cuDNN's fast layouts)."""
+        self.to(path.torch_device)
+        layout = {4: torch.channels_last, 5: torch.channels_last_3d} if path.reduced else {}
+        for module in self.modules():
+            if "path" in vars(module):
+                module.path = path
+            if isinstance(module, (nn.Conv2d, nn.Conv3d, nn.ConvTranspose3d)):
+                fmt = layout.get(module.weight.dim(), torch.contiguous_format)
+                module.weight.data = module.weight.data.contiguous(memory_format=fmt)
+        return self
 
     def forward(self, agents: list[dict], neighbour_from_ego: torch.Tensor | None = None,
                 sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:

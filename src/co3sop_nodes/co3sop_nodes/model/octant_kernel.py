@@ -33,7 +33,7 @@ def _kernel(c1: int, c2: int, classes: int):
 
 
 def available(c1: int, c2: int, classes: int) -> bool:
-    """Whether the kernel for this head shape is enabled and compiles here (compiling it on first call)."""
+    """Whether the kernel for this head shape compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
     return native.ENABLED and _kernel(c1, c2, classes) is not None
 
 

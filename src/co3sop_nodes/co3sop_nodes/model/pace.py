@@ -38,16 +38,17 @@ class FrameCost:
 
 
 def shaped_inputs(model: Co3SOP, seed: int = 0) -> dict:
-    """VehicleHalf inputs of the model's shapes: random images seen through the OPV2V rig, or ~3 % of voxels hit."""
-    cfg = model.cfg
+    """VehicleHalf inputs of the model's shapes, on its device: random images seen through the OPV2V rig, or ~3 % of
+    voxels hit."""
+    cfg, device = model.cfg, model.path.torch_device
     rng = np.random.default_rng(seed)
     if cfg.modality == "lidar":
-        return to_batch({"occupancy": (rng.random((1, *cfg.grid.dims)) < 0.03).astype(np.uint8)})
+        return to_batch({"occupancy": (rng.random((1, *cfg.grid.dims)) < 0.03).astype(np.uint8)}, device)
     w, h = cfg.image_size
     cams = [CameraFrame(name, mount, rig.intrinsics(w, h), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
             for name, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras())]
     images, lidar2img = camera_inputs(cams, rig.vehicle_from_lidar(), cfg.image_size)
-    return to_batch({"images": images, "lidar2img": lidar2img})
+    return to_batch({"images": images, "lidar2img": lidar2img}, device)
 
 
 def _median_cpu(fn, repeats: int) -> float:

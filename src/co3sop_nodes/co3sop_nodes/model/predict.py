@@ -33,22 +33,25 @@ class FramePrediction:
 def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
                   candidates: Mapping[int, tuple[VehicleOutput, np.ndarray]], comm_range: float = COMM_RANGE,
                   max_collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
-                  rng: np.random.Generator | None = None, reference: bool = False) -> FramePrediction:
-    """candidates: agent id -> (its output as received, its world_from_lidar); all are moved to the ego output's device.
+                  rng: np.random.Generator | None = None) -> FramePrediction:
+    """candidates: agent id -> (its output as received, its world_from_lidar); all go to the model's device.
 
-    reference: labels from the head's dense logits (its definition) instead of its exact fast path, for benchmarks.
+    On the model's inference path (`Co3SOP.use`); on its reference path (compiled kernels off), labels come
+    from the head's dense logits (their definition) instead of its exact fast path.
     """
     k = model.cfg.max_collaborators if max_collaborators is None else max_collaborators
     chosen = nearest_collaborators(world_from_ego, {a: m for a, (_, m) in candidates.items()}, comm_range, k)
     rng = rng or np.random.default_rng(0)
     rel = [noisy_relative(world_from_ego, candidates[a][1], mu, sigma, rng) for a in chosen]
-    device = ego.features.device
+    device = model.path.torch_device
+    ego = ego.to(device)
     t0 = time.perf_counter()
     fused = model.ego.fuse(ego, [candidates[a][0].to(device) for a in chosen],
                            torch.from_numpy(np.stack(rel)).float()[None].to(device) if rel else None)
     t1 = time.perf_counter()
-    if reference:
-        labels, confidence = labels_from_logits(model.ego.head(fused)[-1])
+    if not model.path.compiled:
+        with model.path.autocast():
+            labels, confidence = labels_from_logits(model.ego.head(fused)[-1].float())
     else:
         labels, confidence = (t[0].cpu().numpy() for t in model.ego.head.labels(fused))  # exact fast path of labels_from_logits
     return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)

@@ -64,7 +64,7 @@ def _kernel():
 
 
 def compiled_available() -> bool:
-    """Whether the compiled warp is enabled and compiles here (compiling it on first call)."""
+    """Whether the compiled warp compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
     return native.ENABLED and _kernel() is not None
 
 

@@ -1,0 +1,108 @@
+"""How a loaded model runs inference: on which device, in which precision, and whether its compiled CPU
+kernels replace their PyTorch reference paths (ROS-free).
+
+Chosen once, by `inference_path`, from what the machine has; held by the model (`Co3SOP.use`), never by
+a process-wide flag, so two models in one process (a benchmark's reference and fast path) run their own.
+
+Reduced precision is autocast: convolutions and matrix products in bfloat16 or float16, reductions and
+the compiled kernels (which read float32) in float32. On the CPU it pays only where the hardware computes
+bfloat16 (AMX tiles or AVX-512 BF16; oneDNN then wants channels-last 3D volumes); elsewhere it is
+emulated and slower than float32, so `auto` keeps float32 there. On CUDA, `auto` takes bfloat16 where
+the GPU has it, else float16.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import torch
+
+from ..errors import Co3sopError
+
+PRECISIONS = ("auto", "float32", "bfloat16", "float16")
+DEVICES = ("auto", "cpu", "cuda")
+_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+@dataclass(frozen=True)
+class InferencePath:
+    device: str = "cpu"  # a torch device: cpu, cuda, cuda:N
+    precision: str = "float32"  # float32, bfloat16 or float16
+    compiled: bool = True  # the compiled CPU kernels where they compile (tested equal to the reference paths)
+
+    def __post_init__(self):
+        if self.precision not in _DTYPES:
+            raise Co3sopError(f"precision {self.precision!r}: one of {', '.join(_DTYPES)}")
+
+    @property
+    def torch_device(self) -> torch.device:
+        return torch.device(self.device)
+
+    @property
+    def reduced(self) -> bool:
+        return self.precision != "float32"
+
+    def autocast(self):
+        """The context a forward pass runs in: nothing for float32, autocast to the precision otherwise."""
+        if not self.reduced:
+            return nullcontext()
+        return torch.autocast(self.torch_device.type, dtype=_DTYPES[self.precision])
+
+    def kernels(self, x: torch.Tensor) -> bool:
+        """Whether inference on `x` takes a compiled CPU kernel (never while training: they have no gradient)."""
+        return self.compiled and x.device.type == "cpu" and not torch.is_grad_enabled()
+
+    def describe(self) -> str:
+        return f"{self.device}, {self.precision}" + ("" if self.compiled else ", reference paths")
+
+
+@cache
+def cpu_bfloat16_unit() -> str | None:
+    """The CPU's bfloat16 hardware, from its feature flags: "AMX", "AVX-512 BF16", or None (emulated)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    flags = set(next((line for line in text.splitlines() if line.startswith("flags")), "").split())
+    if "amx_bf16" in flags and "amx_tile" in flags:
+        return "AMX"
+    return "AVX-512 BF16" if "avx512_bf16" in flags else None
+
+
+def resolve_device(name: str, what: str = "device") -> torch.device:
+    """The torch device `name` names (auto: the first CUDA GPU if torch sees one, else cpu), checked against
+    what this torch build can use; `what` names the option or parameter in errors."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise Co3sopError(f"{what} {name!r}: not a device (auto, cpu, cuda, cuda:N)") from None
+    if device.type == "cpu":
+        return device
+    if device.type != "cuda":
+        raise Co3sopError(f"{what} {name!r}: only cpu and cuda are supported")
+    count = torch.cuda.device_count()  # 0 on a CPU-only build or without a driver
+    if count == 0:
+        raise Co3sopError(f"{what} {name}: this torch build ({torch.__version__}) sees no CUDA GPU")
+    if device.index is not None and device.index >= count:
+        raise Co3sopError(f"{what} {name}: torch sees {count} CUDA GPU(s) (cuda:0..cuda:{count - 1})")
+    return device
+
+
+def inference_path(device: str = "auto", precision: str = "auto", compiled: bool = True, what: str = "") -> InferencePath:
+    """The path for `device` (auto | cpu | cuda | cuda:N) and `precision` (auto | float32 | bfloat16 |
+    float16) on this machine, `auto` resolved to what it has; a device it lacks is refused. `what`: how the
+    caller spells its options in errors ("--" for a command line, "parameter " for a node)."""
+    dev = resolve_device(device, f"{what}device")
+    if precision not in PRECISIONS:
+        raise Co3sopError(f"{what}precision {precision!r}: one of {', '.join(PRECISIONS)}")
+    if precision == "auto":
+        if dev.type == "cuda":
+            precision = "bfloat16" if torch.cuda.is_bf16_supported() else "float16"
+        else:
+            precision = "bfloat16" if cpu_bfloat16_unit() else "float32"
+    return InferencePath(str(dev), precision, compiled)

@@ -1,0 +1,69 @@
+"""co3sop_nodes.inference: the inference path chosen from the machine, held by each model, float32 unchanged."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from co3sop_nodes.errors import Co3sopError
+from co3sop_nodes.inference import InferencePath, inference_path, path as path_module
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.model import VehicleOutput, build_model
+from co3sop_nodes.model.pace import shaped_inputs
+from co3sop_nodes.model.predict import predict_frame
+
+
+def test_auto_takes_bfloat16_only_where_the_cpu_computes_it(monkeypatch):
+    monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: None)
+    assert inference_path("cpu", "auto") == InferencePath("cpu", "float32")
+    monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: "AMX")
+    assert inference_path("cpu", "auto") == InferencePath("cpu", "bfloat16")
+    assert inference_path("cpu", "float32", compiled=False) == InferencePath("cpu", "float32", False)
+
+
+@pytest.mark.parametrize(("device", "precision", "message"), [
+    ("gpu", "auto", "parameter device 'gpu': not a device"),
+    ("meta", "auto", "only cpu and cuda"),
+    ("cpu", "half", "parameter precision 'half': one of auto, float32"),
+])
+def test_a_bad_device_or_precision_is_refused_by_name(device, precision, message):
+    with pytest.raises(Co3sopError, match=message):
+        inference_path(device, precision, what="parameter ")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is there")
+def test_cuda_without_a_gpu_is_refused():
+    with pytest.raises(Co3sopError, match="--device cuda: this torch build .* sees no CUDA GPU"):
+        inference_path("cuda", what="--")
+
+
+def test_each_model_holds_its_own_path():
+    a, b = (build_model(preset("tiny-lidar")).eval() for _ in range(2))
+    a.use(InferencePath("cpu", "bfloat16"))
+    b.use(InferencePath("cpu", "float32", compiled=False))
+    for model, want in ((a, InferencePath("cpu", "bfloat16")), (b, InferencePath("cpu", "float32", False))):
+        held = {m.path for m in model.modules() if "path" in vars(m)}
+        assert held == {want}
+    conv = a.vehicle.encoder.modules()
+    assert any(isinstance(m, torch.nn.Conv3d) and m.weight.is_contiguous(memory_format=torch.channels_last_3d) for m in conv)
+
+
+@torch.no_grad()
+def test_float32_is_bit_identical_after_a_round_trip_through_bfloat16():
+    torch.manual_seed(0)
+    model = build_model(preset("tiny-lidar")).eval()
+    inputs = shaped_inputs(model)
+
+    def frame():
+        ego = model.vehicle(**inputs)
+        others = {1: (VehicleOutput(ego.features.roll(3, 2), ego.confidence.roll(3, 2)), np.diag([1.0, 1, 1, 1]))}
+        pred = predict_frame(model, ego, np.eye(4), others)
+        return ego.features.clone(), pred.labels, pred.confidence
+
+    before = frame()
+    model.use(InferencePath("cpu", "bfloat16"))
+    model.use(InferencePath("cpu", "float32"))
+    after = frame()
+    assert all(torch.equal(x, y) if isinstance(x, torch.Tensor) else np.array_equal(x, y) for x, y in zip(before, after))
+    assert all(p.is_contiguous() for p in model.parameters())
