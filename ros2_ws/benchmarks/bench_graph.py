@@ -70,6 +70,7 @@ def measure(mcap: Path) -> dict:
 def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]]) -> dict:
     """Bytes, latency, transport share, CPU and stage times from the nodes' /diagnostics (status name -> reports)."""
     ego = diagnostics["ego"]
+    own = diagnostics.get(f"vehicle cav_{ego[-1]['received_wall_ns'].split(':')[0]}", [{}]) if ego else [{}]
     vehicles = {int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds} for name, ds in diagnostics.items() if name.startswith("vehicle")}
     sizes, latency, dds_share = [], [], []
     for d in ego:
@@ -87,14 +88,16 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]]) -> dict:
     stages = {k: float(np.median([float(d[k]) for d in ego])) for k in ("decode_ms", "fuse_ms", "head_ms", "publish_ms")}
     return {"bytes_per_agent_frame": float(np.mean(sizes)) if sizes else 0.0, "latency_ms_p50": float(np.percentile(latency, 50)),
             "latency_ms_p95": float(np.percentile(latency, 95)), "dds_share_p50": float(np.median(dds_share)) if dds_share else float("nan"),
-            "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()}, "ego_stage_ms": stages, "frames": len(ego)}
+            "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()}, "ego_stage_ms": stages, "frames": len(ego),
+            "skipped_ego": int(ego[-1].get("skipped", 0)), "skipped_encoder": int(own[-1].get("skipped", 0))}
 
 
 def run_demo(demo: Path, opts, name: str, args: list[str], complete: bool = True) -> tuple[subprocess.CompletedProcess, Path]:
     """The demo graph with `args` into opts.out/name; its completed process and output folder. complete: the demo must
     succeed (every frame fused and recorded); else a recording is enough (a rate sweep counts what was fused)."""
     out = opts.out / name
-    argv = [str(demo), "--out", str(out), "--quiet", "--model", opts.model, *args] + (["--bag", str(opts.bag)] if opts.bag else [])
+    argv = [str(demo), "--out", str(out), "--quiet", "--model", opts.model, "--precision", opts.precision, *args]
+    argv += ["--bag", str(opts.bag)] if opts.bag else ["--frames", str(opts.frames)]
     print(f"[bench_graph] {name}: running the demo graph", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
     if not (out / "demo.mcap").exists() or (complete and done.returncode != 0):
@@ -105,8 +108,8 @@ def run_demo(demo: Path, opts, name: str, args: list[str], complete: bool = True
 
 def sweep(demo: Path, opts) -> int:
     """The demo graph at each rate: frames fused of the bag's, latency, CPU per node."""
-    rows = ["| rate | frame every (s) | frames fused / in the bag | recorded | latency p50 / p95 (ms) | CPU per frame p50 (ms): ego; vehicles |",
-            "|---:|---:|---:|---:|---:|---|"]
+    rows = ["| rate | frame every (s) | frames fused / in the bag | skipped: ego; its encoder | recorded | latency p50 / p95 (ms) | "
+            "CPU per frame p50 (ms): ego; vehicles |", "|---:|---:|---:|---:|---:|---:|---|"]
     kept_up = []
     for rate in opts.rates:
         done, out = run_demo(demo, opts, f"rate-{rate:g}", ["--rate", f"{rate:g}"], complete=False)
@@ -116,7 +119,8 @@ def sweep(demo: Path, opts) -> int:
         cpu = r["cpu_ms_per_frame"]
         if r["frames"] == frames and done.returncode == 0:
             kept_up.append(rate)
-        rows.append(f"| {rate:g} | {0.1 / rate:.2f} | {r['frames']} / {frames} | {recorded.group(1) if recorded else '?'} | "
+        rows.append(f"| {rate:g} | {0.1 / rate:.2f} | {r['frames']} / {frames} | {r['skipped_ego']}; {r['skipped_encoder']} | "
+                    f"{recorded.group(1) if recorded else '?'} | "
                     f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {cpu.pop('ego'):.0f}; {', '.join(f'{v:.0f}' for v in cpu.values())} |")
     print("\n".join(rows))
     print(f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}" if kept_up else "\nNo rate kept up with every frame.")
@@ -141,6 +145,8 @@ def paths(demo: Path, opts) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[1])
     parser.add_argument("--bag", type=Path, help="default: the demo scenario")
+    parser.add_argument("--frames", type=int, default=10, help="frames of the generated demo scenario (without --bag)")
+    parser.add_argument("--precision", default="auto", help="every node's inference precision, as `demo --precision` takes it")
     parser.add_argument("--out", type=Path, default=Path("results/bench_graph"))
     parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)")
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))

@@ -9,7 +9,10 @@ import sys
 from pathlib import Path
 
 import pytest
+import rclpy
 from ament_index_python.packages import get_package_prefix
+
+from co3sop_nodes.ros.supervisor import Supervisor
 
 HERE = Path(__file__).resolve().parent
 
@@ -69,3 +72,20 @@ def finish(proc: subprocess.Popen, timeout: float = 120) -> tuple[int, str]:
     """Waits for a process; returns (exit code, its combined output)."""
     out, _ = proc.communicate(timeout=timeout)
     return proc.returncode, out
+
+
+@pytest.fixture
+def peer():
+    """This test process as a DDS participant."""
+    rclpy.init()
+    node = rclpy.create_node("test_peer")
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+@pytest.fixture
+def sup():
+    """A supervisor: lifecycle states, /diagnostics reports, the graph."""
+    with Supervisor("fault_test") as supervisor:
+        yield supervisor

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import rclpy
 from ament_index_python.packages import get_package_share_directory
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from conftest import executable
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TransformStamped
@@ -26,25 +26,17 @@ from rosbags.highlevel import AnyReader
 
 from co3sop_nodes import topics
 from co3sop_nodes.cloud import occupancy_cloud
-from co3sop_nodes.codec import FeatureCodecConfig, encode_features, encode_labels
+from co3sop_nodes.codec import FeatureCodecConfig, encode_features, encode_labels, encode_request
 from co3sop_nodes.geometry import Pose
 from co3sop_nodes.grid import BENCHMARK_RANGES
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.ros.convert import cloud_to_msg, features_to_msg, labels_to_msg, ns_to_stamp
+from co3sop_nodes.ros.convert import cloud_to_msg, features_to_msg, labels_to_msg, ns_to_stamp, request_to_msg
+from co3sop_nodes.ros.dds import REQUEST_QOS
 from co3sop_nodes.ros.supervisor import Supervisor
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 EGO, OTHER = 1, 7
 T0 = 1_700_000_000_000_000_000
-
-
-@pytest.fixture
-def peer():
-    rclpy.init()
-    node = rclpy.create_node("test_peer")
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown()
 
 
 def start(tmp_path: Path, name: str, *argv: str) -> tuple[subprocess.Popen, Path]:
@@ -59,12 +51,6 @@ def wait_for(log: Path, pattern: str, proc: subprocess.Popen, timeout: float = 1
         assert time.monotonic() < deadline, f"no {n} x '{pattern}' in {timeout} s:\n{log.read_text()}"
         time.sleep(0.1)
     return log.read_text()
-
-
-@pytest.fixture
-def sup():
-    with Supervisor("fault_test") as supervisor:
-        yield supervisor
 
 
 def wait_ready(sup: Supervisor, node: str, proc: subprocess.Popen, log: Path, timeout: float = 120) -> None:
@@ -145,6 +131,42 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
     finally:
         ego.send_signal(signal.SIGINT)
         ego.wait(30)
+
+
+def test_the_ego_fuses_each_frame_once_and_refuses_stamps_ahead_of_its_clock(tmp_path, peer, sup):
+    """A duplicate of its own frame, a replay of one fused, an own frame and a neighbour's stamped in 2038: each
+    dropped and counted by reason; the good frames around them are fused, each once, with the neighbour."""
+    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
+                     "-p", "publish_points:=false")
+    try:
+        wait_ready(sup, "/ego", ego, log)
+        own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
+        other = peer.create_publisher(VoxelFeatures, f"/cav_{OTHER}/voxel_features", QOS)
+        wait_subscribed(peer, [own, other])
+        sup.wait_subscribed("/ego", f"/cav_{OTHER}/voxel_features")
+        future = 2_145_916_800 * 10**9  # 2038-01-01
+        other.publish(features(OTHER, future))  # a neighbour's clock glitch: never waited on, never blocks
+        other.publish(features(OTHER, T0))
+        acked(other)
+        own.publish(features(EGO, T0))
+        own.publish(features(EGO, T0))  # delivered twice
+        fused(sup, 1, 1)
+        own.publish(features(EGO, T0))  # replayed after it was fused
+        own.publish(features(EGO, future))  # an own clock glitch: later frames must not look stale
+        acked(own)
+        for k in (1, 2):
+            other.publish(features(OTHER, T0 + k * 100_000_000))
+            acked(other)
+            own.publish(features(EGO, T0 + k * 100_000_000))
+            fused(sup, k + 1, 1)
+        text = wait_for(log, r"dropped \((repeated|future)\)", ego, n=3)
+        last = sup.reports("ego")[-1]
+        assert len(sup.reports("ego")) == 3 and last["stamp"] == str(T0 + 200_000_000), sup.reports("ego")
+        assert int(last["dropped_repeated"]) == 2 and int(last["dropped_future"]) == 2, last
+        assert "ahead of this node's clock" in text and "fused already or waits to be" in text
+    finally:
+        ego.send_signal(signal.SIGINT)
+        assert ego.wait(30) == 0
 
 
 def occupancy(stamp: int) -> SemanticOccupancy:
@@ -502,6 +524,22 @@ def call(peer, future):
     return future.result()
 
 
+def lidar_features(peer, proc: subprocess.Popen, log: Path) -> list[VoxelFeatures]:
+    """What the LiDAR vehicle publishes for one frame sent to it."""
+    got: list = []
+    peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
+    pubs = [peer.create_publisher(m, t, QOS) for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)),
+                                                          (PointCloud2, topics.lidar_points(LIDAR_CAV)))]
+    wait_subscribed(peer, pubs)
+    for msg, pub in zip(lidar_frame(T0), pubs):
+        pub.publish(msg)
+    deadline = time.monotonic() + 60
+    while not got:
+        assert time.monotonic() < deadline and proc.poll() is None, log.read_text()
+        rclpy.spin_once(peer, timeout_sec=0.1)
+    return got
+
+
 def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, peer, sup):
     """`ros2 param describe` shows descriptions, ranges and read-only flags; `ros2 param set` takes a run-time
     value (the next frame is encoded with it), refuses a bad one with a reason and refuses what needs a restart."""
@@ -542,20 +580,161 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
 
         # a changed codec is used from the next frame on
         assert set_(vehicle, "codec.dtype", "int8").successful
-        got: list = []
-        peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
-        pubs = [peer.create_publisher(m, t, QOS) for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)),
-                                                              (PointCloud2, topics.lidar_points(LIDAR_CAV)))]
-        wait_subscribed(peer, pubs)
-        for msg, pub in zip(lidar_frame(T0), pubs):
-            pub.publish(msg)
-        deadline = time.monotonic() + 60
-        while not got:
-            assert time.monotonic() < deadline, procs["lidar"][1].read_text()
-            rclpy.spin_once(peer, timeout_sec=0.1)
+        got = lidar_features(peer, *procs["lidar"])
         assert got[0].dtype == "int8"
     finally:
         for proc, _ in procs.values():
             proc.send_signal(signal.SIGINT)
         for proc, _ in procs.values():
             assert proc.wait(30) == 0
+
+
+def runtime_values(param) -> tuple[list, object]:
+    """Every kind of value a run-time parameter's descriptor allows (its bounds, each choice, both booleans), and one
+    it does not."""
+    if param.type is bool:
+        return [True, False], "yes"
+    if param.choices:
+        return list(param.choices), "bogus"
+    if param.range:
+        lo, hi = param.range
+        return [param.type(lo), param.type(hi)], param.type(hi) + 1
+    return [param.default], 3.5
+
+
+def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer, sup):
+    """Each run-time parameter of the ego and a vehicle set to every value its descriptor allows and to one it does
+    not: each is taken or refused with a reason, the nodes live on, and with the defaults back they still produce
+    frames."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    from co3sop_nodes.ros import ego as ego_node
+    from co3sop_nodes.ros import vehicle as vehicle_node
+
+    lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
+    procs = {
+        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", f"checkpoint:={lidar_model}",
+                     "-p", "max_wait:=0.5"),
+        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+    }
+    try:
+        for name, (proc, log) in procs.items():
+            wait_ready(sup, NODES[name], proc, log)
+        for name, params in (("ego", ego_node.PARAMS), ("lidar", vehicle_node.PARAMS)):
+            client = AsyncParameterClient(peer, NODES[name])
+            assert client.wait_for_services(30)
+            initial = {p.name: p.default for p in params if p.runtime}
+            for param in (p for p in params if p.runtime):
+                good, bad = runtime_values(param)
+                for value, allowed in [*((v, True) for v in good), (bad, False)]:
+                    result = call(peer, client.set_parameters([Parameter(param.name, value=value)])).results[0]
+                    assert result.successful or result.reason, (param.name, value)  # refused only with a reason
+                    assert allowed or not result.successful, (param.name, value)
+                    assert procs[name][0].poll() is None, procs[name][1].read_text()
+            back = call(peer, client.set_parameters_atomically([Parameter(n, value=v) for n, v in initial.items()])).result
+            assert back.successful, back.reason
+        # both still work: the vehicle encodes a LiDAR frame, the ego fuses its own frame with a neighbour's
+        got = lidar_features(peer, *procs["lidar"])
+        own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
+        wait_subscribed(peer, [own])
+        sup.wait_subscribed("/ego", topics.voxel_features(LIDAR_CAV))
+        lidar_grid = preset("tiny-lidar").feature_grid
+        own.publish(features(EGO, got[0].header.stamp.sec * 10**9 + got[0].header.stamp.nanosec, grid=lidar_grid))
+        fused(sup, 1, 1)
+    finally:
+        for proc, _ in procs.values():
+            proc.send_signal(signal.SIGINT)
+        for proc, log in procs.values():
+            assert proc.wait(30) == 0, log.read_text()
+
+
+def request_map(ego: int, stamp: int, x: float, fill: float) -> RequestMap:
+    grid = preset("tiny-lidar").feature_grid
+    return request_to_msg(encode_request(np.full(grid.dims, fill, np.float32), grid), stamp_ns=stamp, frame_id=f"cav_{ego}/lidar",
+                          agent_id=ego, pose=Pose((x, 0.0, 1.8)))
+
+
+def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_path, peer, sup):
+    """A spoofed request map claiming an ego's id from another topic, one from an ego far beyond comm_range and a
+    flood of ids: each refusal counted by kind, the real ego still answered, and at most max_egos answers a frame."""
+    lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
+    vehicle, log = start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}",
+                         "-p", "codec.selection:=request", "-p", "request_timeout:=60.0", "-p", "max_egos:=2")
+    try:
+        wait_ready(sup, NODES["lidar"], vehicle, log)
+        got: list = []
+        peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
+        pubs = [peer.create_publisher(m, t, QOS) for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)),
+                                                              (PointCloud2, topics.lidar_points(LIDAR_CAV)))]
+        wait_subscribed(peer, pubs)
+        for msg, pub in zip(lidar_frame(T0), pubs):  # a first frame: the vehicle knows where it is
+            pub.publish(msg)
+        sup.wait_reports(f"vehicle cav_{LIDAR_CAV}", 1, 60)
+        real = peer.create_publisher(RequestMap, topics.EGO_REQUEST, REQUEST_QOS)
+        spoof = peer.create_publisher(RequestMap, "/spoof/request_map", REQUEST_QOS)
+        flood = peer.create_publisher(RequestMap, "/flood/request_map", REQUEST_QOS)
+        sup.wait("the vehicle to subscribe to every request topic", lambda: all(
+            sup.subscribes(NODES["lidar"], t) for t in (topics.EGO_REQUEST, "/spoof/request_map", "/flood/request_map")), 30)
+        real.publish(request_map(EGO, T0, 10.0, 1.0))
+        acked(real)
+        spoof.publish(request_map(EGO, T0, 10.0, 0.0))  # claims the real ego's id, asks for nothing
+        flood.publish(request_map(OTHER, T0, 5000.0, 1.0))  # 5 km away
+        for fake in range(100, 400):  # many ids, one topic: memory and answers stay bounded
+            flood.publish(request_map(fake, T0, 20.0, 1.0))
+        for pub in (spoof, flood):
+            acked(pub)
+        got.clear()
+        for msg, pub in zip(lidar_frame(T0 + 100_000_000), pubs):
+            pub.publish(msg)
+        report = sup.wait_reports(f"vehicle cav_{LIDAR_CAV}", 2, 60)[-1]
+        deadline = time.monotonic() + 10
+        while len(got) < 2 and time.monotonic() < deadline:
+            rclpy.spin_once(peer, timeout_sec=0.1)
+        recipients = dict(pair.split(":") for pair in report["recipients"].split(","))
+        assert len(recipients) == 2 and str(EGO) in recipients, report  # the nearest two: the real ego at 10 m first
+        assert int(report["dropped_request_topic"]) == 1 and int(report["dropped_request_range"]) == 1, report
+        mine = next(m for m in got if m.recipient_id == EGO)
+        assert mine.num_voxels > 0  # answered as the real ego asked, not emptied by the spoof
+        assert vehicle.poll() is None
+    finally:
+        vehicle.send_signal(signal.SIGINT)
+        assert vehicle.wait(30) == 0, log.read_text()
+
+
+def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher(tmp_path, peer, sup):
+    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
+                     "-p", "publish_points:=false")
+    try:
+        wait_ready(sup, "/ego", ego, log)
+        own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
+        squatter = peer.create_publisher(VoxelFeatures, "/squat/voxel_features", QOS)
+        wait_subscribed(peer, [own, squatter])
+        sup.wait_subscribed("/ego", "/squat/voxel_features")
+        squatter.publish(features(OTHER, T0 - 10**9))  # claims the real vehicle's id first
+        acked(squatter)
+        real = peer.create_publisher(VoxelFeatures, topics.voxel_features(OTHER), QOS)  # the vehicle in its own namespace
+        wait_subscribed(peer, [real])
+        sup.wait_subscribed("/ego", topics.voxel_features(OTHER))
+        real.publish(features(OTHER, T0))
+        acked(real)
+        own.publish(features(EGO, T0))
+        fused(sup, 1, 1)
+        assert f"vehicle {OTHER} now on {topics.voxel_features(OTHER)}" in log.read_text()
+        # a second squatter on another name: refused while the vehicle's topic has a publisher ...
+        other_name = peer.create_publisher(VoxelFeatures, "/elsewhere/voxel_features", QOS)
+        wait_subscribed(peer, [other_name])
+        sup.wait_subscribed("/ego", "/elsewhere/voxel_features")
+        other_name.publish(features(OTHER, T0 + 100_000_000))
+        wait_for(log, "already published on", ego)
+        # ... and takes the id once that publisher is gone (the vehicle restarted under another name, say)
+        peer.destroy_publisher(real)
+        sup.wait("the vehicle's publisher to leave the graph", lambda: sup.node.count_publishers(topics.voxel_features(OTHER)) == 0, 30)
+        other_name.publish(features(OTHER, T0 + 200_000_000))
+        acked(other_name)
+        own.publish(features(EGO, T0 + 200_000_000))
+        fused(sup, 2, 1)
+        assert ego.poll() is None
+    finally:
+        ego.send_signal(signal.SIGINT)
+        assert ego.wait(30) == 0, log.read_text()

@@ -3,6 +3,8 @@ silent, out-of-order and duplicate frames). Times are passed in: no clock, no DD
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from co3sop_nodes.pairing import Pairing, PairingConfig
 
 EGO, A, B = 1, 2, 3
@@ -128,14 +130,14 @@ def test_a_dead_neighbour_is_waited_for_until_its_timeout_then_not():
     assert p.heard() == [A]  # still reported (as missing)
 
 
-def test_own_frames_are_fused_in_arrival_order_and_old_neighbour_frames_are_forgotten():
+def test_an_own_frame_older_than_a_ready_one_is_skipped_and_old_neighbour_frames_are_forgotten():
     c = Clock()
     p = make(A, clock=c)
     for s in (0, 100 * MS, 200 * MS):
         add(p, A, s, c)
     add(p, EGO, 200 * MS, c)
     add(p, EGO, 100 * MS, c)  # out of order
-    assert due(p, c) == [200 * MS, 100 * MS]
+    assert due(p, c) == [200 * MS] and p.skipped == 1
     assert p.match(A, 0) is None  # older than the last fused frame beyond the tolerance: forgotten
     assert p.stale(100 * MS) and not p.stale(160 * MS)
 
@@ -150,10 +152,67 @@ def test_the_nearest_frame_within_the_tolerance_pairs():
     assert p.match(B, 100 * MS) is None
 
 
-def test_a_repeated_own_frame_is_fused_twice_with_the_same_neighbours():
+def test_a_repeated_own_frame_is_fused_once():
     c = Clock()
     p = make(A, clock=c)
     add(p, A, 100 * MS, c)
     add(p, EGO, 100 * MS, c)
     add(p, EGO, 100 * MS, c)
-    assert due(p, c) == [100 * MS, 100 * MS]
+    assert due(p, c) == [100 * MS] and p.skipped == 1
+
+
+def test_a_graph_fed_faster_than_it_fuses_fuses_the_newest_ready_frame_and_skips_the_rest():
+    """Ten frames arrive while one is fused: latency stays one frame, the nine older ones are counted."""
+    c = Clock()
+    p = make(A, B, clock=c)
+    for k in range(10):
+        for agent in (EGO, A, B):
+            add(p, agent, k * 100 * MS, c)
+        c.t += 0.1
+    assert due(p, c) == [900 * MS] and p.skipped == 9
+
+
+def test_the_newest_frame_that_can_still_pair_is_fused_while_a_newer_one_waits():
+    c = Clock()
+    p = make(A, clock=c)
+    for k in range(3):
+        add(p, EGO, k * 100 * MS, c)
+        if k < 2:
+            add(p, A, k * 100 * MS, c)
+    assert due(p, c) == [100 * MS] and p.skipped == 1  # frame 200 ms still waits for A
+    add(p, A, 200 * MS, c)
+    assert due(p, c) == [200 * MS] and p.skipped == 1
+
+
+def test_at_most_max_pending_frames_wait_for_a_dead_neighbour():
+    """A neighbour that stopped sending (its publisher not yet gone): each frame beyond the bound ends the oldest's
+    wait, so latency is max_pending frames, not max_wait."""
+    c = Clock()
+    p = Pairing(EGO, replace(CFG, max_pending=3))
+    p.discovered(A, c.wall)
+    fused = []
+    for k in range(8):
+        add(p, EGO, k * 100 * MS, c)
+        fused += due(p, c)
+        c.t += 0.1
+    assert fused == [k * 100 * MS for k in range(5)] and p.skipped == 0
+
+
+def test_with_stay_current_off_every_own_frame_is_fused_oldest_first():
+    c = Clock()
+    p = Pairing(EGO, replace(CFG, stay_current=False, max_pending=100))
+    p.discovered(A, c.wall)
+    for k in range(5):
+        add(p, EGO, k * 100 * MS, c)
+        add(p, A, k * 100 * MS, c)
+    assert due(p, c) == [k * 100 * MS for k in range(5)] and p.skipped == 0
+
+
+def test_an_own_frame_fused_or_waiting_is_known_as_repeated():
+    c = Clock()
+    p = make(A, clock=c)
+    add(p, EGO, 100 * MS, c)
+    assert p.repeated(100 * MS) and not p.repeated(200 * MS)
+    add(p, A, 100 * MS, c)
+    assert due(p, c) == [100 * MS]
+    assert p.repeated(100 * MS) and p.repeated(90 * MS) and not p.repeated(101 * MS)

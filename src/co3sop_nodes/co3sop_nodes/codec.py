@@ -357,6 +357,19 @@ def encode_features(
     return _encode(features, confidence, grid, cfg, keep, _basis(features, keep, cfg.rank))
 
 
+def check_codec_for(cfg: FeatureCodecConfig, channels: int, grid: GridSpec) -> None:
+    """Refuses (CodecError) a codec that could encode no message of `channels` x `grid` features: a rank above
+    the channels, a byte budget below the smallest message (an empty selection with its header and constants)."""
+    if cfg.rank > channels:
+        raise CodecError(f"rank {cfg.rank}: more components than the {channels} feature channels")
+    if cfg.max_bytes:
+        zeros = np.zeros((channels, *grid.dims), np.float32)
+        none = np.zeros(0, np.int64)
+        smallest = _encode(zeros, zeros[0], grid, cfg, none, _basis(zeros, none, cfg.rank)).budget_bytes
+        if smallest > cfg.max_bytes:
+            raise CodecError(f"max_bytes {cfg.max_bytes}: even an empty selection takes {smallest} bytes")
+
+
 def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
     """The most best-scored voxels whose encoding fits cfg.max_bytes: bisection on their count (the size grows
     with it, up to compression noise, so the result always fits and is within a few voxels of the largest). Each

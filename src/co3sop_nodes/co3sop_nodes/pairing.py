@@ -9,8 +9,13 @@ is live while it has a publisher and has been heard from within
 the ego's first own frame, so sensors that start long after the graph do not
 make every neighbour look silent, and a publisher that never sends stops
 costing max_wait once the ego's frames have flowed for neighbour_timeout.
-Frames are handed out oldest first; a frame older than the last one fused
-(beyond the tolerance) can no longer pair and is stale. Sources are keyed by
+The ego stays current: of the own frames ready to fuse (nothing left to wait
+for), the newest is handed out and the older ones are skipped (counted), so a
+graph fed faster than it fuses keeps its latency bounded instead of queueing;
+at most `max_pending` own frames wait, and one more makes the oldest stop
+waiting. With `stay_current` off, every own frame is fused, oldest first (a
+recording of every frame of a bag played faster than the ego fuses). A frame older than the last one fused (beyond the tolerance) can no
+longer pair and is stale. Sources are keyed by
 anything hashable and ordered (the ego node keys them by topic, as it knows a
 neighbour's topic before its vehicle id).
 """
@@ -32,6 +37,8 @@ class PairingConfig:
     max_wait_s: float = 2.0
     neighbour_timeout_ns: int = 5_000_000_000
     history: int = 8  # frames kept per agent
+    max_pending: int = 3  # own frames waiting at once; one more ends the oldest's wait
+    stay_current: bool = True  # the newest ready own frame, older ones skipped; False: every one, oldest first
 
 
 class Pairing(Generic[K, T]):
@@ -42,14 +49,25 @@ class Pairing(Generic[K, T]):
         self._pending: deque[tuple[int, float]] = deque()  # own frames to fuse: (stamp, monotonic deadline)
         self._first_own_ns: int | None = None
         self.last_fused = -1
+        self.skipped = 0  # own frames passed over for a newer one
 
     def discovered(self, agent: K, wall_ns: int) -> None:
         """A neighbour's publisher appeared: it is waited for from now on."""
         self._last_heard.setdefault(agent, wall_ns)
 
+    def forget(self, agent: K) -> None:
+        """`agent` is gone (its id moved elsewhere): its frames are dropped and it is no longer waited for."""
+        self._frames.pop(agent, None)
+        self._last_heard.pop(agent, None)
+
     def stale(self, stamp: int) -> bool:
         """Too old to pair with any frame still to fuse."""
         return stamp < self.last_fused - self.cfg.tolerance_ns
+
+    def repeated(self, stamp: int) -> bool:
+        """An own frame with this stamp was fused already (or one no newer), or waits to be: fusing it again would
+        publish the same frame twice."""
+        return stamp <= self.last_fused or any(s == stamp for s, _ in self._pending)
 
     def add(self, agent: K, stamp: int, item: T, wall_ns: int, monotonic: float) -> None:
         """An accepted frame of `agent` (the ego's own frames are then waiting to be fused)."""
@@ -59,6 +77,8 @@ class Pairing(Generic[K, T]):
             if self._first_own_ns is None:
                 self._first_own_ns = wall_ns
             self._pending.append((stamp, monotonic + self.cfg.max_wait_s))
+            for i in range(len(self._pending) - self.cfg.max_pending):  # the oldest beyond the bound wait no more
+                self._pending[i] = (self._pending[i][0], min(self._pending[i][1], monotonic))
 
     def match(self, agent: K, stamp: int) -> T | None:
         """The agent's frame nearest `stamp`, if within the tolerance."""
@@ -76,15 +96,24 @@ class Pairing(Generic[K, T]):
                 and has_publisher(a)]
 
     def next_due(self, wall_ns: int, monotonic: float, has_publisher: Callable[[K], bool]) -> int | None:
-        """The stamp of the oldest own frame to fuse now (taken off the queue), or None while it still waits."""
-        if not self._pending:
+        """The stamp of the newest own frame ready to fuse now, taken off the queue with every own frame not newer
+        than it (those are skipped, counted in `skipped`); None while every frame still waits."""
+        live = self.live(wall_ns, has_publisher) if self._pending else []
+
+        def ready(stamp: int, deadline: float) -> bool:
+            return monotonic >= deadline or not any(
+                self.match(a, stamp) is None and all(s < stamp for s, _ in self._frames.get(a, ())) for a in live)
+
+        if not self.cfg.stay_current:
+            chosen = 0 if self._pending and ready(*self._pending[0]) else None
+        else:
+            chosen = max((i for i, f in enumerate(self._pending) if ready(*f)), key=lambda i: (self._pending[i][0], i), default=None)
+        if chosen is None:
             return None
-        stamp, deadline = self._pending[0]
-        waiting = [a for a in self.live(wall_ns, has_publisher) if self.match(a, stamp) is None
-                   and all(s < stamp for s, _ in self._frames.get(a, ()))]
-        if waiting and monotonic < deadline:
-            return None
-        self._pending.popleft()
+        stamp = self._pending[chosen][0]
+        kept = deque(f for i, f in enumerate(self._pending) if i != chosen and (f[0] > stamp or not self.cfg.stay_current))
+        self.skipped += len(self._pending) - 1 - len(kept)
+        self._pending = kept
         return stamp
 
     def fused(self, stamp: int) -> None:

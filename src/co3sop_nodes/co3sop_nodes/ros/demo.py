@@ -52,6 +52,7 @@ from ..cli import generate, score
 from ..cli.common import run
 from ..errors import Co3sopError
 from ..foxglove import CAMERAS, write_layout
+from ..inference import PRECISIONS, inference_path
 from ..model import pace
 from ..model.checkpoint import load_graph_model, shipped_checkpoint
 from ..scoring import message_counts
@@ -64,7 +65,8 @@ from .supervisor import Supervisor
 # shares little or nothing; the seed-7 scene used before had its neighbours 57 and 73 m away). Chosen by that
 # rule alone, before scoring; no training or validation split uses seed 11.
 DEMO_SEED = 11
-DEMO_SCENARIO = ["--splits", "test=1", "--frames", "10", "--cavs", "3", "--seed", str(DEMO_SEED), "--image-size", "320x240",
+DEMO_FRAMES = 10
+DEMO_SCENARIO = ["--splits", "test=1", "--cavs", "3", "--seed", str(DEMO_SEED), "--image-size", "320x240",
                  "--lidar-steps", "512", "--workers", "1"]
 
 
@@ -164,10 +166,12 @@ def played_topics(cavs: list[int], sensors: str) -> list[str]:
 def ensure_scenario(opts) -> Path:
     if opts.bag:
         return opts.bag
-    bag = opts.bags / "test" / generate.scenario_name("test", 0, DEMO_SEED)
+    data, bags = (opts.data, opts.bags) if opts.frames == DEMO_FRAMES else (opts.data / f"{opts.frames}f", opts.bags / f"{opts.frames}f")
+    bag = bags / "test" / generate.scenario_name("test", 0, DEMO_SEED)
     if not (bag / "metadata.yaml").exists():
-        say(f"no demo scenario yet: generating one (3 CAVs, 10 frames) into {opts.data} and {opts.bags} (about a minute)")
-        generate.main(["--out", str(opts.data), "--bags", str(opts.bags), *DEMO_SCENARIO])
+        say(f"no demo scenario of {opts.frames} frames yet: generating one (3 CAVs) into {data} and {bags} "
+            f"(about {max(1, round(opts.frames / 10))} minute(s))")
+        generate.main(["--out", str(data), "--bags", str(bags), *DEMO_SCENARIO, "--frames", str(opts.frames)])
     return bag
 
 
@@ -177,6 +181,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
     parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
     parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
+    parser.add_argument("--frames", type=int, default=DEMO_FRAMES, help="10 Hz frames of the generated demo scenario (the same "
+                        "town and traffic, longer; generated once per length)")
     parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
     parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
     parser.add_argument("--model", default=DEFAULT_MODEL,
@@ -185,6 +191,9 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--params", nargs="*", default=[],
                         help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
     parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
+    parser.add_argument("--precision", default="auto", choices=PRECISIONS, help="inference precision of every node (auto: what the "
+                        "machine computes fast; float32 on CPUs without AMX or AVX-512 BF16)")
+    parser.add_argument("--device", default="cpu", help="where every node's model runs: cpu, cuda, cuda:N, auto")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
     parser.add_argument("--channel-rate", type=float, metavar="MBIT",
                         help="run over an emulated V2X channel: each CAV in its own network namespace, transmitting at most MBIT "
@@ -196,11 +205,14 @@ def main(args: list[str] | None = None) -> int:
         parser.error("--channel-loss needs --channel-rate")
     if opts.rate is not None and not opts.rate > 0:
         parser.error(f"--rate {opts.rate}: must be above 0")
+    if opts.frames < 1:
+        parser.error(f"--frames {opts.frames}: at least 1")
     if opts.vehicles < 1:
         parser.error(f"--vehicles {opts.vehicles}: at least 1 (the ego's)")
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = model_path(opts.model)
+    path = inference_path(opts.device, opts.precision, what="--")  # refused here if the machine lacks the device
     model, _ = load_graph_model(checkpoint)  # refused here, before any node starts, if the graph cannot run it
     sensors = model.cfg.modality
     bag = ensure_scenario(opts)
@@ -210,7 +222,8 @@ def main(args: list[str] | None = None) -> int:
     opts.out.mkdir(parents=True, exist_ok=True)
     mcap = opts.out / "demo.mcap"
     say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego cav {ego}; recording to {mcap}")
-    say(f"model {checkpoint} ({sensors})")
+    say(f"model {checkpoint} ({sensors}); inference on {path.describe()}")
+    model.use(path)
     if opts.rate is None:
         opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames))
     channel = None
@@ -222,6 +235,14 @@ def main(args: list[str] | None = None) -> int:
             f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost")
     with channel or contextlib.nullcontext():
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, t0)
+
+
+def frames_accounted(supervisor: Supervisor, ego: int) -> int:
+    """The ego's own frames fused, or skipped to stay current by the ego or by its own encoder (from their latest
+    /diagnostics: the newest frame is never skipped, so the last report counts every skip before it)."""
+    fused = supervisor.reports("ego")
+    encoder = supervisor.reports(f"vehicle cav_{ego}")
+    return len(fused) + (int(fused[-1].get("skipped", 0)) if fused else 0) + (int(encoder[-1].get("skipped", 0)) if encoder else 0)
 
 
 def _interrupt(signum, frame):
@@ -239,7 +260,8 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         """argv started in `member`'s car: on a channel, in its namespace with its DDS profile."""
         return Process(label, channel.wrap(member, argv), echo, channel_environment(member)) if channel else Process(label, argv, echo)
 
-    model = ["-p", f"checkpoint:={checkpoint}", "-p", "autostart:=false"]  # the demo drives the lifecycle
+    model = ["-p", f"checkpoint:={checkpoint}", "-p", "autostart:=false",  # the demo drives the lifecycle
+             "-p", f"device:={opts.device}", "-p", f"precision:={opts.precision}"]
     ros_params = [x for p in opts.params for x in ("-p", p)]
     ego_params = [x for p in opts.ego_params for x in ("-p", p)]
     shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]  # the layout's camera panels
@@ -266,7 +288,7 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say("bag played; waiting for the ego to fuse the last frames")
-        supervisor.wait_reports("ego", frames, timeout=120)
+        supervisor.wait(f"the ego to fuse (or skip) all {frames} frames", lambda: frames_accounted(supervisor, ego) >= frames, timeout=120)
     finally:
         for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
             if p is not None:
@@ -277,7 +299,9 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
     # every node's /diagnostics as the launcher received them (beside the recording, which holds what the recorder got)
     statuses = {"ego": reports, **{f"vehicle cav_{c}": supervisor.reports(f"vehicle cav_{c}") for c in cavs}}
     (opts.out / "diagnostics.json").write_text(json.dumps(statuses, indent=1) + "\n")
-    say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames")
+    skipped = frames_accounted(supervisor, ego) - published
+    say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames"
+        + (f", {skipped} skipped to stay current (the graph fuses slower than rate {opts.rate:g} feeds it)" if skipped else ""))
     if channel:  # what crossed the links in time, frame by frame
         say("neighbours fused per frame: " + " ".join(r.get("neighbours_used", "?") for r in reports) + "; heard but late: " +
             " ".join(r["neighbours_missing"] or "-" for r in reports) + "; never received: " +

@@ -11,7 +11,10 @@ age) and decoded on
 arrival; a bad one is dropped and counted by reason, with a warning naming the
 topic and the reason once per burst. Each of its own frames waits (at most
 max_wait s) for every live neighbour's frame within `tolerance` s of its stamp
-(the rules: pairing.py); the ego keeps the nearest max_collaborators within
+(the rules: pairing.py); behind its input, it fuses the newest frame that
+is ready and skips the older ones (counted as `skipped`), so its latency stays
+bounded at any play rate; frames are fused on a thread of their own
+(worker.py) while the executor keeps receiving. The ego keeps the nearest max_collaborators within
 comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
 runs the model's ego half and publishes ego/occupancy
 (co3sop_msgs/SemanticOccupancy), ego/occupancy/points (PointCloud2: x, y, z,
@@ -33,22 +36,24 @@ from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from sensor_msgs.msg import PointCloud2
 
-from .. import native, topics
+from .. import topics
 from ..cloud import occupancy_cloud, occupancy_cloud_reference
 from ..codec import decode_features, encode_labels, encode_request
 from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from ..geometry import Pose
+from ..inference import PRECISIONS, inference_path
 from ..model.checkpoint import load_graph_model, shipped_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
 from ..model.request import request_of
-from ..pairing import Pairing
+from ..pairing import Pairing, PairingConfig
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
 from .params import Param
 from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
 from .lifecycle import ManagedNode
+from .worker import Worker
 
 PARAMS = (
     Param("ego_id", int, "the CAV this ego runs on: its own features come on cav_<ego_id>/voxel_features (relative: remap it "
@@ -63,12 +68,22 @@ PARAMS = (
     Param("pose_noise_mu", float, "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)", 0.0, True, (-100.0, 100.0)),
     Param("pose_noise_sigma", float, "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)", 0.0, True, (0.0, 100.0)),
     Param("seed", int, "seed of the pose noise", 0),
+    Param("max_stamp_ahead", float, "s: a message stamped further ahead of this node's clock (the bag's /clock under "
+          "use_sim_time) is refused, so one glitching or hostile stamp cannot make later frames look stale", 1.0, True, (0.0, 3600.0)),
     Param("max_payload_mb", float, "declared uncompressed payloads above this are refused before decompressing", 64.0, True,
           (0.001, 65536.0)),
     Param("publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True),
     Param("request_maps", bool, "publish /ego/request_map after each frame (vehicles with codec.selection request use it)", True, True),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
-    Param("queue_depth", int, "frames per neighbour queued while one is fused", 10, range=(1, 1000)),
+    Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
+    Param("precision", str, "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
+          "float16 on other GPUs, else float32), float32, bfloat16, float16", "auto", choices=PRECISIONS),
+    Param("queue_depth", int, "messages per neighbour topic held by DDS until taken (the ego takes them as they come)", 10,
+          range=(1, 1000)),
+    Param("max_pending", int, "own frames waiting for neighbours at once; one more ends the oldest's wait (behind its input, "
+          "the ego fuses the newest ready frame and skips older ones)", PairingConfig.max_pending, True, (1, 1000)),
+    Param("stay_current", bool, "behind its input, fuse the newest ready own frame and skip older ones; false: fuse every own "
+          "frame, oldest first (to record every frame of a bag played faster than the ego fuses; latency then grows)", True, True),
     Param("features_reliability", str, "QoS of the features subscriptions: reliable, or best_effort (matches both kinds of "
           "vehicle; a reliable subscription does not match a best-effort vehicle)", "reliable", choices=tuple(RELIABILITIES)),
     Param("discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)),
@@ -105,22 +120,26 @@ class Ego(ManagedNode):
         self.for_other_egos = 0  # features addressed to another ego (its request map), ignored
         self._timers: list = []
         self.model = None
+        self.skips = DropLog(self.get_logger())  # own frames passed over for a newer one, logged once per burst
+        self._skipped_seen = 0
+        # fusing on its own thread; `lock` guards the pairing, which the executor's callbacks fill
+        self._worker = Worker("ego fusion", self._take, self.get_logger())
 
     def configure(self) -> None:
         p = self.params
-        self.model, _ = load_graph_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
+        model, _ = load_graph_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
+        # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
+        # for bench_graph's same-run ratios
+        self.reference_paths = p["reference_paths"]
+        self.model = model.use(inference_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter "))
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.pairing: Pairing[str, Received] = Pairing(self.own_topic)
         self._apply({name: p[name] for name in RUNTIME})
         p.on_change(self._apply)
         self.rng = np.random.default_rng(p["seed"])
-        # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
-        # for bench_graph's same-run ratios
-        self.reference_paths = p["reference_paths"]
-        native.ENABLED = native.ENABLED and not self.reference_paths
         torch.set_num_threads(p["threads"])
-        # frames queue while one is fused (a burst must not overwrite them); the age check drops what is too old
+        # messages wait in DDS only until the executor takes them (fusing runs on its own thread)
         self._qos = features_qos(p["features_reliability"], p["queue_depth"])
         # names relative to the node's namespace: `__ns` and remapping apply
         self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.relative(topics.EGO_OCCUPANCY), OCCUPANCY_QOS)
@@ -128,15 +147,20 @@ class Ego(ManagedNode):
         self._request = self.create_lifecycle_publisher(RequestMap, topics.relative(topics.EGO_REQUEST), REQUEST_QOS)
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
-                               f"{self.max_collaborators} collaborators within {self.comm_range:g} m; compiled kernels: {', '.join(self.kernels) or 'none'}")
+                               f"{self.max_collaborators} collaborators within {self.comm_range:g} m; inference on {self.model.path.describe()}; "
+                               f"compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     def activate(self) -> None:
-        self.pairing = Pairing(self.own_topic, self.pairing.cfg)  # nothing waits from before a deactivation
+        with self._worker.lock:
+            self.pairing = Pairing(self.own_topic, self.pairing.cfg)  # nothing waits from before a deactivation
+        self._skipped_seen = 0
         self._subscribe(self.own_topic)
-        self._timers = [self.create_timer(self.params["discovery_period"], self._discover), self.create_timer(0.05, self._fuse_ready)]
+        self._timers = [self.create_timer(self.params["discovery_period"], self._discover)]
         self._discover()
+        self._worker.start()
 
     def deactivate(self) -> None:
+        self._worker.stop()
         for timer in self._timers:
             self.destroy_timer(timer)
         for sub in self._subs.values():
@@ -151,6 +175,10 @@ class Ego(ManagedNode):
                 delattr(self, pub)
         self.model = None
 
+    def destroy_node(self) -> None:
+        self._worker.stop()
+        super().destroy_node()
+
     def _apply(self, values: dict) -> None:
         """Takes the run-time parameters in `values` (at start, and on `ros2 param set`), after checking them."""
         if values.get("max_collaborators", 0) > self.cfg.max_collaborators:
@@ -158,8 +186,11 @@ class Ego(ManagedNode):
         cfg = self.pairing.cfg
         self.pairing.cfg = replace(cfg, tolerance_ns=int(values.get("tolerance", cfg.tolerance_ns / 1e9) * 1e9),
                                    max_wait_s=values.get("max_wait", cfg.max_wait_s),
-                                   neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9))
-        for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points", "request_maps"):
+                                   neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9),
+                                   max_pending=values.get("max_pending", cfg.max_pending),
+                                   stay_current=values.get("stay_current", cfg.stay_current))
+        for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points", "request_maps",
+                     "max_stamp_ahead"):
             if name in values:
                 setattr(self, name, values[name])
         if "max_payload_mb" in values:
@@ -169,9 +200,12 @@ class Ego(ManagedNode):
 
     def _subscribe(self, topic: str) -> None:
         if topic != self.own_topic:
-            self.pairing.discovered(topic, time.time_ns())
-        self._subs[topic] = subscribe_foreign(
-            self, VoxelFeatures, topic, lambda msg, raw, t=topic: self._on_features(t, msg, raw), self._qos, self.drops, raw=True)
+            with self._worker.lock:
+                self.pairing.discovered(topic, time.time_ns())
+        sub = subscribe_foreign(self, VoxelFeatures, topic, lambda msg, raw, t=topic: self._on_features(t, msg, raw), self._qos,
+                                self.drops, raw=True)
+        with self._worker.lock:  # the worker reads the subscriptions (for the topics still silent)
+            self._subs[topic] = sub
 
     def _discover(self) -> None:
         """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace."""
@@ -195,7 +229,14 @@ class Ego(ManagedNode):
                 raise Co3sopError(f"agent_id {agent} is the ego's, on another topic than {self.own_topic}")
             other = next((t for t, a in self._agents.items() if a == agent), None)
             if other is not None:
-                raise Co3sopError(f"agent_id {agent} is already published on {other}")
+                # the id stays with its first topic while that has a publisher, unless this topic is the vehicle's own
+                # by the namespace convention: a squatter neither locks the real vehicle out nor outlives its publisher
+                if self.count_publishers(other) > 0 and topic != topics.voxel_features(agent):
+                    raise Co3sopError(f"agent_id {agent} is already published on {other}")
+                with self._worker.lock:
+                    del self._agents[other]
+                    self.pairing.forget(other)
+                self.get_logger().warning(f"vehicle {agent} now on {topic}, no longer on {other}")
             self._agents[topic] = agent
         return agent
 
@@ -211,7 +252,15 @@ class Ego(ManagedNode):
             pose.check("lidar_pose")
         except Co3sopError as exc:
             return self.drops(topic, "header", str(exc))
-        if self.pairing.stale(stamp):
+        now = self.get_clock().now().nanoseconds  # 0 under use_sim_time before the first /clock: no bound yet
+        if now and stamp > now + self.max_stamp_ahead * 1e9:
+            return self.drops(topic, "future", f"stamp {stamp} is {(stamp - now) / 1e9:.3f} s ahead of this node's clock, more than "
+                                               f"max_stamp_ahead {self.max_stamp_ahead:g} s")
+        with self._worker.lock:
+            stale, repeated = self.pairing.stale(stamp), topic == self.own_topic and self.pairing.repeated(stamp)
+        if repeated:
+            return self.drops(topic, "repeated", f"own frame {stamp} was fused already or waits to be (a duplicate or a replay)")
+        if stale:
             return self.drops(topic, "stale", f"stamp {stamp} is {(self.pairing.last_fused - stamp) / 1e6:.0f} ms older than the last "
                                               f"fused frame, more than the tolerance {self.pairing.cfg.tolerance_ns / 1e6:.0f} ms")
         t0 = time.perf_counter()
@@ -231,27 +280,41 @@ class Ego(ManagedNode):
         if topic == self.own_topic:
             self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
         record = Received(agent, stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
-        self.pairing.add(topic, stamp, record, wall, time.monotonic())
-        self._fuse_ready()
+        with self._worker.lock:
+            self.pairing.add(topic, stamp, record, wall, time.monotonic())
+            self._worker.wake()
 
     # --- fusing ------------------------------------------------------------------------------------
 
     def _has_publisher(self, topic: str) -> bool:
         return self.count_publishers(topic) > 0
 
-    def _fuse_ready(self) -> None:
-        while (stamp := self.pairing.next_due(time.time_ns(), time.monotonic(), self._has_publisher)) is not None:
-            self._fuse(stamp)
-
-    def _fuse(self, stamp: int) -> None:
-        cpu0, t0 = time.process_time(), time.perf_counter()
+    def _take(self):
+        """On the worker, under its lock: the newest own frame ready to fuse with its neighbours' frames, as a
+        job; older ones are skipped."""
+        stamp = self.pairing.next_due(time.time_ns(), time.monotonic(), self._has_publisher)
+        if stamp is None:
+            return None
+        if self.pairing.skipped > self._skipped_seen:
+            n, self._skipped_seen = self.pairing.skipped - self._skipped_seen, self.pairing.skipped
+            for _ in range(n):
+                self.skips(self.own_topic, "behind", "frames skipped: a newer own frame was ready (the ego fuses slower than "
+                                                     "its input comes)")
         ego = self.pairing.match(self.own_topic, stamp)
         if ego is None:  # evicted by newer own frames while waiting
-            return
+            return None
         heard = self.pairing.heard()
         matched = {r.agent: r for t in heard if (r := self.pairing.match(t, stamp)) is not None}
+        missing = sorted(a for t in heard if (a := self._agents.get(t)) is not None and a not in matched)
+        # discovered, yet not one frame received (a link that cannot carry its features, say): by topic, no id is known
+        silent = sorted(t for t in self._subs if t != self.own_topic and t not in self._agents)
+        self.pairing.fused(stamp)  # from now on, frames older than this one are stale
+        return lambda: self._fuse(stamp, ego, matched, missing, silent)
+
+    def _fuse(self, stamp: int, ego: Received, matched: dict[int, Received], missing: list[int], silent: list[str]) -> None:
+        cpu0, t0 = time.process_time(), time.perf_counter()
         pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
-                             self.comm_range, self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng, reference=self.reference_paths)
+                             self.comm_range, self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng)
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
         t2 = time.perf_counter()
         frame = topics.lidar_frame(self.ego_id)
@@ -267,10 +330,6 @@ class Ego(ManagedNode):
                                                  pose=Pose.from_matrix(ego.world_from_lidar)))
         t3 = time.perf_counter()
         self.published += 1
-        self.pairing.fused(stamp)
-        missing = sorted(self._agents[t] for t in heard if self._agents[t] not in matched)
-        # discovered, yet not one frame received (a link that cannot carry its features, say): by topic, no id is known
-        silent = sorted(t for t in self._subs if t != self.own_topic and t not in self._agents)
         out_of_range = [a for a in matched if a not in chosen]
         used = [ego, *others]
         values = {
@@ -283,7 +342,7 @@ class Ego(ManagedNode):
             "decode_ms": f"{sum(r.decode_ms for r in used):.1f}", "fuse_ms": f"{1e3 * pred.fuse_s:.1f}", "head_ms": f"{1e3 * pred.head_s:.1f}",
             "publish_ms": f"{1e3 * (t3 - t2):.1f}", "total_ms": f"{1e3 * (t3 - t0):.1f}", "published_wall_ns": published_wall,
             "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
-            "messages_for_other_egos": self.for_other_egos,
+            "messages_for_other_egos": self.for_other_egos, "skipped": sum(self.skips.counts.values()),
             **self.drops.values(),
         }
         level = DiagnosticStatus.WARN if missing or silent else DiagnosticStatus.OK

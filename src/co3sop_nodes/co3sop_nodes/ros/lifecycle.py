@@ -11,7 +11,11 @@ silent until `activate`; `activate` subscribes to its inputs, so an inactive
 node does no work; `deactivate` unsubscribes and forgets half-received
 frames; `cleanup` releases the model and publishers (back to unconfigured);
 `shutdown` does whatever of that is still to do. A transition that fails
-(bad checkpoint, bad parameter) logs why and leaves the node where it was.
+(bad checkpoint, bad parameter) logs why and leaves the node where it was;
+one not valid from the current state (`activate` while active, an unknown
+id or label), asked for by any participant over the ChangeState service, is
+refused (the service answers false) with the reason logged: rclpy itself
+raises there, which would end the process.
 
 With the parameter `autostart` (default true) the node configures and
 activates itself, so `ros2 run` works as for any node, and a failed
@@ -21,6 +25,7 @@ unconfigured for a lifecycle manager, `ros2 lifecycle set`, or the demo.
 
 from __future__ import annotations
 
+from lifecycle_msgs.srv import ChangeState
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from ..errors import Co3sopError
@@ -39,6 +44,25 @@ class ManagedNode(LifecycleNode):
         self.params = Parameters(self, (*params, AUTOSTART))
         self.failure = ""  # the reason of the last failed transition
         self._configured = self._active = False
+        service = self._service_change_state
+        service.callback = self._guarded(service.callback)
+
+    def _guarded(self, change_state):
+        """The ChangeState service's callback, called only for a transition valid from the current state."""
+
+        def callback(request: ChangeState.Request, response: ChangeState.Response) -> ChangeState.Response:
+            machine = self._state_machine
+            state = machine.current_state[1]
+            valid = {label: tid for tid, label, *_ in machine.available_transitions}
+            wanted = request.transition.label or request.transition.id
+            if wanted not in (valid if request.transition.label else set(valid.values())):
+                self.get_logger().warning(f"lifecycle transition {wanted!r} refused: not valid from state {state!r} "
+                                          f"(valid: {', '.join(f'{label} ({tid})' for label, tid in valid.items()) or 'none'})")
+                response.success = False
+                return response
+            return change_state(request, response)
+
+        return callback
 
     # --- what subclasses define ---
 

@@ -20,7 +20,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from ..errors import Co3sopError
+from ..errors import Co3sopError, exception_line
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER, float: ParameterType.PARAMETER_DOUBLE,
           str: ParameterType.PARAMETER_STRING, list: ParameterType.PARAMETER_STRING_ARRAY}
@@ -87,4 +87,7 @@ class Parameters:
                 self._apply(ours)
         except Co3sopError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        except Exception as exc:  # noqa: BLE001 - a value the node cannot take is refused, never the end of the node
+            self._node.get_logger().error(f"parameters {', '.join(ours)}: refused: {exception_line(exc)}")
+            return SetParametersResult(successful=False, reason=f"refused: {exception_line(exc)}")
         return SetParametersResult(successful=True)

@@ -9,8 +9,10 @@ LiDAR checkpoint) and the camera mounts on /tf_static; groups each frame by
 its header stamp, runs the vehicle half of the checkpoint (default: the
 shipped tiny one), encodes the feature volume and confidence with the codec
 parameters and publishes co3sop_msgs/VoxelFeatures on voxel_features
-(reliable), plus its per-frame timings on /diagnostics. A lifecycle node
-(ros/lifecycle.py). Parameters: see config/vehicle.yaml.
+(reliable), plus its per-frame timings on /diagnostics. Frames are encoded on
+a thread of their own (worker.py); a vehicle slower than its sensors encodes
+the newest complete frame and skips older ones (counted as `skipped`). A
+lifecycle node (ros/lifecycle.py). Parameters: see config/vehicle.yaml.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,20 +35,24 @@ from tf2_msgs.msg import TFMessage
 from .. import topics
 from ..assembly import Frame, FrameAssembly
 from ..byte_budget import SenderBudgets
-from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, decode_request
+from ..collaboration import COMM_RANGE
+from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, check_codec_for, decode_request
 from ..errors import CodecError, Co3sopError
 from ..grid import BENCHMARK_RANGES
 from ..geometry import Pose
+from ..inference import PRECISIONS, inference_path
 from ..model.checkpoint import load_graph_model, shipped_checkpoint
 from ..model.predict import compile_kernels
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
 from ..model.request import request_for_neighbour
+from ..request_book import Request, RequestBook
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
 from .params import Param
 from .dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
 from .lifecycle import ManagedNode
+from .worker import Worker
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 
@@ -60,7 +66,12 @@ PARAMS = (
           choices=("", *BENCHMARK_RANGES)),
     Param("cameras", list, "camera names of a camera model's frame", ["camera0", "camera1", "camera2", "camera3"]),
     Param("threads", int, "torch CPU threads (several vehicles share a machine in the demo)", 1, range=(1, 256)),
+    Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
+    Param("precision", str, "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
+          "float16 on other GPUs, else float32), float32, bfloat16, float16", "auto", choices=PRECISIONS),
     Param("max_pending", int, "incomplete frames kept while waiting for their last message", 10, range=(1, 1000)),
+    Param("stay_current", bool, "slower than the sensors, encode the newest complete frame and skip older ones; false: encode "
+          "every frame, oldest first (latency then grows)", True, True),
     Param("codec.dtype", str, "feature precision on the wire", "float16", True, choices=tuple(FEATURE_DTYPES)),
     Param("codec.selection", str, "which voxels are sent: dense, topk (highest confidence), threshold, or request (confidence x "
           "the ego's request map; without one, as topk)", "dense", True, choices=SELECTIONS),
@@ -69,6 +80,8 @@ PARAMS = (
     Param("codec.compression", str, "payload compression", "zstd", True, choices=CODECS),
     Param("codec.level", int, "zstd level", 3, True, (1, 22)),
     Param("request_timeout", float, "s: an ego's request map not renewed within this is no longer served", 1.0, True, (0.0, 3600.0)),
+    Param("comm_range", float, "m: request maps of egos farther away are refused", COMM_RANGE, True, (0.0, 10_000.0)),
+    Param("max_egos", int, "egos answered per frame with codec.selection request, nearest first", 4, True, (1, 64)),
     Param("codec.max_bytes", int, "byte budget per message for topk / request (0: none; then codec.topk voxels)", 0, True, (0, 2**31 - 1)),
     Param("codec.burst_bytes", int, "with codec.max_bytes: the most one message may take, max_bytes then being the average per "
           "message to each ego (what a message leaves unspent is saved for the next; 0: every message capped at max_bytes)",
@@ -84,16 +97,6 @@ CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.t
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 
 
-@dataclass(frozen=True)
-class Request:
-    """An ego's latest request map, as this vehicle holds it."""
-
-    need: np.ndarray  # (X, Y, Z) on the ego's feature grid, in [0, 1]
-    world_from_ego: np.ndarray  # (4, 4) the ego's LiDAR pose when it made the request
-    stamp: int  # the ego frame it came from
-    received_ns: int  # wall clock
-
-
 class Vehicle(ManagedNode):
     """A lifecycle node (ros/lifecycle.py): configure loads the checkpoint and creates the publishers,
     activate subscribes to the sensors; an inactive vehicle encodes nothing."""
@@ -106,15 +109,20 @@ class Vehicle(ManagedNode):
         self.published = 0
         self.inputs: SensorSubscriptions | None = None
         self.model = None
-        self._requests: dict[int, Request] = {}  # requesting ego -> its latest request map
+        self._requests: RequestBook | None = None  # the egos' request maps (guarded by the worker's lock)
+        self._pose: np.ndarray | None = None  # world_from_lidar of the newest frame encoded
         self._request_subs: dict[str, object] = {}
         self._request_timer = None
         self._budgets: SenderBudgets | None = None
+        self.skips = DropLog(self.get_logger())  # complete frames passed over for a newer one
+        self._ready: list[Frame] = []  # complete frames not yet encoded, oldest first
+        self._worker = Worker(f"cav_{self.agent_id} encoder", self._take, self.get_logger())
 
     def configure(self) -> None:
         p = self.params
         checkpoint = p["checkpoint"]
-        self.model, _ = load_graph_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        model, _ = load_graph_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        self.model = model.use(inference_path(p["device"], p["precision"], what="parameter "))
         self.cfg = cfg = self.model.cfg
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
             wanted = p[name]
@@ -122,7 +130,7 @@ class Vehicle(ManagedNode):
                 raise Co3sopError(f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it")
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.codec = FeatureCodecConfig()
-        self._apply({name: p[name] for name in CODEC_FIELDS})
+        self._apply({name: p[name] for name in (*CODEC_FIELDS, "request_timeout", "comm_range", "max_egos")})
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
         self.cameras = p["cameras"]
@@ -141,10 +149,11 @@ class Vehicle(ManagedNode):
         self.get_logger().info(
             f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
             f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}, "
-            f"{p['features_reliability']}; "
+            f"{p['features_reliability']}; inference on {self.model.path.describe()}; "
             f"compiled kernels: {', '.join(self.kernels) or 'none'}")
 
     def activate(self) -> None:
+        self._requests = RequestBook(self.comm_range, int(self.request_timeout * 1e9), self.max_egos)
         self._tf = StaticTransforms()
         self._frames = FrameAssembly(self._parts, self.params["max_pending"], self._mounts_known, "camera mounts")
         # every input with the QoS its publisher offers (best-effort drivers, a reliable player, a latched /tf_static)
@@ -155,8 +164,11 @@ class Vehicle(ManagedNode):
         # every ego's request map, whatever its name or namespace (found by type, as the ego finds features)
         self._request_timer = self.create_timer(0.5, self._discover_requests)
         self._discover_requests()
+        self._worker.start()
 
     def deactivate(self) -> None:
+        self._worker.stop()
+        self._ready = []
         if self.inputs is not None:
             self.inputs.close()  # half-received frames go with the assembly; mounts come again on /tf_static
             self.inputs = None
@@ -164,7 +176,7 @@ class Vehicle(ManagedNode):
             self.destroy_timer(self._request_timer)
         for sub in self._request_subs.values():
             self.destroy_subscription(sub)
-        self._requests, self._request_subs, self._request_timer = {}, {}, None
+        self._request_subs, self._request_timer, self._requests = {}, None, None
 
     def _discover_requests(self) -> None:
         for name, types in self.get_topic_names_and_types():
@@ -182,15 +194,21 @@ class Vehicle(ManagedNode):
             need = decode_request(enc)
         except Co3sopError as exc:
             return self.drops(topic, "request", str(exc))
-        if msg.agent_id != self.agent_id:  # a vehicle that is also an ego does not serve itself
-            self._requests[msg.agent_id] = Request(need, pose.matrix(), stamp_to_ns(msg.header.stamp), time.time_ns())
+        if msg.agent_id == self.agent_id:  # a vehicle that is also an ego does not serve itself
+            return
+        request = Request(need, pose.matrix(), stamp_to_ns(msg.header.stamp), time.time_ns())
+        with self._worker.lock:
+            refused = self._requests.offer(topic, msg.agent_id, request, self._pose, lambda t: self.count_publishers(t) > 0)
+        if refused is not None:
+            self.drops(topic, refused.kind, refused.reason)
 
-    def _recipients(self) -> dict[int, Request]:
-        """The egos served one message each this frame: with selection "request", those whose request is fresh."""
-        if self.codec.selection != "request":
-            return {}
-        oldest = time.time_ns() - int(self.params["request_timeout"] * 1e9)
-        return {ego: r for ego, r in self._requests.items() if r.received_ns >= oldest}
+    def _recipients(self, world_from_lidar: np.ndarray) -> dict[int, Request]:
+        """The egos served one message each this frame: with selection "request", the nearest with a fresh request."""
+        with self._worker.lock:
+            self._pose = world_from_lidar
+            if self.codec.selection != "request":
+                return {}
+            return self._requests.serving(time.time_ns(), world_from_lidar)
 
     def release(self) -> None:
         self.params.on_change(None)
@@ -200,6 +218,10 @@ class Vehicle(ManagedNode):
                 delattr(self, pub)
         self.model = None
 
+    def destroy_node(self) -> None:
+        self._worker.stop()
+        super().destroy_node()
+
     def _on_static(self, msg: TFMessage) -> None:
         for t in msg.transforms:
             tr, q = t.transform.translation, t.transform.rotation
@@ -207,11 +229,25 @@ class Vehicle(ManagedNode):
         self._encode_ready()
 
     def _apply(self, values: dict) -> None:
-        """The codec parameters in `values` (at start, and on `ros2 param set`): the next frame is encoded with them."""
+        """The run-time parameters in `values` (at start, and on `ros2 param set`): the codec's are checked against
+        this model's features (a codec that could encode no message is refused) and used from the next frame on;
+        the others are read where they are used."""
+        for name in ("request_timeout", "comm_range", "max_egos"):
+            if name in values:
+                setattr(self, name, values[name])
+        if self._requests is not None:
+            with self._worker.lock:
+                self._requests.comm_range, self._requests.max_egos = self.comm_range, self.max_egos
+                self._requests.timeout_ns = int(self.request_timeout * 1e9)
+        codec = {CODEC_FIELDS[k]: v for k, v in values.items() if k in CODEC_FIELDS}
+        if not codec:
+            return
         try:
-            self.codec = replace(self.codec, **{CODEC_FIELDS[k]: v for k, v in values.items()})
+            candidate = replace(self.codec, **codec)
+            check_codec_for(candidate, self.cfg.embed_dims, self.cfg.feature_grid)
         except CodecError as exc:
             raise Co3sopError(str(exc)) from None
+        self.codec = candidate
         self._budgets = SenderBudgets(self.codec)  # bytes saved under the previous budget do not carry over
 
     def _encode_for(self, out, ego: int | None, request: np.ndarray | None):
@@ -230,8 +266,24 @@ class Vehicle(ManagedNode):
     def _handle(self, frames: list[Frame], drops) -> None:
         for drop in drops:
             self.drops(self._parts.get(drop.part, topics.TF_STATIC), drop.kind, drop.reason)
-        for frame in frames:
-            self._encode(frame)
+        if not frames:
+            return
+        with self._worker.lock:
+            ready = sorted([*self._ready, *frames], key=lambda f: f.stamp)
+            if self.params["stay_current"]:
+                ready, passed = ready[-1:], ready[:-1]
+                for frame in passed:
+                    self.skips(self.get_namespace(), "behind", f"frame {frame.stamp} skipped: frame {ready[0].stamp} is complete "
+                                                               "and this vehicle encodes slower than its sensors send")
+            self._ready = ready
+            self._worker.wake()
+
+    def _take(self):
+        """On the worker, under its lock: the oldest complete frame waiting (with stay_current, the only one), as a job."""
+        if not self._ready:
+            return None
+        frame = self._ready.pop(0)
+        return lambda: self._encode(frame)
 
     def _part(self, key: str):
         def callback(msg) -> None:
@@ -258,10 +310,10 @@ class Vehicle(ManagedNode):
             return self.drops(self.get_namespace(), "input", f"frame {stamp}: {exc}")
         t1 = time.perf_counter()
         with torch.inference_mode():
-            out = self.model.vehicle(**to_batch(inputs))
+            out = self.model.vehicle(**to_batch(inputs, self.model.path.torch_device))
         t2 = time.perf_counter()
         # one message per requesting ego, its voxels weighed by that ego's request moved into this frame; else one for all
-        fg, recipients = self.cfg.feature_grid, self._recipients()
+        fg, recipients = self.cfg.feature_grid, self._recipients(world_from_lidar)
         try:
             messages = [(ego, self._encode_for(out, ego, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
                         for ego, r in recipients.items()] or [(None, self._encode_for(out, None, None))]
@@ -279,7 +331,8 @@ class Vehicle(ManagedNode):
                   "payload_bytes": sum(enc.payload_bytes for _, enc in messages),
                   "recipients": ",".join(f"{ego}:{enc.budget_bytes}" for ego, enc in messages if ego is not None),
                   "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),
-                  "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published, **self.drops.values()}
+                  "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
+                  "skipped": sum(self.skips.counts.values()), **self.drops.values()}
         self._diag.publish(diagnostics_msg(stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
                                            f"frame {self.published} encoded", values))
 

@@ -1,0 +1,67 @@
+"""co3sop_nodes.request_book: what a request map may cost its sender, whoever sends it. Times are passed in."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from co3sop_nodes.request_book import Request, RequestBook
+
+S = 1_000_000_000
+HERE = np.eye(4)
+
+
+def at(x: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[0, 3] = x
+    return pose
+
+
+def request(x: float, t: float = 0.0, fill: float = 1.0) -> Request:
+    return Request(np.full((4, 4, 2), fill, np.float32), at(x), int(t * S), int(t * S))
+
+
+def book(**kw) -> RequestBook:
+    return RequestBook(**{"comm_range": 70.0, "timeout_ns": 1 * S, "max_egos": 2, "capacity": 8, **kw})
+
+
+def alive(_topic: str) -> bool:
+    return True
+
+
+def test_an_ego_id_is_taken_from_its_first_topic_until_that_topic_has_no_publisher():
+    b = book()
+    assert b.offer("/ego/request_map", 5, request(10), HERE, alive) is None
+    spoof = b.offer("/spoof", 5, request(10, fill=0.0), HERE, alive)
+    assert spoof.kind == "request_topic" and "/ego/request_map" in spoof.reason
+    assert b.serving(0, HERE)[5].need.max() == 1.0  # the real ego's answers are untouched
+    assert b.offer("/spoof", 5, request(10, fill=0.0), HERE, lambda topic: topic != "/ego/request_map") is None
+    assert b.serving(0, HERE)[5].need.max() == 0.0  # its publisher gone, the id moved
+
+
+def test_a_request_from_beyond_comm_range_is_refused():
+    b = book()
+    refused = b.offer("/far", 9, request(120), HERE, alive)
+    assert refused.kind == "request_range" and "120 m" in refused.reason and len(b) == 0
+    assert b.offer("/far", 9, request(120), None, alive) is None  # no pose of its own yet: kept, then judged per frame
+    assert b.serving(0, HERE) == {}
+
+
+def test_each_frame_answers_the_nearest_fresh_requests_only():
+    b = book()
+    for ego, x in ((1, 50), (2, 10), (3, 30)):
+        b.offer(f"/e{ego}", ego, request(x), HERE, alive)
+    assert list(b.serving(0, HERE)) == [2, 3]
+    assert b.serving(int(1.5 * S), HERE) == {} and len(b) == 0  # expired and forgotten
+
+
+def test_memory_stays_flat_under_thousands_of_ids_and_a_flood_does_not_push_out_a_near_ego():
+    b = book()
+    b.offer("/ego/request_map", 1, request(10), HERE, alive)
+    for ego in range(100, 3100):
+        b.offer(f"/fake{ego}", ego, request(20 + ego % 7, t=ego * 1e-5), HERE, alive)
+    assert len(b) == 8 and len(b._topics) == 8
+    assert list(b.serving(int(0.04 * S), HERE))[0] == 1  # the near ego is kept and answered first
+    unplaced = book()  # before the vehicle knows its own pose: the oldest go first
+    for ego in range(3000):
+        unplaced.offer(f"/fake{ego}", ego, request(5, t=ego * 1e-4), None, alive)
+    assert sorted(unplaced._requests) == list(range(2992, 3000))
