@@ -203,6 +203,7 @@ def roofline_table(repeats: int, peak: float) -> str:
     rows = ["| model | stage | GFLOP per frame | ms | GFLOP/s | share of the float32 peak |", "|---|---|---:|---:|---:|---:|"]
     for name in ("tiny-lidar", "tiny", "small"):
         model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
+        model.requires_grad_(False)  # the FLOP counter's module tracker hooks every tensor that requires a gradient
         inputs = pace.shaped_inputs(model)
         ego = model.vehicle(**inputs)
         others = [VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)) for i in (1, 2)]

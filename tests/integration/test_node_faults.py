@@ -738,3 +738,23 @@ def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher
     finally:
         ego.send_signal(signal.SIGINT)
         assert ego.wait(30) == 0, log.read_text()
+
+
+def test_a_flood_of_topics_is_subscribed_up_to_a_bound_and_departed_ones_make_room(tmp_path, peer, sup):
+    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_topics:=8",
+                     "-p", "discovery_period:=0.1")
+    try:
+        wait_ready(sup, "/ego", ego, log)
+        flood = [peer.create_publisher(VoxelFeatures, f"/flood_{i}/voxel_features", QOS) for i in range(12)]
+        wait_for(log, r"dropped \(topics\)", ego)
+        subscribed = [p.topic_name for p in flood if sup.subscribes("/ego", p.topic_name)]
+        assert len(subscribed) == 7  # 8 with the ego's own
+        for pub in flood:
+            peer.destroy_publisher(pub)
+        late = peer.create_publisher(VoxelFeatures, "/late/voxel_features", QOS)
+        sup.wait_subscribed("/ego", "/late/voxel_features")  # the departed topics were released to make room
+        sup.wait("the departed topics released", lambda: not any(sup.subscribes("/ego", t) for t in subscribed), 30)
+        assert ego.poll() is None
+    finally:
+        ego.send_signal(signal.SIGINT)
+        assert ego.wait(30) == 0, log.read_text()

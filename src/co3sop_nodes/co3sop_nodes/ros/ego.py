@@ -4,8 +4,10 @@
 
 Subscribes to its own encoder's cav_<ego_id>/voxel_features (a name relative
 to its namespace, so remapping works) and to every other topic of type
-co3sop_msgs/VoxelFeatures as it appears in the graph, whatever its name; a
-neighbour's vehicle id is the one its first message carries. Each message is
+co3sop_msgs/VoxelFeatures as it appears in the graph, whatever its name (up
+to max_topics); a neighbour's vehicle id is the one its first message carries
+(the vehicle's own /cav_N/voxel_features, or a topic whose claimant left,
+takes it over). Each message is
 checked (valid CDR, agent id, pose, grid, payload, finite values, size limit,
 age) and decoded on
 arrival; a bad one is dropped and counted by reason, with a warning naming the
@@ -86,6 +88,8 @@ PARAMS = (
           "frame, oldest first (to record every frame of a bag played faster than the ego fuses; latency then grows)", True, True),
     Param("features_reliability", str, "QoS of the features subscriptions: reliable, or best_effort (matches both kinds of "
           "vehicle; a reliable subscription does not match a best-effort vehicle)", "reliable", choices=tuple(RELIABILITIES)),
+    Param("max_topics", int, "VoxelFeatures topics subscribed at most (a flood of topics must not exhaust memory); topics "
+          "whose publishers left are released first", 32, range=(1, 4096)),
     Param("discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)),
     Param("reference_paths", bool, "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)", False),
 )
@@ -208,11 +212,26 @@ class Ego(ManagedNode):
             self._subs[topic] = sub
 
     def _discover(self) -> None:
-        """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace."""
-        for name, types in self.get_topic_names_and_types():
-            if FEATURES_TYPE in types and name not in self._subs:
-                self._subscribe(name)
-                self.get_logger().info(f"neighbour discovered: {name}")
+        """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace, up to max_topics
+        (to make room, topics without a publisher left are released)."""
+        new = [name for name, types in self.get_topic_names_and_types() if FEATURES_TYPE in types and name not in self._subs]
+        if new and len(self._subs) + len(new) > self.params["max_topics"]:
+            self._release_silent()
+        for name in new:
+            if len(self._subs) >= self.params["max_topics"]:
+                self.drops(name, "topics", f"not subscribed: already {len(self._subs)} VoxelFeatures topics (max_topics)")
+                continue
+            self._subscribe(name)
+            self.get_logger().info(f"neighbour discovered: {name}")
+
+    def _release_silent(self) -> None:
+        """Unsubscribes from neighbour topics that have no publisher left, forgetting their vehicle and frames."""
+        for topic in [t for t in self._subs if t != self.own_topic and not self._has_publisher(t)]:
+            self.destroy_subscription(self._subs[topic])
+            with self._worker.lock:
+                del self._subs[topic]
+                self._agents.pop(topic, None)
+                self.pairing.forget(topic)
 
     def _agent_of(self, topic: str, msg: VoxelFeatures) -> int:
         """The vehicle behind `topic`: the ego's own on its own topic; a neighbour's id is fixed by its first message."""

@@ -82,6 +82,8 @@ PARAMS = (
     Param("request_timeout", float, "s: an ego's request map not renewed within this is no longer served", 1.0, True, (0.0, 3600.0)),
     Param("comm_range", float, "m: request maps of egos farther away are refused", COMM_RANGE, True, (0.0, 10_000.0)),
     Param("max_egos", int, "egos answered per frame with codec.selection request, nearest first", 4, True, (1, 64)),
+    Param("max_request_topics", int, "RequestMap topics subscribed at most (a flood of topics must not exhaust memory); "
+          "topics whose publishers left are released first", 32, range=(1, 4096)),
     Param("codec.max_bytes", int, "byte budget per message for topk / request (0: none; then codec.topk voxels)", 0, True, (0, 2**31 - 1)),
     Param("codec.burst_bytes", int, "with codec.max_bytes: the most one message may take, max_bytes then being the average per "
           "message to each ego (what a message leaves unspent is saved for the next; 0: every message capped at max_bytes)",
@@ -179,10 +181,18 @@ class Vehicle(ManagedNode):
         self._request_subs, self._request_timer, self._requests = {}, None, None
 
     def _discover_requests(self) -> None:
-        for name, types in self.get_topic_names_and_types():
-            if REQUEST_TYPE in types and name not in self._request_subs:
-                self._request_subs[name] = subscribe_foreign(self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg),
-                                                             REQUEST_QOS, self.drops)
+        """Every RequestMap topic in the graph, up to max_request_topics (topics without a publisher are released)."""
+        limit = self.params["max_request_topics"]
+        new = [name for name, types in self.get_topic_names_and_types() if REQUEST_TYPE in types and name not in self._request_subs]
+        if new and len(self._request_subs) + len(new) > limit:
+            for topic in [t for t in self._request_subs if self.count_publishers(t) == 0]:
+                self.destroy_subscription(self._request_subs.pop(topic))
+        for name in new:
+            if len(self._request_subs) >= limit:
+                self.drops(name, "topics", f"not subscribed: already {len(self._request_subs)} RequestMap topics (max_request_topics)")
+                continue
+            self._request_subs[name] = subscribe_foreign(self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg),
+                                                         REQUEST_QOS, self.drops)
 
     def _on_request(self, topic: str, msg: RequestMap) -> None:
         try:
