@@ -231,7 +231,10 @@ def test_score_and_recover_explain_bad_files(tmp_path):
     (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_collaborators:=9"], "max_collaborators 9 is above the model's 6"),
     (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_wait:=two"], "parameter max_wait"),
     (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
-    (["demo", "--model", "no-such-model"], "no installed checkpoint 'no-such-model.pt'"),
+    (["demo", "--model", "no-such-model"], "--model 'no-such-model': neither a checkpoint file nor a shipped model (small, tiny, tiny-lidar)"),
+    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:=bogus"], "parameter checkpoint 'bogus': neither a checkpoint file"),
+    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "device:=gpu"], "parameter device 'gpu': not a device"),
+    (["evaluate", "--model", "bogus", "--data", "."], "--model 'bogus': neither a checkpoint file nor a shipped model"),
     (["demo", "--rate", "0"], "demo: error: --rate 0.0: must be above 0"),
     (["demo", "--vehicles", "0"], "demo: error: --vehicles 0: at least 1"),
     (["monitor", "--period", "0"], "monitor: error: --period must be above 0"),
@@ -751,7 +754,7 @@ def test_a_flood_of_topics_is_subscribed_up_to_a_bound_and_departed_ones_make_ro
         assert len(subscribed) == 7  # 8 with the ego's own
         for pub in flood:
             peer.destroy_publisher(pub)
-        late = peer.create_publisher(VoxelFeatures, "/late/voxel_features", QOS)
+        peer.create_publisher(VoxelFeatures, "/late/voxel_features", QOS)
         sup.wait_subscribed("/ego", "/late/voxel_features")  # the departed topics were released to make room
         sup.wait("the departed topics released", lambda: not any(sup.subscribes("/ego", t) for t in subscribed), 30)
         assert ego.poll() is None

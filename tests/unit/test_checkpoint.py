@@ -132,3 +132,17 @@ def test_checkpoints_without_weights_or_config_or_that_do_not_fit_are_explained(
             load_model(tmp_path / f"{name}.pt")
     with pytest.raises(Co3sopError, match="a directory"):
         load_model(tmp_path)
+
+
+def test_a_checkpoint_is_named_by_path_or_by_shipped_name(tmp_path):
+    from co3sop_nodes.model.checkpoint import resolve_checkpoint, shipped_checkpoint
+
+    assert resolve_checkpoint("tiny-lidar") == shipped_checkpoint("tiny-lidar.pt")
+    assert resolve_checkpoint("") == resolve_checkpoint(None) == shipped_checkpoint()
+    path = tmp_path / "mine.pt"
+    path.write_bytes(b"")
+    assert resolve_checkpoint(str(path)) == path
+    with pytest.raises(Co3sopError, match="--model 'tiny_lidar': neither a checkpoint file nor a shipped model .*tiny-lidar"):
+        resolve_checkpoint("tiny_lidar", "--model")
+    with pytest.raises(Co3sopError, match="no such checkpoint file"):
+        resolve_checkpoint(str(tmp_path / "none.pt"))

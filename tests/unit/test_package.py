@@ -155,5 +155,22 @@ def test_graph_launch_runs_what_demo_runs():
     tree = ast.parse((PACKAGE / "launch" / "graph.launch.py").read_text())
     assert sorted(ast.literal_eval(keyword(n, "executable")) for n in calls(tree, "Node")) == ["ego", "player", "recorder", "vehicle"]
     text = (PACKAGE / "launch" / "graph.launch.py").read_text()
-    for name in ("bag_contents", "played_topics", "LOSSLESS", "model_path", "--wait-subscribers"):
+    for name in ("bag_contents", "played_topics", "LOSSLESS", "resolve_checkpoint", "--wait-subscribers"):
         assert name in text
+
+
+def test_the_license_and_the_citation_are_where_users_look():
+    root = PACKAGE.parents[1]
+    assert "Apache License" in (root / "LICENSE").read_text() and "Version 2.0" in (root / "LICENSE").read_text()
+    for xml in (root / "src").glob("*/package.xml"):
+        assert "<license>Apache-2.0</license>" in xml.read_text(), xml
+    citation = yaml.safe_load((root / "CITATION.cff").read_text())
+    assert citation["license"] == "Apache-2.0" and citation["cff-version"] == "1.2.0"
+    assert citation["preferred-citation"]["title"].startswith("A Synthetic Benchmark for Collaborative 3D Semantic Occupancy")
+
+
+def test_the_docker_command_keeps_the_results_on_the_host():
+    root = PACKAGE.parents[1]
+    run = re.search(r"docker run [^`]*co3sop`", (root / "README.md").read_text()).group(0)
+    assert '-v "$PWD/results:/co3sop/results"' in run
+    assert 'VOLUME ["/co3sop/results"]' in (root / "docker" / "Dockerfile").read_text()

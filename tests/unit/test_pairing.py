@@ -10,7 +10,7 @@ from co3sop_nodes.pairing import Pairing, PairingConfig
 EGO, A, B = 1, 2, 3
 MS = 1_000_000
 S = 1_000_000_000
-CFG = PairingConfig(tolerance_ns=50 * MS, max_wait_s=2.0, neighbour_timeout_ns=5 * S)
+CFG = PairingConfig(tolerance_ns=50 * MS, max_wait_s=2.0, neighbour_timeout_ns=5 * S, max_age_ns=0)
 
 
 class Clock:
@@ -184,18 +184,31 @@ def test_the_newest_frame_that_can_still_pair_is_fused_while_a_newer_one_waits()
     assert due(p, c) == [200 * MS] and p.skipped == 1
 
 
-def test_at_most_max_pending_frames_wait_for_a_dead_neighbour():
-    """A neighbour that stopped sending (its publisher not yet gone): each frame beyond the bound ends the oldest's
-    wait, so latency is max_pending frames, not max_wait."""
+def test_a_frame_waits_for_a_dead_neighbour_only_until_the_next_own_frame():
+    """A neighbour that stopped sending (its publisher not yet gone): each own frame stops waiting when the next one
+    comes, so latency is one frame period, not max_wait; with stay_current off, at most max_pending frames wait."""
+    for stay_current, want in ((True, 7), (False, 5)):
+        c = Clock()
+        p = Pairing(EGO, replace(CFG, max_pending=3, stay_current=stay_current))
+        p.discovered(A, c.wall)
+        fused = []
+        for k in range(8):
+            add(p, EGO, k * 100 * MS, c)
+            fused += due(p, c)
+            c.t += 0.1
+        assert fused == [k * 100 * MS for k in range(want)] and p.skipped == 0
+
+
+def test_a_neighbour_that_skipped_the_frame_is_fused_with_its_nearest_within_max_age():
     c = Clock()
-    p = Pairing(EGO, replace(CFG, max_pending=3))
+    p = Pairing(EGO, replace(CFG, max_age_ns=300 * MS))
     p.discovered(A, c.wall)
-    fused = []
-    for k in range(8):
-        add(p, EGO, k * 100 * MS, c)
-        fused += due(p, c)
-        c.t += 0.1
-    assert fused == [k * 100 * MS for k in range(5)] and p.skipped == 0
+    add(p, A, 0, c)
+    add(p, A, 400 * MS, c)  # A skipped 100..300 ms: slower than its sensors
+    add(p, EGO, 200 * MS, c)
+    assert due(p, c) == [200 * MS]  # A sent a newer frame: not waited for
+    assert p.match(A, 200 * MS) is None and p.nearest(A, 200 * MS) == f"{A}@{0}"  # 200 ms away: both within max_age
+    assert p.nearest(A, 800 * MS) is None and not p.stale(0) and p.stale(-101 * MS)
 
 
 def test_with_stay_current_off_every_own_frame_is_fused_oldest_first():

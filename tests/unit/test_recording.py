@@ -75,6 +75,21 @@ def recording(path):
     return path
 
 
+def test_info_reads_a_recording_with_ground_truth_point_clouds(tmp_path, capsys):
+    """The recorder also keeps the ground truth as points (/ego/ground_truth/points, PointCloud2): not a grid."""
+    store, t = typestore(), typestore().types
+    path = tmp_path / "demo.mcap"
+    header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=1), frame_id="cav_1/lidar")
+    cloud = t["sensor_msgs/msg/PointCloud2"](header=header, height=1, width=0, fields=[], is_bigendian=False, point_step=0,
+                                             row_step=0, data=np.zeros(0, np.uint8), is_dense=True)
+    truth = np.zeros(GRID.dims, np.uint8)
+    with McapRecorder(path) as rec:
+        rec.write("/cav_1/ground_truth/occupancy_50m", TYPE, message(store, 1, 1, truth), 1)
+        rec.write("/ego/ground_truth/points", "sensor_msgs/msg/PointCloud2", store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2"), 1)
+    assert info([str(path)]) == 0
+    assert "| /ego/ground_truth/points | sensor_msgs/msg/PointCloud2 | 1 |" in capsys.readouterr().out
+
+
 def test_score_pairs_by_stamp_and_agent_and_counts_missed_frames(tmp_path):
     path = recording(tmp_path / "run.mcap")
     result = score(read_recording(path))
@@ -82,6 +97,12 @@ def test_score_pairs_by_stamp_and_agent_and_counts_missed_frames(tmp_path):
     assert result.missed == [(1, 3)] and result.unmatched == [(1, 9)]
     # road: 10 + 5 + 0 predicted right of 30 in truth, nothing else predicted as road
     assert result.summary["per_class_iou"]["road"] == pytest.approx(15 / 30)
+
+
+def test_score_at_another_range_than_the_predictions_is_explained(tmp_path):
+    path = recording(tmp_path / "run.mcap")
+    with pytest.raises(DatasetError, match="predictions are at 51.2m, not at the range 25.6m"):
+        read_recording(path, "25.6m")
 
 
 def test_info_summarises_a_recording(tmp_path, capsys):

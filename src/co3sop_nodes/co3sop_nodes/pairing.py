@@ -11,13 +11,17 @@ make every neighbour look silent, and a publisher that never sends stops
 costing max_wait once the ego's frames have flowed for neighbour_timeout.
 The ego stays current: of the own frames ready to fuse (nothing left to wait
 for), the newest is handed out and the older ones are skipped (counted), so a
-graph fed faster than it fuses keeps its latency bounded instead of queueing;
-at most `max_pending` own frames wait, and one more makes the oldest stop
-waiting. With `stay_current` off, every own frame is fused, oldest first (a
-recording of every frame of a bag played faster than the ego fuses). A frame older than the last one fused (beyond the tolerance) can no
-longer pair and is stale. Sources are keyed by
-anything hashable and ordered (the ego node keys them by topic, as it knows a
-neighbour's topic before its vehicle id).
+graph fed faster than it fuses keeps its latency bounded instead of queueing.
+An own frame stops waiting once a newer own frame has come (it waited a whole
+frame period), and at most `max_pending` wait. A neighbour whose frame of that
+stamp never came (it skipped it, being slower than its sensors, or it is late)
+is fused with its nearest frame within `max_age` of the stamp instead, placed
+by its own pose at its own stamp (`nearest`). With `stay_current` off, every
+own frame is fused, oldest first, each waiting up to max_wait (a recording of
+every frame of a bag played faster than the ego fuses). A neighbour's frame
+older than the last one fused by more than that can no longer pair and is
+stale. Sources are keyed by anything hashable and ordered (the ego node keys
+them by topic, as it knows a neighbour's topic before its vehicle id).
 """
 
 from __future__ import annotations
@@ -39,6 +43,12 @@ class PairingConfig:
     history: int = 8  # frames kept per agent
     max_pending: int = 3  # own frames waiting at once; one more ends the oldest's wait
     stay_current: bool = True  # the newest ready own frame, older ones skipped; False: every one, oldest first
+    max_age_ns: int = 500_000_000  # a neighbour's frame this far from the ego's stamp is fused when none within tolerance is
+
+    @property
+    def reach_ns(self) -> int:
+        """How far from an ego frame's stamp a neighbour's frame may still be fused."""
+        return max(self.tolerance_ns, self.max_age_ns)
 
 
 class Pairing(Generic[K, T]):
@@ -62,7 +72,7 @@ class Pairing(Generic[K, T]):
 
     def stale(self, stamp: int) -> bool:
         """Too old to pair with any frame still to fuse."""
-        return stamp < self.last_fused - self.cfg.tolerance_ns
+        return stamp < self.last_fused - self.cfg.reach_ns
 
     def repeated(self, stamp: int) -> bool:
         """An own frame with this stamp was fused already (or one no newer), or waits to be: fusing it again would
@@ -85,6 +95,12 @@ class Pairing(Generic[K, T]):
         best = min(self._frames.get(agent, ()), key=lambda f: abs(f[0] - stamp), default=None)
         return best[1] if best is not None and abs(best[0] - stamp) <= self.cfg.tolerance_ns else None
 
+    def nearest(self, agent: K, stamp: int) -> T | None:
+        """The agent's frame nearest `stamp`, if within max_age (or the tolerance, if larger): what is fused when the
+        frame of that stamp never came."""
+        best = min(self._frames.get(agent, ()), key=lambda f: abs(f[0] - stamp), default=None)
+        return best[1] if best is not None and abs(best[0] - stamp) <= self.cfg.reach_ns else None
+
     def heard(self) -> list[K]:
         """Neighbours that sent at least one accepted frame, by id."""
         return sorted(a for a in self._frames if a != self.ego)
@@ -100,9 +116,12 @@ class Pairing(Generic[K, T]):
         than it (those are skipped, counted in `skipped`); None while every frame still waits."""
         live = self.live(wall_ns, has_publisher) if self._pending else []
 
+        newest = max((s for s, _ in self._pending), default=None)
+
         def ready(stamp: int, deadline: float) -> bool:
-            return monotonic >= deadline or not any(
-                self.match(a, stamp) is None and all(s < stamp for s, _ in self._frames.get(a, ())) for a in live)
+            if monotonic >= deadline or (self.cfg.stay_current and stamp < newest):
+                return True
+            return not any(self.match(a, stamp) is None and all(s < stamp for s, _ in self._frames.get(a, ())) for a in live)
 
         if not self.cfg.stay_current:
             chosen = 0 if self._pending and ready(*self._pending[0]) else None
@@ -120,5 +139,5 @@ class Pairing(Generic[K, T]):
         """`stamp` was fused: frames that can no longer pair with a later one are forgotten."""
         self.last_fused = max(self.last_fused, stamp)
         for frames in self._frames.values():
-            while frames and frames[0][0] < stamp - self.cfg.tolerance_ns:
+            while frames and frames[0][0] < stamp - self.cfg.reach_ns:
                 frames.popleft()

@@ -72,9 +72,13 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
             raise DatasetError(f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames")
         if len(ranges) > 1:
             raise DatasetError(f"{path}: predictions at several ranges ({', '.join(sorted(ranges))})")
-        range_name = range_name or ranges.pop()
+        recorded = ranges.pop() if ranges else None
+        range_name = range_name or recorded
         if range_name not in BENCHMARK_RANGES:
             raise DatasetError(f"unknown range {range_name!r} (known: {', '.join(BENCHMARK_RANGES)})")
+        if recorded is not None and range_name != recorded:
+            raise DatasetError(f"{path}: the predictions are at {recorded}, not at the range {range_name} asked for: "
+                               f"score them at {recorded} (leave out --range)")
         egos = {a for a, _ in preds}  # no prediction at all: every agent's ground truth counts as missed
         wanted = {topics.ground_truth(a, range_name) for a in egos}
         suffix = topics.ground_truth(0, range_name).removeprefix(topics.namespace(0))

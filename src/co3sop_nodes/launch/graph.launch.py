@@ -18,8 +18,8 @@ from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
 from co3sop_nodes import topics
-from co3sop_nodes.model.checkpoint import read_checkpoint
-from co3sop_nodes.ros.demo import DEFAULT_MODEL, LOSSLESS, bag_contents, model_path, played_topics
+from co3sop_nodes.model.checkpoint import read_checkpoint, resolve_checkpoint
+from co3sop_nodes.ros.demo import DEFAULT_MODEL, LOSSLESS, bag_contents, played_topics
 
 CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
 
@@ -27,7 +27,7 @@ CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
 def nodes(context) -> list[Node]:
     arg = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
     bag = Path(arg("bag"))
-    checkpoint = str(model_path(arg("model")))
+    checkpoint = str(resolve_checkpoint(arg("model"), "model"))
     cavs = bag_contents(bag)[0][: int(arg("vehicles"))]
     ego = cavs[0]
     sensors = read_checkpoint(checkpoint)["config"]["modality"]

@@ -18,6 +18,7 @@ from .. import opv2v, topics
 from ..bags import occupancy_labels, open_reader, open_recording
 from ..classes import CLASS_NAMES, NUM_CLASSES
 from ..errors import DatasetError
+from ..truth_points import OCCUPANCY
 from .common import progress, run
 
 
@@ -55,7 +56,8 @@ def bag_info(path: Path, counts: bool) -> str:
         for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic.endswith("/lidar/pose")]):
             stamps.add(stamp)
         if counts:
-            gt = [c for c in reader.connections if "/ground_truth/" in c.topic]
+            # ground-truth grids only: a recording also holds their point clouds (/ego/ground_truth/points)
+            gt = [c for c in reader.connections if "/ground_truth/" in c.topic and c.msgtype == OCCUPANCY]
             for conn, stamp, raw in reader.messages(connections=gt):
                 msg = reader.deserialize(raw, conn, stamp)
                 with reader.about(conn, stamp):

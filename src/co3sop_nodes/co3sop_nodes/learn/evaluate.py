@@ -42,7 +42,7 @@ from ..collaboration import COMM_RANGE, noisy_relative
 from ..errors import Co3sopError
 from ..inference import PRECISIONS, InferencePath, inference_path
 from ..metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
-from ..model.checkpoint import load_model, shipped_checkpoint
+from ..model.checkpoint import load_model, resolve_checkpoint, shipped_checkpoint
 from ..model.inputs import to_batch
 from ..model.model import Co3SOP, VehicleOutput
 from ..model.outputs import through_codec
@@ -354,7 +354,8 @@ ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", type=Path, nargs="+", help="checkpoints (model.pt or state.pt); one column each (default: the shipped tiny one)")
+    parser.add_argument("--model", nargs="+", help="checkpoints (model.pt or state.pt, or a shipped model by name: tiny-lidar, tiny, "
+                        "small); one column each (default: the shipped tiny one)")
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--out", type=Path, default=Path("results"))
@@ -377,7 +378,7 @@ def main(args: list[str] | None = None) -> int:
     torch.set_num_threads(opts.threads)
     opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
     table: dict[str, dict] = {}
-    for path in opts.model or [shipped_checkpoint()]:
+    for path in [resolve_checkpoint(m, "--model") for m in opts.model] if opts.model else [shipped_checkpoint()]:
         model, checkpoint = load_model(path)
         opts.trained = checkpoint.get("meta", checkpoint).get("history", [])  # the train commands behind the weights, in the JSON
         model.use(opts.inference)

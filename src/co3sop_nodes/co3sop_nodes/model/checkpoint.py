@@ -26,6 +26,28 @@ def shipped_checkpoint(name: str = SHIPPED) -> Path:
     raise Co3sopError(f"no installed checkpoint {name!r}: build the workspace (ros2_ws/bootstrap.sh) and source ros2_ws/env.sh")
 
 
+def shipped_names() -> list[str]:
+    """The shipped checkpoints by name (tiny-lidar, tiny, small), as installed."""
+    folder = shipped_checkpoint().parent
+    return sorted(p.stem for p in folder.glob("*.pt"))
+
+
+def resolve_checkpoint(value: str | Path | None, what: str = "checkpoint") -> Path:
+    """A checkpoint given as a path (a .pt file) or as the name of a shipped one (tiny-lidar, tiny, small); empty:
+    the shipped default. `what` names the option or parameter in errors."""
+    if not value:
+        return shipped_checkpoint()
+    path = Path(value)
+    if path.suffix == ".pt" or path.exists() or len(path.parts) > 1:
+        if not path.is_file():
+            raise Co3sopError(f"{what} {value}: no such checkpoint file")
+        return path
+    known = shipped_names()
+    if str(value) not in known:
+        raise Co3sopError(f"{what} {value!r}: neither a checkpoint file nor a shipped model ({', '.join(known)})")
+    return shipped_checkpoint(f"{value}.pt")
+
+
 def _atomic_save(obj, path: Path) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

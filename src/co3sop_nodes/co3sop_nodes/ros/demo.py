@@ -54,7 +54,7 @@ from ..errors import Co3sopError
 from ..foxglove import CAMERAS, write_layout
 from ..inference import PRECISIONS, inference_path
 from ..model import pace
-from ..model.checkpoint import load_graph_model, shipped_checkpoint
+from ..model.checkpoint import load_graph_model, resolve_checkpoint
 from ..scoring import message_counts
 from .dds import channel_environment
 from .recorder import DEFAULT_TOPICS
@@ -139,16 +139,6 @@ def measured_rate(model, vehicles: int, period: float) -> float:
     return max(rate, 0.01)
 
 
-def model_path(model: str) -> Path:
-    """A checkpoint path, or the name of a shipped checkpoint (tiny-lidar, tiny, small)."""
-    path = Path(model)
-    if path.suffix == ".pt" or path.exists():
-        if not path.is_file():
-            raise Co3sopError(f"--model {model}: no such checkpoint")
-        return path
-    return shipped_checkpoint(f"{model}.pt")
-
-
 def played_topics(cavs: list[int], sensors: str) -> list[str]:
     """What the graph listens to (so the player waits for exactly those subscribers): sensors, mounts, ground truth,
     and the ego's camera images (recorded for the Foxglove layout, whatever the model's sensors)."""
@@ -211,7 +201,7 @@ def main(args: list[str] | None = None) -> int:
         parser.error(f"--vehicles {opts.vehicles}: at least 1 (the ego's)")
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
-    checkpoint = model_path(opts.model)
+    checkpoint = resolve_checkpoint(opts.model, "--model")
     path = inference_path(opts.device, opts.precision, what="--")  # refused here if the machine lacks the device
     model, _ = load_graph_model(checkpoint)  # refused here, before any node starts, if the graph cannot run it
     sensors = model.cfg.modality

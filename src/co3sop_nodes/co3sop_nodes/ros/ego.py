@@ -27,15 +27,16 @@ their age, bytes received, time per stage, drops by reason). A lifecycle node
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import torch
 from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 
 from .. import topics
@@ -45,23 +46,26 @@ from ..collaboration import COMM_RANGE
 from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from ..geometry import Pose
 from ..inference import PRECISIONS, inference_path
-from ..model.checkpoint import load_graph_model, shipped_checkpoint
+from ..model.checkpoint import load_graph_model, resolve_checkpoint
 from ..model.model import VehicleOutput
 from ..model.outputs import decoded_output
 from ..model.predict import compile_kernels, predict_frame
 from ..model.request import request_of
 from ..pairing import Pairing, PairingConfig
 from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
-from .params import Param
+from .params import Param, parameters_help
 from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
-from .lifecycle import ManagedNode
+from .lifecycle import AUTOSTART, ManagedNode
 from .worker import Worker
 
 PARAMS = (
     Param("ego_id", int, "the CAV this ego runs on: its own features come on cav_<ego_id>/voxel_features (relative: remap it "
                          "where its encoder publishes elsewhere)", range=(0, 2**31 - 1)),
-    Param("checkpoint", str, "model checkpoint, the vehicles' model; empty: the shipped tiny one", ""),
-    Param("tolerance", float, "s: a neighbour's frame pairs with the ego's within this; older ones are dropped", 0.05, True, (0.0, 10.0)),
+    Param("checkpoint", str, "model checkpoint, the vehicles' model: a .pt file or a shipped model by name (tiny-lidar, tiny, "
+          "small); empty: tiny", ""),
+    Param("tolerance", float, "s: a neighbour's frame pairs with the ego's within this (and is waited for, up to max_wait)", 0.05, True, (0.0, 10.0)),
+    Param("max_age", float, "s: a neighbour whose frame of the ego's stamp never came (it skipped it, or it is late) is fused "
+          "with its nearest frame this close to the stamp, placed by its own pose at its own stamp", 0.5, True, (0.0, 10.0)),
     Param("comm_range", float, "m: neighbours farther away are not used", COMM_RANGE, True, (0.0, 10_000.0)),
     Param("max_collaborators", int, "the nearest neighbours used, at most the model's maximum", 6, True, (0, 64)),
     Param("max_wait", float, "s: how long a frame waits for live neighbours", 2.0, True, (0.0, 600.0)),
@@ -131,7 +135,7 @@ class Ego(ManagedNode):
 
     def configure(self) -> None:
         p = self.params
-        model, _ = load_graph_model(Path(p["checkpoint"]) if p["checkpoint"] else shipped_checkpoint())
+        model, _ = load_graph_model(resolve_checkpoint(p["checkpoint"], "parameter checkpoint"))
         # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
         # for bench_graph's same-run ratios
         self.reference_paths = p["reference_paths"]
@@ -192,7 +196,8 @@ class Ego(ManagedNode):
                                    max_wait_s=values.get("max_wait", cfg.max_wait_s),
                                    neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9),
                                    max_pending=values.get("max_pending", cfg.max_pending),
-                                   stay_current=values.get("stay_current", cfg.stay_current))
+                                   stay_current=values.get("stay_current", cfg.stay_current),
+                                   max_age_ns=int(values.get("max_age", cfg.max_age_ns / 1e9) * 1e9))
         for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points", "request_maps",
                      "max_stamp_ahead"):
             if name in values:
@@ -281,7 +286,7 @@ class Ego(ManagedNode):
             return self.drops(topic, "repeated", f"own frame {stamp} was fused already or waits to be (a duplicate or a replay)")
         if stale:
             return self.drops(topic, "stale", f"stamp {stamp} is {(self.pairing.last_fused - stamp) / 1e6:.0f} ms older than the last "
-                                              f"fused frame, more than the tolerance {self.pairing.cfg.tolerance_ns / 1e6:.0f} ms")
+                                              f"fused frame, more than max_age / tolerance ({self.pairing.cfg.reach_ns / 1e6:.0f} ms)")
         t0 = time.perf_counter()
         try:
             enc = features_from_msg(msg)
@@ -323,7 +328,7 @@ class Ego(ManagedNode):
         if ego is None:  # evicted by newer own frames while waiting
             return None
         heard = self.pairing.heard()
-        matched = {r.agent: r for t in heard if (r := self.pairing.match(t, stamp)) is not None}
+        matched = {r.agent: r for t in heard if (r := self.pairing.match(t, stamp) or self.pairing.nearest(t, stamp)) is not None}
         missing = sorted(a for t in heard if (a := self._agents.get(t)) is not None and a not in matched)
         # discovered, yet not one frame received (a link that cannot carry its features, say): by topic, no id is known
         silent = sorted(t for t in self._subs if t != self.own_topic and t not in self._agents)
@@ -372,7 +377,11 @@ class Ego(ManagedNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return spin_node(lambda: Ego().start(), sys.argv if args is None else args, "ego")
+    argv = list(sys.argv if args is None else args)
+    parser = argparse.ArgumentParser(prog="ego", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=parameters_help((*PARAMS, AUTOSTART)))
+    parser.parse_args(remove_ros_args(argv)[1:])  # --help, or a usage error for anything but ROS arguments
+    return spin_node(lambda: Ego().start(), argv, "ego")
 
 
 if __name__ == "__main__":

@@ -47,6 +47,20 @@ class Param:
         return d
 
 
+def parameters_help(params: Sequence[Param]) -> str:
+    """Every parameter with its type, default (or 'required'), bounds or choices and description: the epilog of
+    a node's --help."""
+    lines = ["parameters (--ros-args -p NAME:=VALUE, or --params-file FILE; * may change at run time):"]
+    for p in params:
+        default = "required" if p.default is None else f"default {p.default!r}"
+        bound = (lambda v: str(int(v))) if p.type is int else (lambda v: f"{v:g}")
+        allowed = (f", one of {', '.join(map(repr, p.choices))}" if p.choices else
+                   f", in [{bound(p.range[0])}, {bound(p.range[1])}]" if p.range else "")
+        lines.append(f"  {p.name}{' *' if p.runtime else ''} ({p.type.__name__}, {default}{allowed})")
+        lines.append(f"      {p.description}")
+    return "\n".join(lines)
+
+
 class Parameters:
     def __init__(self, node: Node, params: Sequence[Param]):
         self._node, self._params = node, {p.name: p for p in params}

@@ -21,7 +21,6 @@ import argparse
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -41,7 +40,7 @@ from ..errors import CodecError, Co3sopError
 from ..grid import BENCHMARK_RANGES
 from ..geometry import Pose
 from ..inference import PRECISIONS, inference_path
-from ..model.checkpoint import load_graph_model, shipped_checkpoint
+from ..model.checkpoint import load_graph_model, resolve_checkpoint
 from ..model.predict import compile_kernels
 from ..model.inputs import sensor_inputs, to_batch
 from ..model.outputs import encode_output
@@ -49,9 +48,9 @@ from ..model.request import request_for_neighbour
 from ..request_book import Request, RequestBook
 from ..transforms import StaticTransforms
 from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
-from .params import Param
+from .params import Param, parameters_help
 from .dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
-from .lifecycle import ManagedNode
+from .lifecycle import AUTOSTART, ManagedNode
 from .worker import Worker
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
@@ -60,7 +59,7 @@ SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and fo
 PARAMS = (
     Param("id", int, "this vehicle's CAV id, carried in its messages (--id N also puts the node in namespace /cav_<id>)",
           range=(0, 2**31 - 1)),
-    Param("checkpoint", str, "model checkpoint; empty: the shipped tiny one", ""),
+    Param("checkpoint", str, "model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, small); empty: tiny", ""),
     Param("modality", str, "camera or lidar, checked against the checkpoint's; empty: the checkpoint's", "", choices=("", "camera", "lidar")),
     Param("range", str, "benchmark range, checked against the checkpoint's; empty: the checkpoint's", "",
           choices=("", *BENCHMARK_RANGES)),
@@ -123,7 +122,7 @@ class Vehicle(ManagedNode):
     def configure(self) -> None:
         p = self.params
         checkpoint = p["checkpoint"]
-        model, _ = load_graph_model(Path(checkpoint) if checkpoint else shipped_checkpoint())
+        model, _ = load_graph_model(resolve_checkpoint(checkpoint, "parameter checkpoint"))
         self.model = model.use(inference_path(p["device"], p["precision"], what="parameter "))
         self.cfg = cfg = self.model.cfg
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
@@ -348,7 +347,8 @@ class Vehicle(ManagedNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="vehicle", description=__doc__.split("\n\n")[1])
+    parser = argparse.ArgumentParser(prog="vehicle", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=parameters_help((*PARAMS, AUTOSTART)))
     parser.add_argument("--id", type=int, help="this vehicle's CAV id: sets parameter id and, unless __ns is given, the namespace /cav_<id>")
     argv = list(sys.argv if args is None else args)
     opts = parser.parse_args(remove_ros_args(argv)[1:])
