@@ -174,3 +174,16 @@ def test_the_docker_command_keeps_the_results_on_the_host():
     run = re.search(r"docker run [^`]*co3sop`", (root / "README.md").read_text()).group(0)
     assert '-v "$PWD/results:/co3sop/results"' in run
     assert 'VOLUME ["/co3sop/results"]' in (root / "docker" / "Dockerfile").read_text()
+
+
+def test_the_jazzy_recipe_builds_src_only_and_handles_pep_668():
+    """On a Jazzy install the vendored TFMessage-only tf2_msgs must not shadow the system's, and rosdep's pip keys
+    need a way past PEP 668 on Ubuntu 24.04: the README's recipe says both, for every pip key package.xml uses."""
+    readme = (PACKAGE.parents[1] / "README.md").read_text()
+    recipe = readme[readme.index("### On a ROS 2 Jazzy install"):readme.index("## Executables")]
+    builds = [line for line in recipe.splitlines() if line.startswith("colcon build")]
+    assert builds and all("--base-paths src" in line for line in builds)
+    assert "PIP_BREAK_SYSTEM_PACKAGES=1 rosdep install" in recipe
+    pip_keys = set(re.findall(r"<exec_depend>(python3-[\w-]+-pip)</exec_depend>", (PACKAGE / "package.xml").read_text()))
+    skip = re.search(r'--skip-keys "([^"]+)"', recipe).group(1).split()
+    assert pip_keys and set(skip) == pip_keys

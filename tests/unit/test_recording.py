@@ -116,3 +116,28 @@ def test_info_summarises_a_recording(tmp_path, capsys):
     (tmp_path / "bad.mcap").write_bytes(b"hello")
     with pytest.raises(DatasetError, match="bad.mcap: damaged or not a MCAP recording"):
         info([str(tmp_path / "bad.mcap")])
+
+
+def test_score_prints_every_class_and_explains_its_conventions(tmp_path, capsys):
+    from co3sop_nodes.cli.score import main as score_main
+
+    path = recording(tmp_path / "run.mcap")
+    assert score_main([str(path), "--pictures", "0"]) == 0
+    text = capsys.readouterr().out
+    assert "| 13 sky | - |" in text  # absent from truth and prediction: shown, counted as 0 by the Co3SOP means
+    assert "co3sop-readme, the mean over all 24 classes" in text and "co3sop-code, the mean over classes 1..23" in text
+
+
+def test_score_draws_titled_panels_with_a_legend(tmp_path):
+    from co3sop_nodes.bev import save_comparison
+    from co3sop_nodes.cli.score import main as score_main
+
+    path = recording(tmp_path / "run.mcap")
+    assert score_main([str(path), "--pictures", "1", "--out", str(tmp_path)]) == 0
+    assert len(list(tmp_path.glob("bev_cav1_*.png"))) == 1
+    truth = np.zeros(GRID.dims, np.uint8)
+    truth[:10, :, 0] = 7
+    pred = truth.copy()
+    pred[:5, :, 1] = 10
+    texts = save_comparison(truth, pred, tmp_path / "c.png", "cav 1", GRID.voxel_size)
+    assert texts == ["cav 1", "ground truth", "prediction", "7 road", "10 vehicle"]  # only the classes shown

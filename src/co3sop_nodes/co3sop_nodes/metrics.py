@@ -168,13 +168,20 @@ def _percentiles(values: np.ndarray) -> list[float]:
     return [float(v) for v in np.percentile(values, [2.5, 97.5])] if len(values) else [float("nan")] * 2
 
 
-def markdown_table(results: dict[str, dict]) -> str:
-    """Per-class IoU (%) and mIoU in the three conventions; one column per named result."""
+CONVENTIONS_NOTE = ("mIoU conventions: co3sop-readme, the mean over all 24 classes with 0 (empty), as the Co3SOP README "
+                    "reports; co3sop-code, the mean over classes 1..23, as Co3SOP's code computes it; both count a class absent "
+                    "from truth and prediction ('-') as IoU 0. surroundocc: the mean over the classes 1..23 present in the "
+                    "truth, and geometry IoU (occupied against empty), as SurroundOcc reports.")
+
+
+def markdown_table(results: dict[str, dict], every_class: bool = False) -> str:
+    """Per-class IoU (%) and mIoU in the three conventions; one column per named result. every_class: also the rows of
+    classes absent everywhere ('-'), which the Co3SOP means count as 0."""
     names = list(results)
     lines = ["| class | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
     for c, cls in enumerate(CLASS_NAMES):
         cells = [results[n]["per_class_iou"][cls] for n in names]
-        if all(v is None for v in cells):
+        if all(v is None for v in cells) and not every_class:
             continue
         lines.append(f"| {c} {cls} | " + " | ".join("-" if v is None else f"{100 * v:.2f}" for v in cells) + " |")
     lines.append("| **mIoU co3sop-readme** (24 incl. empty) | " + " | ".join(f"**{100 * results[n]['co3sop-readme']['miou']:.2f}**" for n in names) + " |")

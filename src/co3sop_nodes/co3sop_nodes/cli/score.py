@@ -18,23 +18,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bev import bev_image
-from ..metrics import markdown_table
+from ..bev import save_comparison
+from ..grid import BENCHMARK_RANGES
+from ..metrics import CONVENTIONS_NOTE, markdown_table
 from ..scoring import read_recording, score
 from .common import run
 
 
 def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:
-    from PIL import Image
-
+    grid = BENCHMARK_RANGES[rec.range_name]
     paths = []
     for agent, stamp in keys:
         truth = rec.truths[(agent, stamp)]
+        missing = (agent, stamp) not in rec.predictions
         pred = rec.predictions.get((agent, stamp), np.zeros_like(truth))
-        gap = np.full((truth.shape[0] * 2, 8, 3), 255, np.uint8)
-        image = np.concatenate([bev_image(truth, 2), gap, bev_image(pred, 2)], axis=1)
         path = out / f"bev_cav{agent}_{stamp}.png"
-        Image.fromarray(image).save(path)
+        save_comparison(truth, pred, path, f"cav {agent}, stamp {stamp} ns, {rec.range_name}" + (" (no prediction)" if missing else ""),
+                        grid.voxel_size)
         paths.append(path)
     return paths
 
@@ -62,7 +62,7 @@ def main(args: list[str] | None = None) -> int:
     result = score(rec)
     name = f"{opts.recording.stem} {result.range_name}"
     lines = [f"### Per-class IoU (%) and mIoU: {opts.recording.name}, {result.range_name}, {result.scored} frames", "",
-             markdown_table({name: result.summary}), "",
+             markdown_table({name: result.summary}, every_class=True), "", CONVENTIONS_NOTE, "",
              f"frames: {result.scored} with ground truth, {result.scored - len(result.missed)} predicted, "
              f"{len(result.missed)} missed (scored as empty), {len(result.unmatched)} predictions without ground truth"]
     lines += [f"- missed: cav {a} at stamp {s}" for a, s in result.missed]
