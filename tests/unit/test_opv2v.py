@@ -221,7 +221,7 @@ def test_npz_without_voxels_key(broken):
 def test_npz_of_the_wrong_grid(broken):
     path = opv2v.label_path(broken, "51.2m", "test", SCENARIO, 4805, 69)
     np.savez_compressed(path, voxels=np.zeros((256, 256, 16), np.uint8))
-    _expect(lambda: _read(broken), path, "does not match")
+    _expect(lambda: _read(broken), path, "is smaller than the 51.2m grid")
 
 
 def test_unknown_label_value(broken):
@@ -246,3 +246,19 @@ def test_read_scenario_reports_bad_timestamps_and_keeps_the_good(broken):
 
 def test_not_a_dataset(tmp_path):
     _expect(lambda: opv2v.find_scenarios(tmp_path), tmp_path, "no OPV2V split folders")
+
+
+def test_label_grids_larger_than_the_range_are_cropped_as_co3sop_loads_them(tmp_path):
+    """Co3SOP's LoadOccupancy: voxels[(X - nx) // 2 : (X + nx) // 2, (Y - ny) // 2 : (Y + ny) // 2, :nz] of the file."""
+    from co3sop_nodes.grid import BENCHMARK_RANGES
+
+    nx, ny, nz = BENCHMARK_RANGES["51.2m"].dims
+    big = np.random.default_rng(0).integers(0, 24, (nx + 7, ny + 4, nz + 3), dtype=np.uint8)
+    np.savez(tmp_path / "big.npz", voxels=big)
+    want = big[3 : 3 + nx, 2 : 2 + ny, :nz]  # (X - nx) // 2 = 3, (Y - ny) // 2 = 2, z from the bottom
+    assert np.array_equal(opv2v.read_labels(tmp_path / "big.npz", "51.2m"), geo.carla_to_ros_grid(want))
+    np.savez(tmp_path / "exact.npz", voxels=want)
+    assert np.array_equal(opv2v.read_labels(tmp_path / "exact.npz", "51.2m"), geo.carla_to_ros_grid(want))
+    np.savez(tmp_path / "small.npz", voxels=want[:, :-1])
+    with pytest.raises(DatasetError, match=r"small.npz: voxels shape .* is smaller than the 51.2m grid"):
+        opv2v.read_labels(tmp_path / "small.npz", "51.2m")

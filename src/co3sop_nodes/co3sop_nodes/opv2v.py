@@ -242,7 +242,9 @@ def read_png(path: Path) -> np.ndarray:
 
 
 def read_labels(path: Path, range_name: str) -> np.ndarray:
-    """A Co3SOP label grid (CARLA axes on disk) as REP-103 [x][y][z] uint8, checked against the range's grid."""
+    """A Co3SOP label grid (CARLA axes on disk) as REP-103 [x][y][z] uint8, checked against the range's grid. A grid
+    larger than the range's is cropped as Co3SOP's `LoadOccupancy` crops it: x and y about the centre, z from the
+    bottom (`voxels[(X - nx) // 2 : (X + nx) // 2, (Y - ny) // 2 : (Y + ny) // 2, :nz]`); a smaller one is refused."""
     try:
         with np.load(path, allow_pickle=False) as data:
             if "voxels" not in data:
@@ -251,8 +253,10 @@ def read_labels(path: Path, range_name: str) -> np.ndarray:
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise DatasetError(f"{path}: unreadable npz ({exc})") from None
     dims = BENCHMARK_RANGES[range_name].dims
-    if voxels.shape != dims:
-        raise DatasetError(f"{path}: voxels shape {voxels.shape} does not match the {range_name} grid {dims}")
+    if voxels.ndim != 3 or any(have < want for have, want in zip(voxels.shape, dims)):
+        raise DatasetError(f"{path}: voxels shape {voxels.shape} is smaller than the {range_name} grid {dims} (or not 3D)")
+    (big_x, big_y, _), (nx, ny, nz) = voxels.shape, dims
+    voxels = voxels[(big_x - nx) // 2 : (big_x + nx) // 2, (big_y - ny) // 2 : (big_y + ny) // 2, :nz]
     if voxels.dtype != np.uint8:
         raise DatasetError(f"{path}: voxels dtype {voxels.dtype}, expected uint8")
     bad = np.setdiff1d(np.unique(voxels), [*range(NUM_CLASSES), IGNORE])
