@@ -182,7 +182,7 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     bag, cavs = scenario
     codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, burst_bytes=burst, rank=rank)
     params = [f"codec.dtype:={dtype}", "codec.selection:=request", f"codec.max_bytes:={budget}", f"codec.burst_bytes:={burst}",
-              f"codec.rank:={rank}", "request_timeout:=60.0"]
+              f"codec.rank:={rank}", "request_timeout:=60.0", "comm_range:=1000.0"]  # every neighbour answers, near or far
     torch.set_num_threads(1)
     model, _ = load_model(shipped_checkpoint())
     fg = model.cfg.feature_grid
@@ -288,8 +288,10 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     ego, neighbour = cavs[0], cavs[-1]
     mcap = graph.folder / "run.mcap"
     graph.start("recorder", executable("recorder"), "--out", str(mcap), "--topics", "/diagnostics", "/ego/occupancy")
-    # frames come 5 s apart (rate 0.02): a neighbour is silent only after more than that
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=8.0")
+    # frames come 5 s apart (rate 0.02): a neighbour is silent only after more than that; max_age 0: a dead neighbour's
+    # last frame is not fused in place of the ones it no longer sends
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=8.0",
+                "-p", "max_age:=0.0")
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))

@@ -261,16 +261,19 @@ def trained_parameters(run: Path) -> dict[str, torch.Tensor]:
 
 
 def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_split, tmp_path):
-    """`train` under `torchrun --nproc-per-node 2` (gloo on CPU, DistributedDataParallel) gives the weights one process
-    gets with the same --batch, writes from rank 0 only, and resumes; the fusion stage too."""
+    """`train --batch 1` under `torchrun --nproc-per-node 2` (gloo on CPU, DistributedDataParallel: --batch is per
+    process) gives the weights one process gets with --batch 2, the same global batch, writes from rank 0 only, says
+    the global batch, and resumes; the fusion stage too."""
     data = str(small_split / "data")
-    common = ["--data", data, "--threads", "1", "--sample-fraction", "0.05", "--device", "cpu", "--batch", "2", "--seed", "3"]
-    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", executable("train")]
-    runs = {"one": [executable("train")], "two": torchrun}
+    common = ["--data", data, "--threads", "1", "--sample-fraction", "0.05", "--device", "cpu", "--seed", "3"]
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", executable("train"), "--batch", "1"]
+    runs = {"one": [executable("train"), "--batch", "2"], "two": torchrun}
     for name, launcher in runs.items():
         done = subprocess.run([*launcher, *common, "--preset", "tiny", "--stage", "ego", "--steps", "2", "--out", str(tmp_path / name)],
                               capture_output=True, text=True, timeout=600)
         assert done.returncode == 0, done.stderr
+        if name == "two":
+            assert "global batch 2 per step (1 in each of 2 processes)" in done.stdout
     one, two = trained_parameters(tmp_path / "one"), trained_parameters(tmp_path / "two")
     torch.manual_seed(3)  # train's initial weights (seed 3): training moved them
     initial = dict(build_model(preset("tiny")).named_parameters())

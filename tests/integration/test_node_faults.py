@@ -676,17 +676,20 @@ def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_p
         sup.wait_reports(f"vehicle cav_{LIDAR_CAV}", 1, 60)
         real = peer.create_publisher(RequestMap, topics.EGO_REQUEST, REQUEST_QOS)
         spoof = peer.create_publisher(RequestMap, "/spoof/request_map", REQUEST_QOS)
+        far = peer.create_publisher(RequestMap, "/far/request_map", REQUEST_QOS)
         flood = peer.create_publisher(RequestMap, "/flood/request_map", REQUEST_QOS)
         sup.wait("the vehicle to subscribe to every request topic", lambda: all(
-            sup.subscribes(NODES["lidar"], t) for t in (topics.EGO_REQUEST, "/spoof/request_map", "/flood/request_map")), 30)
+            sup.subscribes(NODES["lidar"], t) for t in (topics.EGO_REQUEST, "/spoof/request_map", "/far/request_map",
+                                                        "/flood/request_map")), 30)
         real.publish(request_map(EGO, T0, 10.0, 1.0))
         acked(real)
         spoof.publish(request_map(EGO, T0, 10.0, 0.0))  # claims the real ego's id, asks for nothing
-        flood.publish(request_map(OTHER, T0, 5000.0, 1.0))  # 5 km away
+        far.publish(request_map(OTHER, T0, 5000.0, 1.0))  # 5 km away
+        acked(far)
         for fake in range(100, 400):  # many ids, one topic: memory and answers stay bounded
             flood.publish(request_map(fake, T0, 20.0, 1.0))
-        for pub in (spoof, flood):
-            acked(pub)
+            acked(flood)  # each taken before the next (a request topic keeps only its newest message)
+        acked(spoof)
         got.clear()
         for msg, pub in zip(lidar_frame(T0 + 100_000_000), pubs):
             pub.publish(msg)

@@ -11,10 +11,11 @@ at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
 atomically every --save-every steps; --resume continues it) and the exported
 model (model.pt, float16 weights + config + the command that made it).
 `--device` picks CPU (the default without a GPU) or a CUDA GPU. `--batch B`
-averages the gradients of B samples per step; under `torchrun
---nproc-per-node N` the same command trains data-parallel (each process takes
-B/N of every step's samples, DistributedDataParallel averages the gradients,
-only rank 0 writes), and gives the weights one process gets with the same B.
+is the samples each process takes per step, as DistributedDataParallel users
+expect: under `torchrun --nproc-per-node N` the same command trains
+data-parallel on a global batch of N x B (printed at the start;
+DistributedDataParallel averages the gradients, only rank 0 writes), and
+gives the weights one process gets with `--batch` N x B.
 """
 
 from __future__ import annotations
@@ -228,8 +229,9 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
     parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
     parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
-    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (--batch samples each)")
-    parser.add_argument("--batch", type=int, default=1, help="samples per step, in all processes together (a multiple of torchrun's)")
+    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one global batch each)")
+    parser.add_argument("--batch", type=int, default=1, help="samples per step in each process; under torchrun the global batch is "
+                        "this times the processes")
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
                         help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")
@@ -242,9 +244,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--save-every", type=int, default=200)
     opts = parser.parse_args(args)
     world = distributed.world_from_env()
-    if opts.batch < 1 or opts.batch % world.size:
-        raise Co3sopError(f"--batch {opts.batch}: must be a positive multiple of the {world.size} torchrun processes")
     for option, value, ok, needs in (("--steps", opts.steps, opts.steps >= 1, "at least 1"),
+                                     ("--batch", opts.batch, opts.batch >= 1, "at least 1"),
                                      ("--save-every", opts.save_every, opts.save_every >= 1, "at least 1"),
                                      ("--lr", opts.lr, opts.lr > 0, "above 0"),
                                      ("--sample-fraction", opts.sample_fraction, 0 < opts.sample_fraction <= 1, "in (0, 1]"),
@@ -283,7 +284,9 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
     say(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
         f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""), flush=True)
     dataset = OccupancyDataset(opts.data, opts.splits, cfg)
-    say(f"train: {len(dataset)} samples from {len(dataset.frames)} frames, {opts.batch} per step", flush=True)
+    batch = opts.batch * world.size  # the global batch: every process's share of each step together
+    say(f"train: {len(dataset)} samples from {len(dataset.frames)} frames; global batch {batch} per step"
+        + (f" ({opts.batch} in each of {world.size} processes)" if world.size > 1 else ""), flush=True)
     trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device, world)
     if state is not None:
         trainer.optimizer.load_state_dict(state["optimizer"])
@@ -293,7 +296,7 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
     command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
     history = previous_history(opts.out, state, opts.init) + [
         {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
-         "splits": opts.splits, "batch": opts.batch, "processes": world.size}]
+         "splits": opts.splits, "batch": batch, "processes": world.size}]
     log_path = opts.out / "log.csv"
     if world.main:
         keep_log_until(log_path, start)
@@ -301,8 +304,8 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
     # one sample per step in one process: the voxels of the loss drawn from one stream (as every earlier run);
     # otherwise each sample's from its place in the order, whichever process takes it
     rng = np.random.default_rng(opts.seed + start)
-    share = opts.batch // world.size
-    order = sample_order(len(dataset), opts.seed, opts.steps * opts.batch)
+    share = opts.batch  # this process's samples of each step
+    order = sample_order(len(dataset), opts.seed, opts.steps * batch)
     bar = progress(opts.steps, f"train {opts.stage}", "step", disable=not world.main)
     bar.update(start)
     t0 = time.time()
@@ -311,8 +314,8 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
             lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
             for group in trainer.optimizer.param_groups:
                 group["lr"] = lr
-            places = range(step * opts.batch + world.rank * share, step * opts.batch + (world.rank + 1) * share)
-            rngs = [rng] if opts.batch == 1 else [np.random.default_rng([opts.seed, p]) for p in places]
+            places = range(step * batch + world.rank * share, step * batch + (world.rank + 1) * share)
+            rngs = [rng] if batch == 1 else [np.random.default_rng([opts.seed, p]) for p in places]
             parts = trainer.step([int(order[p]) for p in places], rngs)
             if not world.main:
                 continue
