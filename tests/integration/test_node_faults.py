@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -42,6 +43,17 @@ T0 = 1_700_000_000_000_000_000
 def start(tmp_path: Path, name: str, *argv: str) -> tuple[subprocess.Popen, Path]:
     log = tmp_path / f"{name}.log"
     return subprocess.Popen(list(argv), stdout=open(log, "w"), stderr=subprocess.STDOUT, env=dict(os.environ)), log
+
+
+@contextlib.contextmanager
+def running(tmp_path: Path, name: str, *argv: str):
+    """start(...) as a context: the process is stopped with SIGINT on the way out and must exit 0."""
+    proc, log = start(tmp_path, name, *argv)
+    try:
+        yield proc, log
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0, log.read_text()
 
 
 def wait_for(log: Path, pattern: str, proc: subprocess.Popen, timeout: float = 120, n: int = 1) -> str:
@@ -136,9 +148,8 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
 def test_the_ego_fuses_each_frame_once_and_refuses_stamps_ahead_of_its_clock(tmp_path, peer, sup):
     """A duplicate of its own frame, a replay of one fused, an own frame and a neighbour's stamped in 2038: each
     dropped and counted by reason; the good frames around them are fused, each once, with the neighbour."""
-    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
-                     "-p", "publish_points:=false")
-    try:
+    with running(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
+                 "-p", "publish_points:=false") as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
         other = peer.create_publisher(VoxelFeatures, f"/cav_{OTHER}/voxel_features", QOS)
@@ -164,9 +175,6 @@ def test_the_ego_fuses_each_frame_once_and_refuses_stamps_ahead_of_its_clock(tmp
         assert len(sup.reports("ego")) == 3 and last["stamp"] == str(T0 + 200_000_000), sup.reports("ego")
         assert int(last["dropped_repeated"]) == 2 and int(last["dropped_future"]) == 2, last
         assert "ahead of this node's clock" in text and "fused already or waits to be" in text
-    finally:
-        ego.send_signal(signal.SIGINT)
-        assert ego.wait(30) == 0
 
 
 def occupancy(stamp: int) -> SemanticOccupancy:
@@ -662,9 +670,8 @@ def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_p
     """A spoofed request map claiming an ego's id from another topic, one from an ego far beyond comm_range and a
     flood of ids: each refusal counted by kind, the real ego still answered, and at most max_egos answers a frame."""
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
-    vehicle, log = start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}",
-                         "-p", "codec.selection:=request", "-p", "request_timeout:=60.0", "-p", "max_egos:=2")
-    try:
+    with running(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}",
+                 "-p", "codec.selection:=request", "-p", "request_timeout:=60.0", "-p", "max_egos:=2") as (vehicle, log):
         wait_ready(sup, NODES["lidar"], vehicle, log)
         got: list = []
         peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
@@ -703,15 +710,11 @@ def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_p
         mine = next(m for m in got if m.recipient_id == EGO)
         assert mine.num_voxels > 0  # answered as the real ego asked, not emptied by the spoof
         assert vehicle.poll() is None
-    finally:
-        vehicle.send_signal(signal.SIGINT)
-        assert vehicle.wait(30) == 0, log.read_text()
 
 
 def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher(tmp_path, peer, sup):
-    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
-                     "-p", "publish_points:=false")
-    try:
+    with running(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
+                 "-p", "publish_points:=false") as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
         squatter = peer.create_publisher(VoxelFeatures, "/squat/voxel_features", QOS)
@@ -741,15 +744,11 @@ def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher
         own.publish(features(EGO, T0 + 200_000_000))
         fused(sup, 2, 1)
         assert ego.poll() is None
-    finally:
-        ego.send_signal(signal.SIGINT)
-        assert ego.wait(30) == 0, log.read_text()
 
 
 def test_a_flood_of_topics_is_subscribed_up_to_a_bound_and_departed_ones_make_room(tmp_path, peer, sup):
-    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_topics:=8",
-                     "-p", "discovery_period:=0.1")
-    try:
+    with running(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_topics:=8",
+                 "-p", "discovery_period:=0.1") as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         flood = [peer.create_publisher(VoxelFeatures, f"/flood_{i}/voxel_features", QOS) for i in range(12)]
         wait_for(log, r"dropped \(topics\)", ego)
@@ -761,6 +760,3 @@ def test_a_flood_of_topics_is_subscribed_up_to_a_bound_and_departed_ones_make_ro
         sup.wait_subscribed("/ego", "/late/voxel_features")  # the departed topics were released to make room
         sup.wait("the departed topics released", lambda: not any(sup.subscribes("/ego", t) for t in subscribed), 30)
         assert ego.poll() is None
-    finally:
-        ego.send_signal(signal.SIGINT)
-        assert ego.wait(30) == 0, log.read_text()
