@@ -646,10 +646,10 @@ def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer
             back = call(peer, client.set_parameters_atomically([Parameter(n, value=v) for n, v in initial.items()])).result
             assert back.successful, back.reason
         # both still work: the vehicle encodes a LiDAR frame, the ego fuses its own frame with a neighbour's
+        sup.wait_subscribed("/ego", topics.voxel_features(LIDAR_CAV))  # before the vehicle's frame goes out
         got = lidar_features(peer, *procs["lidar"])
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
         wait_subscribed(peer, [own])
-        sup.wait_subscribed("/ego", topics.voxel_features(LIDAR_CAV))
         lidar_grid = preset("tiny-lidar").feature_grid
         own.publish(features(EGO, got[0].header.stamp.sec * 10**9 + got[0].header.stamp.nanosec, grid=lidar_grid))
         fused(sup, 1, 1)
