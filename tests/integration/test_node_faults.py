@@ -588,6 +588,14 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
         assert "read-only" in set_(ego, "checkpoint", "/other.pt").reason
         refused = set_(vehicle, "codec.dtype", "int9")
         assert not refused.successful and "int9" in refused.reason
+        # values the descriptor allows but this model cannot use: refused when set, not frame after frame
+        refused = set_(vehicle, "codec.rank", 33)
+        assert not refused.successful and "more components than the 32 feature channels" in refused.reason
+        assert set_(vehicle, "codec.selection", "topk").successful
+        refused = set_(vehicle, "codec.max_bytes", 16)
+        assert not refused.successful and "even an empty selection takes" in refused.reason
+        assert set_(vehicle, "codec.selection", "dense").successful
+        assert set_(vehicle, "request_timeout", 2.0).successful  # a run-time value outside the codec
 
         # a changed codec is used from the next frame on
         assert set_(vehicle, "codec.dtype", "int8").successful
