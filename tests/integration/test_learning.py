@@ -136,7 +136,7 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert f"| tiny | 51.2m | ego 4 + fusion 2 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
     assert f"{100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}]" in text
     assert "Input controls" in text and "| blank |" in text
-    on = report["on"]["co3sop-code"]["miou"]  # a camera model: its goal is an mIoU (issue 12), the LiDAR model's a gain
+    on = report["on"]["co3sop-code"]["miou"]  # a camera model: its goal is an mIoU, the LiDAR model's a gain
     verdict = "**met**" if on >= 0.15 and gain["ci95"][0] > 0 else "**not met"
     assert f"mIoU 1..23 with collaboration {100 * on:.2f} against the goal of 15.00 (gain {100 * gain['delta']:.2f})" in text
     assert verdict in text

@@ -68,7 +68,7 @@ def test_the_lidar_gain_goal_is_judged_only_where_the_issue_sets_it(tmp_path):
         shutil.copytree(SHIPPED / run, tmp_path / run)
     lines = goals(collect(tmp_path), tmp_path)
     near, far = (next(line for line in lines if f", {rng}, " in line) for rng in ("25.6m", "76.8m"))
-    assert "no goal at this range (issue 12 sets +3.00 at 51.2m and 76.8m)" in near and "**" not in near
+    assert "no goal at this range (the project sets +3.00 at 51.2m and 76.8m)" in near and "**" not in near
     assert "against the goal of +3.00" in far and ("**met**" in far or "**not met" in far)
 
 

@@ -247,7 +247,7 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
     plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
 
 
-# What the papers' collaborators send per neighbour-frame (issue 17): the curve is read against them
+# What the papers' collaborators send per neighbour-frame: the curve is read against them
 PAPER_SIZES = {"Co3SOP (dense float32)": 18.9e6, "CoHFF": 0.78e6, "VOGS-CP": 0.27e6}
 
 
