@@ -108,8 +108,11 @@ def run_demo(demo: Path, opts, name: str, args: list[str], complete: bool = True
 
 def sweep(demo: Path, opts) -> int:
     """The demo graph at each rate: frames fused of the bag's, latency, CPU per node."""
-    rows = ["| rate | frame every (s) | frames fused / in the bag | skipped: ego; its encoder | recorded | latency p50 / p95 (ms) | "
-            "CPU per frame p50 (ms): ego; vehicles |", "|---:|---:|---:|---:|---:|---:|---|"]
+    rows = [
+        "| rate | frame every (s) | frames fused / in the bag | skipped: ego; its encoder | recorded | "
+        "latency p50 / p95 (ms) | CPU per frame p50 (ms): ego; vehicles |",
+        "|---:|---:|---:|---:|---:|---:|---|",
+    ]
     kept_up = []
     for rate in opts.rates:
         done, out = run_demo(demo, opts, f"rate-{rate:g}", ["--rate", f"{rate:g}"], complete=False)
@@ -119,9 +122,12 @@ def sweep(demo: Path, opts) -> int:
         cpu = r["cpu_ms_per_frame"]
         if r["frames"] == frames and done.returncode == 0:
             kept_up.append(rate)
-        rows.append(f"| {rate:g} | {0.1 / rate:.2f} | {r['frames']} / {frames} | {r['skipped_ego']}; {r['skipped_encoder']} | "
-                    f"{recorded.group(1) if recorded else '?'} | "
-                    f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {cpu.pop('ego'):.0f}; {', '.join(f'{v:.0f}' for v in cpu.values())} |")
+        rows.append(
+            f"| {rate:g} | {0.1 / rate:.2f} | {r['frames']} / {frames} | {r['skipped_ego']}; {r['skipped_encoder']} | "
+            f"{recorded.group(1) if recorded else '?'} | "
+            f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {cpu.pop('ego'):.0f}; "
+            f"{', '.join(f'{v:.0f}' for v in cpu.values())} |"
+        )
     print("\n".join(rows))
     print(f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}" if kept_up else "\nNo rate kept up with every frame.")
     return 0
@@ -146,7 +152,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[1])
     parser.add_argument("--bag", type=Path, help="default: the demo scenario")
     parser.add_argument("--frames", type=int, default=10, help="frames of the generated demo scenario (without --bag)")
-    parser.add_argument("--precision", default="auto", help="every node's inference precision, as `demo --precision` takes it")
+    parser.add_argument(
+        "--precision", default="auto", help="every node's inference precision, as `demo --precision` takes it"
+    )
     parser.add_argument("--out", type=Path, default=Path("results/bench_graph"))
     parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)")
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))

@@ -131,8 +131,10 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int) -
     """Each shipped model at 51.2 m, as the nodes run it on `device` (its compiled kernels on the CPU): wall time of
     the vehicle half and of the ego's frame (2 neighbours 10 m away, fusion, labels) per precision, with the ratio
     to float32 measured in the same run."""
-    rows = ["| model | precision | vehicle half ms | ego frame ms | vehicle: float32 / this | ego: float32 / this |",
-            "|---|---|---:|---:|---:|---:|"]
+    rows = [
+        "| model | precision | vehicle half ms | ego frame ms | vehicle: float32 / this | ego: float32 / this |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
     timed_on = on(device)
     for name in ("tiny-lidar", "tiny", "small"):
         model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
@@ -141,11 +143,16 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int) -
             model.use(InferencePath(str(device), precision))
             inputs = pace.shaped_inputs(model)
             t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
-            others = {i: (VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)), pose)
-                      for i, pose in ((1, _shifted(10.0)), (2, _shifted(-10.0)))}
+            others = {
+                i: (VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)), pose)
+                for i, pose in ((1, _shifted(10.0)), (2, _shifted(-10.0)))
+            }
             t_ego, _ = timed_on(lambda: predict_frame(model, ego, np.eye(4), others), repeats)
             base = base or (t_vehicle, t_ego)
-            rows.append(f"| {name} | {precision} | {1e3 * t_vehicle:.1f} | {1e3 * t_ego:.1f} | {base[0] / t_vehicle:.2f}x | {base[1] / t_ego:.2f}x |")
+            rows.append(
+                f"| {name} | {precision} | {1e3 * t_vehicle:.1f} | {1e3 * t_ego:.1f} | "
+                f"{base[0] / t_vehicle:.2f}x | {base[1] / t_ego:.2f}x |"
+            )
             print(f"  {name} {precision}: vehicle {1e3 * t_vehicle:.1f} ms, ego {1e3 * t_ego:.1f} ms", flush=True)
     return "\n".join(rows)
 
@@ -173,15 +180,22 @@ def peak_table(repeats: int) -> tuple[str, float]:
     a, b = torch.randn(1024, 1024, generator=gen), torch.randn(1024, 1024, generator=gen)
     conv = torch.nn.Conv3d(32, 32, 3, padding=1, bias=False)
     x = torch.randn(1, 32, 128, 128, 12, generator=gen)
-    kernels = {"matrix product 1024^3": (lambda t: t[0] @ t[1], (a, b), 2 * 1024**3),
-               "conv3d 3x3x3, 32->32, 128x128x12": (None, None, 2 * 32 * 32 * 27 * 128 * 128 * 12)}
+    kernels = {
+        "matrix product 1024^3": (lambda t: t[0] @ t[1], (a, b), 2 * 1024**3),
+        "conv3d 3x3x3, 32->32, 128x128x12": (None, None, 2 * 32 * 32 * 27 * 128 * 128 * 12),
+    }
     peak = 0.0
     for name, (fn, args, flops) in kernels.items():
         rates = []
         for dtype in (torch.float32, torch.bfloat16):
             if fn is None:
-                layer = conv.to(dtype=dtype, memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format)
-                xin = x.to(dtype).contiguous(memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format)
+                layer = conv.to(
+                    dtype=dtype,
+                    memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format,
+                )
+                xin = x.to(dtype).contiguous(
+                    memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format
+                )
                 call = lambda layer=layer, xin=xin: layer(xin)  # noqa: E731
             else:
                 targs = tuple(t.to(dtype) for t in args)
@@ -200,7 +214,10 @@ def roofline_table(repeats: int, peak: float) -> str:
     """Each shipped model's stages at 51.2 m on one thread as the nodes run them (compiled kernels, float32): FLOPs
     per frame (the convolutions and matrix products, counted on the reference paths, which compute the same
     products), time, GFLOP/s and the share of the measured float32 peak."""
-    rows = ["| model | stage | GFLOP per frame | ms | GFLOP/s | share of the float32 peak |", "|---|---|---:|---:|---:|---:|"]
+    rows = [
+        "| model | stage | GFLOP per frame | ms | GFLOP/s | share of the float32 peak |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
     for name in ("tiny-lidar", "tiny", "small"):
         model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
         model.requires_grad_(False)  # the FLOP counter's module tracker hooks every tensor that requires a gradient
@@ -210,17 +227,28 @@ def roofline_table(repeats: int, peak: float) -> str:
         rel = torch.eye(4)[None].repeat(1, 2, 1, 1)
         rel[0, :, 0, 3] = torch.tensor([6.0, -9.0])
         fused = model.ego.fuse(ego, others, rel)
-        stages = {"vehicle half": lambda: model.vehicle(**inputs), "fusion (2 neighbours)": lambda: model.ego.fuse(ego, others, rel),
-                  "head to labels": lambda: model.ego.head.labels(fused)}
-        reference = {"head to labels": lambda: model.ego.head(fused)[-1]}  # the labels path computes the full-resolution logits' products
+        stages = {
+            "vehicle half": lambda: model.vehicle(**inputs),
+            "fusion (2 neighbours)": lambda: model.ego.fuse(ego, others, rel),
+            "head to labels": lambda: model.ego.head.labels(fused),
+        }
+        reference = {
+            "head to labels": lambda: model.ego.head(fused)[-1]
+        }  # the labels path computes the full-resolution logits' products
         for stage, fn in stages.items():
             model.use(InferencePath(compiled=False))
             flops = _flops(reference.get(stage, fn))
             if stage == "head to labels":  # the dense pass's 1/4 and 1/2 classifiers are not on the labels path
-                flops -= sum(_flops(lambda c=c, f=f: c(f)) for c, f in zip(model.ego.head.classify[:2], model.ego.head.coarse(fused)))
+                flops -= sum(
+                    _flops(lambda c=c, f=f: c(f))
+                    for c, f in zip(model.ego.head.classify[:2], model.ego.head.coarse(fused))
+                )
             model.use(InferencePath())
             t, _ = timed(fn, repeats)
-            rows.append(f"| {name} | {stage} | {flops / 1e9:.2f} | {1e3 * t:.1f} | {flops / t / 1e9:.0f} | {flops / t / 1e9 / peak:.0%} |")
+            rows.append(
+                f"| {name} | {stage} | {flops / 1e9:.2f} | {1e3 * t:.1f} | {flops / t / 1e9:.0f} | "
+                f"{flops / t / 1e9 / peak:.0%} |"
+            )
             print(f"  roofline {name} {stage}: {flops / 1e9:.2f} GFLOP in {1e3 * t:.1f} ms", flush=True)
     return "\n".join(rows)
 
@@ -270,22 +298,42 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path)
     add_device_argument(parser)
-    parser.add_argument("--precisions", nargs="*", choices=PRECISIONS[1:], default=[],
-                        help="also time the shipped models at 51.2 m in these precisions against float32")
+    parser.add_argument(
+        "--precisions",
+        nargs="*",
+        choices=PRECISIONS[1:],
+        default=[],
+        help="also time the shipped models at 51.2 m in these precisions against float32",
+    )
     parser.add_argument("--precision-only", action="store_true", help="only the precision table")
-    parser.add_argument("--roofline", action="store_true", help="only this CPU's measured peak (one thread) and each shipped "
-                        "model's FLOPs and GFLOP/s per stage against it")
+    parser.add_argument(
+        "--roofline",
+        action="store_true",
+        help="only this CPU's measured peak (one thread) and each shipped "
+        "model's FLOPs and GFLOP/s per stage against it",
+    )
     opts = parser.parse_args()
     torch.set_num_threads(opts.threads)
     device = select_device(opts.device)
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {opts.threads} threads"
-    precision = [f"### Precision: the shipped models at 51.2 m ({where}, median of {opts.repeats})",
-                 precision_table(device, opts.precisions, opts.repeats)] if opts.precisions else []
+    precision = (
+        [
+            f"### Precision: the shipped models at 51.2 m ({where}, median of {opts.repeats})",
+            precision_table(device, opts.precisions, opts.repeats),
+        ]
+        if opts.precisions
+        else []
+    )
     if opts.roofline:
         torch.set_num_threads(1)
         peaks, peak = peak_table(opts.repeats)
-        parts = [f"### This CPU's peak on one thread (median of {opts.repeats}; bfloat16 hardware: {cpu_bfloat16_unit() or 'none'})",
-                 peaks, "### Each stage against it (51.2 m, one thread, compiled kernels, float32)", roofline_table(opts.repeats, peak)]
+        parts = [
+            f"### This CPU's peak on one thread (median of {opts.repeats}; "
+            f"bfloat16 hardware: {cpu_bfloat16_unit() or 'none'})",
+            peaks,
+            "### Each stage against it (51.2 m, one thread, compiled kernels, float32)",
+            roofline_table(opts.repeats, peak),
+        ]
     elif opts.precision_only:
         parts = precision
     elif device.type == "cuda":

@@ -36,7 +36,8 @@ from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.scoring import read_recording
 
 FRAMES = 4
-# the ego fuses (and vehicles encode) every frame, waiting for every neighbour, whatever the machine keeps up with: the offline comparisons need them all
+# the ego fuses (and vehicles encode) every frame, waiting for every neighbour, whatever the machine keeps up with:
+# the offline comparisons need them all
 EVERY_FRAME = ("-p", "stay_current:=false", "-p", "max_pending:=1000")
 
 
@@ -121,7 +122,8 @@ def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str
     bag played once; everything stopped; the MCAP path."""
     mcap = graph.folder / "run.mcap"
     graph.start("recorder", executable("recorder"), "--out", str(mcap), *(("--topics", *recorded) if recorded else ()))
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0", *EVERY_FRAME, *ego_params)
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0",
+                *EVERY_FRAME, *ego_params)
     for c in cavs:
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *EVERY_FRAME,
                     *[x for p in vehicle_params for x in ("-p", p)])
@@ -182,7 +184,8 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     bag, cavs = scenario
     codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, burst_bytes=burst, rank=rank)
     params = [f"codec.dtype:={dtype}", "codec.selection:=request", f"codec.max_bytes:={budget}", f"codec.burst_bytes:={burst}",
-              f"codec.rank:={rank}", "request_timeout:=60.0", "comm_range:=1000.0"]  # every neighbour answers, near or far
+              f"codec.rank:={rank}", "request_timeout:=60.0",
+              "comm_range:=1000.0"]  # every neighbour answers, near or far
     torch.set_num_threads(1)
     model, _ = load_model(shipped_checkpoint())
     fg = model.cfg.feature_grid
@@ -245,12 +248,16 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
     checkpoint = Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt")
     lidar = ["-p", f"checkpoint:={checkpoint}"]
     dense = ["-p", "codec.dtype:=float32", "-p", "codec.compression:=none"]
-    graph.start("ego_a", executable("ego"), "--ros-args", "-p", f"ego_id:={a}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar)
-    graph.start("ego_b", executable("ego"), "--ros-args", "-p", f"ego_id:={b}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar,
+    graph.start(
+        "ego_a", executable("ego"), "--ros-args", "-p", f"ego_id:={a}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar
+    )
+    graph.start("ego_b", executable("ego"), "--ros-args", "-p", f"ego_id:={b}", "-p", "max_wait:=60.0",
+                *EVERY_FRAME, *lidar,
                 "-r", "__ns:=/b", "-r", f"cav_{b}/voxel_features:={topics.voxel_features(b)}")
     for v in (a, b):
         graph.start(f"vehicle{v}", executable("vehicle"), "--id", str(v), "--ros-args", *lidar, *dense, *EVERY_FRAME)
-    graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *lidar, *EVERY_FRAME, "-p", "codec.dtype:=int8",
+    graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *lidar, *EVERY_FRAME,
+                "-p", "codec.dtype:=int8",
                 "-p", "codec.selection:=request", "-p", "codec.max_bytes:=20000", "-p", "request_timeout:=60.0")
     graph.wait_active("/ego", "/b/ego", *map(topics.vehicle_node, cavs))
     sup = graph.supervisor
@@ -290,8 +297,19 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     graph.start("recorder", executable("recorder"), "--out", str(mcap), "--topics", "/diagnostics", "/ego/occupancy")
     # frames come 5 s apart (rate 0.02): a neighbour is silent only after more than that; max_age 0: a dead neighbour's
     # last frame is not fused in place of the ones it no longer sends
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=1.0", "-p", "neighbour_timeout:=8.0",
-                "-p", "max_age:=0.0")
+    graph.start(
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={ego}",
+        "-p",
+        "max_wait:=1.0",
+        "-p",
+        "neighbour_timeout:=8.0",
+        "-p",
+        "max_age:=0.0",
+    )
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
@@ -322,8 +340,18 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
     export_model(lidar, build_model(preset("tiny-lmscnet")), {"made_by": "test: random weights"})
     graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME)
     graph.start("camera", executable("vehicle"), "--id", str(ego), "--ros-args", *EVERY_FRAME)
-    graph.start("lidar", executable("vehicle"), "--id", str(neighbour), "--ros-args", *EVERY_FRAME, "-p", f"checkpoint:={lidar}",
-                "-p", "modality:=lidar")
+    graph.start(
+        "lidar",
+        executable("vehicle"),
+        "--id",
+        str(neighbour),
+        "--ros-args",
+        *EVERY_FRAME,
+        "-p",
+        f"checkpoint:={lidar}",
+        "-p",
+        "modality:=lidar",
+    )
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
     graph.wait_discovered([neighbour])
     assert "tiny-lmscnet (lidar" in graph.log("lidar")
@@ -340,7 +368,8 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     bag, cavs = scenario
     ego, neighbour = cavs[0], cavs[-1]
     sup, manual = graph.supervisor, ["-p", "autostart:=false"]
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *manual)
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0",
+                *EVERY_FRAME, *manual)
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *manual, *EVERY_FRAME)
     graph.start("broken", executable("vehicle"), "--id", "99", "--ros-args", *manual, "-p", f"checkpoint:={graph.folder / 'missing.pt'}")
@@ -423,11 +452,14 @@ def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
     bag, cavs = scenario
     ego, neighbour = cavs[0], cavs[-1]
     lidar = ["-p", f"checkpoint:={Path(get_package_share_directory('co3sop_nodes'), 'checkpoints', 'tiny-lidar.pt')}"]
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar,
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0",
+                *EVERY_FRAME, *lidar,
                 "-r", "__ns:=/fleet", "-r", f"cav_{ego}/voxel_features:=/fleet/car_a/voxel_features")
-    graph.start("own", executable("vehicle"), "--id", str(ego), "--ros-args", *lidar, *EVERY_FRAME, "-r", "__ns:=/fleet/car_a",
+    graph.start("own", executable("vehicle"), "--id", str(ego), "--ros-args", *lidar, *EVERY_FRAME,
+                "-r", "__ns:=/fleet/car_a",
                 "-r", f"lidar/pose:={topics.lidar_pose(ego)}", "-r", f"lidar/points:={topics.lidar_points(ego)}")
-    graph.start("neighbour", executable("vehicle"), "--id", str(neighbour), "--ros-args", *lidar, *EVERY_FRAME, "-r", "voxel_features:=/v2x/any_name")
+    graph.start("neighbour", executable("vehicle"), "--id", str(neighbour), "--ros-args", *lidar, *EVERY_FRAME,
+                "-r", "voxel_features:=/v2x/any_name")
     graph.wait_active("/fleet/ego", "/fleet/car_a/vehicle", topics.vehicle_node(neighbour))
     sup = graph.supervisor
     for topic in ("/fleet/car_a/voxel_features", "/v2x/any_name"):

@@ -24,14 +24,19 @@ def test_help_exits_0_and_explains_every_option(name):
     assert done.stdout.startswith("usage:") and "-h, --help" in done.stdout
     for param in PARAMS.get(name, ()):
         line = next((ln for ln in done.stdout.splitlines() if ln.strip().startswith(f"{param.name} ")), None)
-        assert line is not None and ("required" in line if param.default is None else f"default {param.default!r}" in line), param.name
+        assert line is not None and (
+            "required" in line if param.default is None else f"default {param.default!r}" in line
+        ), param.name
         assert param.description in done.stdout.replace("\n      ", " ")
 
 
-@pytest.mark.parametrize(("argv", "message"), [
-    (["sample_stream", "--rate", "0"], "--rate 0.0: must be above 0"),
-    (["sample_stream", "--frames", "-1"], "--frames -1: must be above 0"),
-])
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["sample_stream", "--rate", "0"], "--rate 0.0: must be above 0"),
+        (["sample_stream", "--frames", "-1"], "--frames -1: must be above 0"),
+    ],
+)
 def test_bad_options_are_usage_errors_not_tracebacks(argv, message):
     done = subprocess.run([executable(argv[0]), *argv[1:]], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr

@@ -266,7 +266,17 @@ def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_spli
     the global batch, and resumes; the fusion stage too."""
     data = str(small_split / "data")
     common = ["--data", data, "--threads", "1", "--sample-fraction", "0.05", "--device", "cpu", "--seed", "3"]
-    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", executable("train"), "--batch", "1"]
+    torchrun = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        executable("train"),
+        "--batch",
+        "1",
+    ]
     runs = {"one": [executable("train"), "--batch", "2"], "two": torchrun}
     for name, launcher in runs.items():
         done = subprocess.run([*launcher, *common, "--preset", "tiny", "--stage", "ego", "--steps", "2", "--out", str(tmp_path / name)],

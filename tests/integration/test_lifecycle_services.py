@@ -14,14 +14,26 @@ from test_node_faults import EGO, start, wait_for
 
 from co3sop_nodes import topics
 
-VALID = {"unconfigured": {Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_UNCONFIGURED_SHUTDOWN},
-         "inactive": {Transition.TRANSITION_CLEANUP, Transition.TRANSITION_ACTIVATE, Transition.TRANSITION_INACTIVE_SHUTDOWN},
-         "active": {Transition.TRANSITION_DEACTIVATE, Transition.TRANSITION_ACTIVE_SHUTDOWN},
-         "finalized": set()}
-ROUTE = {"unconfigured": [], "inactive": [Transition.TRANSITION_CONFIGURE],
-         "active": [Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE]}
-BACK = {"unconfigured": [], "inactive": [Transition.TRANSITION_CLEANUP],
-        "active": [Transition.TRANSITION_DEACTIVATE, Transition.TRANSITION_CLEANUP]}
+VALID = {
+    "unconfigured": {Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_UNCONFIGURED_SHUTDOWN},
+    "inactive": {
+        Transition.TRANSITION_CLEANUP,
+        Transition.TRANSITION_ACTIVATE,
+        Transition.TRANSITION_INACTIVE_SHUTDOWN,
+    },
+    "active": {Transition.TRANSITION_DEACTIVATE, Transition.TRANSITION_ACTIVE_SHUTDOWN},
+    "finalized": set(),
+}
+ROUTE = {
+    "unconfigured": [],
+    "inactive": [Transition.TRANSITION_CONFIGURE],
+    "active": [Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE],
+}
+BACK = {
+    "unconfigured": [],
+    "inactive": [Transition.TRANSITION_CLEANUP],
+    "active": [Transition.TRANSITION_DEACTIVATE, Transition.TRANSITION_CLEANUP],
+}
 IDS = [*range(1, 8), 42, 255]  # the seven primary transitions, an unknown id, the largest uint8
 
 
@@ -32,11 +44,16 @@ def ask(peer, client, tid: int = 0, label: str = "") -> bool:
     return future.result().success
 
 
-@pytest.mark.parametrize(("name", "node", "argv"), [
-    ("ego", "/ego", ["ego", "--ros-args", "-p", f"ego_id:={EGO}"]),
-    ("vehicle", topics.vehicle_node(5), ["vehicle", "--id", "5", "--ros-args"]),
-])
-def test_every_transition_from_every_state_is_taken_or_refused_and_the_node_lives(tmp_path, peer, sup, name, node, argv):
+@pytest.mark.parametrize(
+    ("name", "node", "argv"),
+    [
+        ("ego", "/ego", ["ego", "--ros-args", "-p", f"ego_id:={EGO}"]),
+        ("vehicle", topics.vehicle_node(5), ["vehicle", "--id", "5", "--ros-args"]),
+    ],
+)
+def test_every_transition_from_every_state_is_taken_or_refused_and_the_node_lives(
+    tmp_path, peer, sup, name, node, argv
+):
     proc, log = start(tmp_path, name, executable(argv[0]), *argv[1:], "-p", "autostart:=false")
     try:
         client = peer.create_client(ChangeState, f"{node}/change_state")

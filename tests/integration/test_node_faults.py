@@ -229,26 +229,47 @@ def test_score_and_recover_explain_bad_files(tmp_path):
         assert done.returncode == 2 and "junk.mcap" in done.stderr and "Traceback" not in done.stderr, done.stderr
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["vehicle"], "vehicle: error: parameter id is required"),
-    (["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:=/nowhere/model.pt"], "/nowhere/model.pt: no such checkpoint"),
-    (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=lidar"], "pick a checkpoint trained for it"),
-    (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
-    (["vehicle", "--id", "3", "--ros-args", "-p", "codec.level:=99"], "codec.level out of range"),
-    (["ego"], "ego: error: parameter ego_id is required"),
-    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_collaborators:=9"], "max_collaborators 9 is above the model's 6"),
-    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_wait:=two"], "parameter max_wait"),
-    (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
-    (["demo", "--model", "no-such-model"], "--model 'no-such-model': neither a checkpoint file nor a shipped model (small, tiny, tiny-lidar)"),
-    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:=bogus"], "parameter checkpoint 'bogus': neither a checkpoint file"),
-    (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "device:=gpu"], "parameter device 'gpu': not a device"),
-    (["evaluate", "--model", "bogus", "--data", "."], "--model 'bogus': neither a checkpoint file nor a shipped model"),
-    (["demo", "--rate", "0"], "demo: error: --rate 0.0: must be above 0"),
-    (["demo", "--vehicles", "0"], "demo: error: --vehicles 0: at least 1"),
-    (["monitor", "--period", "0"], "monitor: error: --period must be above 0"),
-    (["recorder", "--out", "x.mcap", "--flush-period", "0"], "recorder: error: --chunk-size must be at least 1 byte, --flush-period above 0"),
-    (["recorder", "--out", "x.mcap", "--topics", "(["], "recorder: error: --topics '([': not a regular expression"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["vehicle"], "vehicle: error: parameter id is required"),
+        (
+            ["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:=/nowhere/model.pt"],
+            "/nowhere/model.pt: no such checkpoint",
+        ),
+        (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=lidar"], "pick a checkpoint trained for it"),
+        (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
+        (["vehicle", "--id", "3", "--ros-args", "-p", "codec.level:=99"], "codec.level out of range"),
+        (["ego"], "ego: error: parameter ego_id is required"),
+        (
+            ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_collaborators:=9"],
+            "max_collaborators 9 is above the model's 6",
+        ),
+        (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_wait:=two"], "parameter max_wait"),
+        (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
+        (
+            ["demo", "--model", "no-such-model"],
+            "--model 'no-such-model': neither a checkpoint file nor a shipped model (small, tiny, tiny-lidar)",
+        ),
+        (
+            ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:=bogus"],
+            "parameter checkpoint 'bogus': neither a checkpoint file",
+        ),
+        (["ego", "--ros-args", "-p", "ego_id:=1", "-p", "device:=gpu"], "parameter device 'gpu': not a device"),
+        (
+            ["evaluate", "--model", "bogus", "--data", "."],
+            "--model 'bogus': neither a checkpoint file nor a shipped model",
+        ),
+        (["demo", "--rate", "0"], "demo: error: --rate 0.0: must be above 0"),
+        (["demo", "--vehicles", "0"], "demo: error: --vehicles 0: at least 1"),
+        (["monitor", "--period", "0"], "monitor: error: --period must be above 0"),
+        (
+            ["recorder", "--out", "x.mcap", "--flush-period", "0"],
+            "recorder: error: --chunk-size must be at least 1 byte, --flush-period above 0",
+        ),
+        (["recorder", "--out", "x.mcap", "--topics", "(["], "recorder: error: --topics '([': not a regular expression"),
+    ],
+)
 def test_nodes_explain_bad_parameters(argv, message):
     done = subprocess.run([executable(argv[0]), *argv[1:]], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr
@@ -633,9 +654,28 @@ def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer
 
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
     procs = {
-        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", f"checkpoint:={lidar_model}",
-                     "-p", "max_wait:=0.5"),
-        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+        "ego": start(
+            tmp_path,
+            "ego",
+            executable("ego"),
+            "--ros-args",
+            "-p",
+            f"ego_id:={EGO}",
+            "-p",
+            f"checkpoint:={lidar_model}",
+            "-p",
+            "max_wait:=0.5",
+        ),
+        "lidar": start(
+            tmp_path,
+            "lidar",
+            executable("vehicle"),
+            "--id",
+            str(LIDAR_CAV),
+            "--ros-args",
+            "-p",
+            f"checkpoint:={lidar_model}",
+        ),
     }
     try:
         for name, (proc, log) in procs.items():
@@ -651,7 +691,9 @@ def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer
                     assert result.successful or result.reason, (param.name, value)  # refused only with a reason
                     assert allowed or not result.successful, (param.name, value)
                     assert procs[name][0].poll() is None, procs[name][1].read_text()
-            back = call(peer, client.set_parameters_atomically([Parameter(n, value=v) for n, v in initial.items()])).result
+            back = call(
+                peer, client.set_parameters_atomically([Parameter(n, value=v) for n, v in initial.items()])
+            ).result
             assert back.successful, back.reason
         # both still work: the vehicle encodes a LiDAR frame, the ego fuses its own frame with a neighbour's
         sup.wait_subscribed("/ego", topics.voxel_features(LIDAR_CAV))  # before the vehicle's frame goes out
@@ -670,16 +712,35 @@ def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer
 
 def request_map(ego: int, stamp: int, x: float, fill: float) -> RequestMap:
     grid = preset("tiny-lidar").feature_grid
-    return request_to_msg(encode_request(np.full(grid.dims, fill, np.float32), grid), stamp_ns=stamp, frame_id=f"cav_{ego}/lidar",
-                          agent_id=ego, pose=Pose((x, 0.0, 1.8)))
+    return request_to_msg(
+        encode_request(np.full(grid.dims, fill, np.float32), grid),
+        stamp_ns=stamp,
+        frame_id=f"cav_{ego}/lidar",
+        agent_id=ego,
+        pose=Pose((x, 0.0, 1.8)),
+    )
 
 
 def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_path, peer, sup):
     """A spoofed request map claiming an ego's id from another topic, one from an ego far beyond comm_range and a
     flood of ids: each refusal counted by kind, the real ego still answered, and at most max_egos answers a frame."""
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
-    with running(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}",
-                 "-p", "codec.selection:=request", "-p", "request_timeout:=60.0", "-p", "max_egos:=2") as (vehicle, log):
+    with running(
+        tmp_path,
+        "lidar",
+        executable("vehicle"),
+        "--id",
+        str(LIDAR_CAV),
+        "--ros-args",
+        "-p",
+        f"checkpoint:={lidar_model}",
+        "-p",
+        "codec.selection:=request",
+        "-p",
+        "request_timeout:=60.0",
+        "-p",
+        "max_egos:=2",
+    ) as (vehicle, log):
         wait_ready(sup, NODES["lidar"], vehicle, log)
         got: list = []
         peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
@@ -721,8 +782,18 @@ def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_p
 
 
 def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher(tmp_path, peer, sup):
-    with running(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
-                 "-p", "publish_points:=false") as (ego, log):
+    with running(
+        tmp_path,
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={EGO}",
+        "-p",
+        "max_wait:=2.0",
+        "-p",
+        "publish_points:=false",
+    ) as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
         squatter = peer.create_publisher(VoxelFeatures, "/squat/voxel_features", QOS)
@@ -730,7 +801,9 @@ def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher
         sup.wait_subscribed("/ego", "/squat/voxel_features")
         squatter.publish(features(OTHER, T0 - 10**9))  # claims the real vehicle's id first
         acked(squatter)
-        real = peer.create_publisher(VoxelFeatures, topics.voxel_features(OTHER), QOS)  # the vehicle in its own namespace
+        real = peer.create_publisher(
+            VoxelFeatures, topics.voxel_features(OTHER), QOS
+        )  # the vehicle in its own namespace
         wait_subscribed(peer, [real])
         sup.wait_subscribed("/ego", topics.voxel_features(OTHER))
         real.publish(features(OTHER, T0))
@@ -746,7 +819,11 @@ def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher
         wait_for(log, "already published on", ego)
         # ... and takes the id once that publisher is gone (the vehicle restarted under another name, say)
         peer.destroy_publisher(real)
-        sup.wait("the vehicle's publisher to leave the graph", lambda: sup.node.count_publishers(topics.voxel_features(OTHER)) == 0, 30)
+        sup.wait(
+            "the vehicle's publisher to leave the graph",
+            lambda: sup.node.count_publishers(topics.voxel_features(OTHER)) == 0,
+            30,
+        )
         other_name.publish(features(OTHER, T0 + 200_000_000))
         acked(other_name)
         own.publish(features(EGO, T0 + 200_000_000))
@@ -755,8 +832,18 @@ def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher
 
 
 def test_a_flood_of_topics_is_subscribed_up_to_a_bound_and_departed_ones_make_room(tmp_path, peer, sup):
-    with running(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_topics:=8",
-                 "-p", "discovery_period:=0.1") as (ego, log):
+    with running(
+        tmp_path,
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={EGO}",
+        "-p",
+        "max_topics:=8",
+        "-p",
+        "discovery_period:=0.1",
+    ) as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         flood = [peer.create_publisher(VoxelFeatures, f"/flood_{i}/voxel_features", QOS) for i in range(12)]
         wait_for(log, r"dropped \(topics\)", ego)

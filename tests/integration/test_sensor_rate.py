@@ -32,7 +32,9 @@ def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skippe
     ego = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=5.0")
     try:
         wait_ready(sup, "/ego", *ego)
-        pubs = {agent: peer.create_publisher(VoxelFeatures, topics.voxel_features(agent), QOS) for agent in (EGO, OTHER)}
+        pubs = {
+            agent: peer.create_publisher(VoxelFeatures, topics.voxel_features(agent), QOS) for agent in (EGO, OTHER)
+        }
         wait_subscribed(peer, list(pubs.values()))
         sup.wait_subscribed("/ego", topics.voxel_features(OTHER))
         msgs = [(features(a, T0 + k * PERIOD_NS), a) for k in range(FRAMES) for a in (OTHER, EGO)]
@@ -59,7 +61,9 @@ def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skippe
 
 def test_a_vehicle_fed_faster_than_it_encodes_encodes_the_newest_complete_frame(tmp_path, peer, sup):
     model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
-    vehicle = start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={model}")
+    vehicle = start(
+        tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={model}"
+    )
     try:
         wait_ready(sup, topics.vehicle_node(LIDAR_CAV), *vehicle)
         got: list = []

@@ -142,7 +142,9 @@ def test_a_checkpoint_is_named_by_path_or_by_shipped_name(tmp_path):
     path = tmp_path / "mine.pt"
     path.write_bytes(b"")
     assert resolve_checkpoint(str(path)) == path
-    with pytest.raises(Co3sopError, match="--model 'tiny_lidar': neither a checkpoint file nor a shipped model .*tiny-lidar"):
+    with pytest.raises(
+        Co3sopError, match="--model 'tiny_lidar': neither a checkpoint file nor a shipped model .*tiny-lidar"
+    ):
         resolve_checkpoint("tiny_lidar", "--model")
     with pytest.raises(Co3sopError, match="no such checkpoint file"):
         resolve_checkpoint(str(tmp_path / "none.pt"))

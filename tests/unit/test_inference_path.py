@@ -22,11 +22,14 @@ def test_auto_takes_bfloat16_only_where_the_cpu_computes_it(monkeypatch):
     assert inference_path("cpu", "float32", compiled=False) == InferencePath("cpu", "float32", False)
 
 
-@pytest.mark.parametrize(("device", "precision", "message"), [
-    ("gpu", "auto", "parameter device 'gpu': not a device"),
-    ("meta", "auto", "only cpu and cuda"),
-    ("cpu", "half", "parameter precision 'half': one of auto, float32"),
-])
+@pytest.mark.parametrize(
+    ("device", "precision", "message"),
+    [
+        ("gpu", "auto", "parameter device 'gpu': not a device"),
+        ("meta", "auto", "only cpu and cuda"),
+        ("cpu", "half", "parameter precision 'half': one of auto, float32"),
+    ],
+)
 def test_a_bad_device_or_precision_is_refused_by_name(device, precision, message):
     with pytest.raises(Co3sopError, match=message):
         inference_path(device, precision, what="parameter ")
@@ -46,7 +49,9 @@ def test_each_model_holds_its_own_path():
         held = {m.path for m in model.modules() if "path" in vars(m)}
         assert held == {want}
     conv = a.vehicle.encoder.modules()
-    assert any(isinstance(m, torch.nn.Conv3d) and m.weight.is_contiguous(memory_format=torch.channels_last_3d) for m in conv)
+    assert any(
+        isinstance(m, torch.nn.Conv3d) and m.weight.is_contiguous(memory_format=torch.channels_last_3d) for m in conv
+    )
 
 
 @torch.no_grad()
@@ -65,5 +70,7 @@ def test_float32_is_bit_identical_after_a_round_trip_through_bfloat16():
     model.use(InferencePath("cpu", "bfloat16"))
     model.use(InferencePath("cpu", "float32"))
     after = frame()
-    assert all(torch.equal(x, y) if isinstance(x, torch.Tensor) else np.array_equal(x, y) for x, y in zip(before, after))
+    assert all(
+        torch.equal(x, y) if isinstance(x, torch.Tensor) else np.array_equal(x, y) for x, y in zip(before, after)
+    )
     assert all(p.is_contiguous() for p in model.parameters())

@@ -166,7 +166,9 @@ def test_the_license_and_the_citation_are_where_users_look():
         assert "<license>Apache-2.0</license>" in xml.read_text(), xml
     citation = yaml.safe_load((root / "CITATION.cff").read_text())
     assert citation["license"] == "Apache-2.0" and citation["cff-version"] == "1.2.0"
-    assert citation["preferred-citation"]["title"].startswith("A Synthetic Benchmark for Collaborative 3D Semantic Occupancy")
+    assert citation["preferred-citation"]["title"].startswith(
+        "A Synthetic Benchmark for Collaborative 3D Semantic Occupancy"
+    )
 
 
 def test_the_docker_command_keeps_the_results_on_the_host():
@@ -180,10 +182,12 @@ def test_the_jazzy_recipe_builds_src_only_and_handles_pep_668():
     """On a Jazzy install the vendored TFMessage-only tf2_msgs must not shadow the system's, and rosdep's pip keys
     need a way past PEP 668 on Ubuntu 24.04: the README's recipe says both, for every pip key package.xml uses."""
     readme = (PACKAGE.parents[1] / "README.md").read_text()
-    recipe = readme[readme.index("### On a ROS 2 Jazzy install"):readme.index("## Executables")]
+    recipe = readme[readme.index("### On a ROS 2 Jazzy install") : readme.index("## Executables")]
     builds = [line for line in recipe.splitlines() if line.startswith("colcon build")]
     assert builds and all("--base-paths src" in line for line in builds)
     assert "PIP_BREAK_SYSTEM_PACKAGES=1 rosdep install" in recipe
-    pip_keys = set(re.findall(r"<exec_depend>(python3-[\w-]+-pip)</exec_depend>", (PACKAGE / "package.xml").read_text()))
+    pip_keys = set(
+        re.findall(r"<exec_depend>(python3-[\w-]+-pip)</exec_depend>", (PACKAGE / "package.xml").read_text())
+    )
     skip = re.search(r'--skip-keys "([^"]+)"', recipe).group(1).split()
     assert pip_keys and set(skip) == pip_keys

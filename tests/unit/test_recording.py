@@ -80,12 +80,26 @@ def test_info_reads_a_recording_with_ground_truth_point_clouds(tmp_path, capsys)
     store, t = typestore(), typestore().types
     path = tmp_path / "demo.mcap"
     header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=1), frame_id="cav_1/lidar")
-    cloud = t["sensor_msgs/msg/PointCloud2"](header=header, height=1, width=0, fields=[], is_bigendian=False, point_step=0,
-                                             row_step=0, data=np.zeros(0, np.uint8), is_dense=True)
+    cloud = t["sensor_msgs/msg/PointCloud2"](
+        header=header,
+        height=1,
+        width=0,
+        fields=[],
+        is_bigendian=False,
+        point_step=0,
+        row_step=0,
+        data=np.zeros(0, np.uint8),
+        is_dense=True,
+    )
     truth = np.zeros(GRID.dims, np.uint8)
     with McapRecorder(path) as rec:
         rec.write("/cav_1/ground_truth/occupancy_50m", TYPE, message(store, 1, 1, truth), 1)
-        rec.write("/ego/ground_truth/points", "sensor_msgs/msg/PointCloud2", store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2"), 1)
+        rec.write(
+            "/ego/ground_truth/points",
+            "sensor_msgs/msg/PointCloud2",
+            store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2"),
+            1,
+        )
     assert info([str(path)]) == 0
     assert "| /ego/ground_truth/points | sensor_msgs/msg/PointCloud2 | 1 |" in capsys.readouterr().out
 

@@ -168,10 +168,12 @@ def _percentiles(values: np.ndarray) -> list[float]:
     return [float(v) for v in np.percentile(values, [2.5, 97.5])] if len(values) else [float("nan")] * 2
 
 
-CONVENTIONS_NOTE = ("mIoU conventions: co3sop-readme, the mean over all 24 classes with 0 (empty), as the Co3SOP README "
-                    "reports; co3sop-code, the mean over classes 1..23, as Co3SOP's code computes it; both count a class absent "
-                    "from truth and prediction ('-') as IoU 0. surroundocc: the mean over the classes 1..23 present in the "
-                    "truth, and geometry IoU (occupied against empty), as SurroundOcc reports.")
+CONVENTIONS_NOTE = (
+    "mIoU conventions: co3sop-readme, the mean over all 24 classes with 0 (empty), as the Co3SOP README "
+    "reports; co3sop-code, the mean over classes 1..23, as Co3SOP's code computes it; both count a class absent "
+    "from truth and prediction ('-') as IoU 0. surroundocc: the mean over the classes 1..23 present in the "
+    "truth, and geometry IoU (occupied against empty), as SurroundOcc reports."
+)
 
 
 def markdown_table(results: dict[str, dict], every_class: bool = False) -> str:

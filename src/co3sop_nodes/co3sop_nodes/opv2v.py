@@ -254,7 +254,9 @@ def read_labels(path: Path, range_name: str) -> np.ndarray:
         raise DatasetError(f"{path}: unreadable npz ({exc})") from None
     dims = BENCHMARK_RANGES[range_name].dims
     if voxels.ndim != 3 or any(have < want for have, want in zip(voxels.shape, dims)):
-        raise DatasetError(f"{path}: voxels shape {voxels.shape} is smaller than the {range_name} grid {dims} (or not 3D)")
+        raise DatasetError(
+            f"{path}: voxels shape {voxels.shape} is smaller than the {range_name} grid {dims} (or not 3D)"
+        )
     (big_x, big_y, _), (nx, ny, nz) = voxels.shape, dims
     voxels = voxels[(big_x - nx) // 2 : (big_x + nx) // 2, (big_y - ny) // 2 : (big_y + ny) // 2, :nz]
     if voxels.dtype != np.uint8:

@@ -43,7 +43,9 @@ class PairingConfig:
     history: int = 8  # frames kept per agent
     max_pending: int = 3  # own frames waiting at once; one more ends the oldest's wait
     stay_current: bool = True  # the newest ready own frame, older ones skipped; False: every one, oldest first
-    max_age_ns: int = 500_000_000  # a neighbour's frame this far from the ego's stamp is fused when none within tolerance is
+    max_age_ns: int = (
+        500_000_000  # a neighbour's frame this far from the ego's stamp is fused when none within tolerance is
+    )
 
     @property
     def reach_ns(self) -> int:
@@ -121,16 +123,24 @@ class Pairing(Generic[K, T]):
         def ready(stamp: int, deadline: float) -> bool:
             if monotonic >= deadline or (self.cfg.stay_current and stamp < newest):
                 return True
-            return not any(self.match(a, stamp) is None and all(s < stamp for s, _ in self._frames.get(a, ())) for a in live)
+            return not any(
+                self.match(a, stamp) is None and all(s < stamp for s, _ in self._frames.get(a, ())) for a in live
+            )
 
         if not self.cfg.stay_current:
             chosen = 0 if self._pending and ready(*self._pending[0]) else None
         else:
-            chosen = max((i for i, f in enumerate(self._pending) if ready(*f)), key=lambda i: (self._pending[i][0], i), default=None)
+            chosen = max(
+                (i for i, f in enumerate(self._pending) if ready(*f)),
+                key=lambda i: (self._pending[i][0], i),
+                default=None,
+            )
         if chosen is None:
             return None
         stamp = self._pending[chosen][0]
-        kept = deque(f for i, f in enumerate(self._pending) if i != chosen and (f[0] > stamp or not self.cfg.stay_current))
+        kept = deque(
+            f for i, f in enumerate(self._pending) if i != chosen and (f[0] > stamp or not self.cfg.stay_current)
+        )
         self.skipped += len(self._pending) - 1 - len(kept)
         self._pending = kept
         return stamp

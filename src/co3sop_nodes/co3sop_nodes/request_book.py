@@ -48,8 +48,14 @@ class RequestBook:
     def __len__(self) -> int:
         return len(self._requests)
 
-    def offer(self, topic: str, ego: int, request: Request, world_from_lidar: np.ndarray | None,
-              has_publisher: Callable[[str], bool]) -> Refusal | None:
+    def offer(
+        self,
+        topic: str,
+        ego: int,
+        request: Request,
+        world_from_lidar: np.ndarray | None,
+        has_publisher: Callable[[str], bool],
+    ) -> Refusal | None:
         """Keeps `request` as `ego`'s latest, or says why not. world_from_lidar: the vehicle's newest pose, if known."""
         self.expire(request.received_ns)
         bound = self._topics.get(ego)
@@ -57,13 +63,19 @@ class RequestBook:
             if has_publisher(bound):
                 return Refusal("request_topic", f"ego {ego}'s request maps come on {bound}; refused from another topic")
             self._requests.pop(ego, None)  # its publisher is gone: the id is free
-        if world_from_lidar is not None and (d := _distance(request.world_from_ego, world_from_lidar)) > self.comm_range:
+        if (
+            world_from_lidar is not None
+            and (d := _distance(request.world_from_ego, world_from_lidar)) > self.comm_range
+        ):
             return Refusal("request_range", f"ego {ego} is {d:.0f} m away, beyond comm_range {self.comm_range:g} m")
         self._requests.pop(ego, None)  # re-inserted last: insertion order is arrival order
         self._requests[ego], self._topics[ego] = request, topic
         while len(self._requests) > self.capacity:
-            drop = next(iter(self._requests)) if world_from_lidar is None else max(
-                self._requests, key=lambda e: _distance(self._requests[e].world_from_ego, world_from_lidar))
+            drop = (
+                next(iter(self._requests))
+                if world_from_lidar is None
+                else max(self._requests, key=lambda e: _distance(self._requests[e].world_from_ego, world_from_lidar))
+            )
             del self._requests[drop], self._topics[drop]
         return None
 
@@ -75,5 +87,9 @@ class RequestBook:
     def serving(self, now_ns: int, world_from_lidar: np.ndarray) -> dict[int, Request]:
         """The requests a frame at `world_from_lidar` answers: fresh, within comm_range, the max_egos nearest."""
         self.expire(now_ns)
-        near = sorted((d, ego) for ego, r in self._requests.items() if (d := _distance(r.world_from_ego, world_from_lidar)) <= self.comm_range)
+        near = sorted(
+            (d, ego)
+            for ego, r in self._requests.items()
+            if (d := _distance(r.world_from_ego, world_from_lidar)) <= self.comm_range
+        )
         return {ego: self._requests[ego] for _, ego in near[: self.max_egos]}

@@ -14,7 +14,9 @@ from launch_ros.substitutions import FindPackageShare
 def generate_launch_description() -> LaunchDescription:
     return LaunchDescription([
         DeclareLaunchArgument("ego_id", description="which vehicle is the ego"),
-        DeclareLaunchArgument("checkpoint", default_value="", description='model checkpoint (the vehicles\'): a .pt file or a shipped model by name (tiny-lidar, tiny, small); "" = tiny'),
+        DeclareLaunchArgument("checkpoint", default_value="",
+                              description='model checkpoint (the vehicles\'): a .pt file or a shipped model by name '
+                                          '(tiny-lidar, tiny, small); "" = tiny'),
         DeclareLaunchArgument("params_file", default_value=PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config", "ego.yaml"]),
                               description="the ego's parameters"),
         Node(

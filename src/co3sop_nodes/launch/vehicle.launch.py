@@ -14,7 +14,9 @@ from launch_ros.substitutions import FindPackageShare
 def generate_launch_description() -> LaunchDescription:
     return LaunchDescription([
         DeclareLaunchArgument("id", description="the vehicle's CAV id"),
-        DeclareLaunchArgument("checkpoint", default_value="", description='model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, small); "" = tiny'),
+        DeclareLaunchArgument("checkpoint", default_value="",
+                              description='model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, '
+                                          'small); "" = tiny'),
         DeclareLaunchArgument("params_file", default_value=PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config", "vehicle.yaml"]),
                               description="the vehicle's parameters"),
         Node(

@@ -33,8 +33,13 @@ def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:
         missing = (agent, stamp) not in rec.predictions
         pred = rec.predictions.get((agent, stamp), np.zeros_like(truth))
         path = out / f"bev_cav{agent}_{stamp}.png"
-        save_comparison(truth, pred, path, f"cav {agent}, stamp {stamp} ns, {rec.range_name}" + (" (no prediction)" if missing else ""),
-                        grid.voxel_size)
+        save_comparison(
+            truth,
+            pred,
+            path,
+            f"cav {agent}, stamp {stamp} ns, {rec.range_name}" + (" (no prediction)" if missing else ""),
+            grid.voxel_size,
+        )
         paths.append(path)
     return paths
 

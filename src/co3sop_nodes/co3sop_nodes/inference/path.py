@@ -93,7 +93,9 @@ def resolve_device(name: str, what: str = "device") -> torch.device:
     return device
 
 
-def inference_path(device: str = "auto", precision: str = "auto", compiled: bool = True, what: str = "") -> InferencePath:
+def inference_path(
+    device: str = "auto", precision: str = "auto", compiled: bool = True, what: str = ""
+) -> InferencePath:
     """The path for `device` (auto | cpu | cuda | cuda:N) and `precision` (auto | float32 | bfloat16 |
     float16) on this machine, `auto` resolved to what it has; a device it lacks is refused. `what`: how the
     caller spells its options in errors ("--" for a command line, "parameter " for a node)."""

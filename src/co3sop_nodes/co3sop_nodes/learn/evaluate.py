@@ -7,7 +7,7 @@
     ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
     ros2 run co3sop_nodes evaluate ... --ablation inputs          # real vs blank vs shuffled sensors (input controls)
     ros2 run co3sop_nodes evaluate ... --ablation distance        # off vs on by the nearest collaborator's distance
-    ros2 run co3sop_nodes evaluate ... --precision bfloat16 --ablation precision   # bfloat16 vs float32, labels compared
+    ros2 run co3sop_nodes evaluate ... --precision bfloat16 --ablation precision   # against float32, labels compared
     ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown
@@ -177,10 +177,19 @@ def _write(out: Path, name: str, text: str, data: dict) -> None:
     print(text)
 
 
-def _compare(opts, stem: str, heading: str, title: str, runs: dict[str, dict], reference: str, boot: Bootstrap,
-             note: str = "", extra: dict | None = None) -> dict:
-    """Writes runs (per-scenario confusions) as one table with intervals, plus each run's paired difference to `reference`
-    (and a `note` below it, `extra` in the JSON)."""
+def _compare(
+    opts,
+    stem: str,
+    heading: str,
+    title: str,
+    runs: dict[str, dict],
+    reference: str,
+    boot: Bootstrap,
+    note: str = "",
+    extra: dict | None = None,
+) -> dict:
+    """Writes runs (per-scenario confusions) as one table with intervals, plus each run's paired difference to
+    `reference` (and a `note` below it, `extra` in the JSON)."""
     summaries = {name: boot.summary(c) for name, c in runs.items()}
     differences = {name: boot.difference(c, runs[reference]) for name, c in runs.items() if name != reference}
     text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
@@ -333,7 +342,9 @@ def _precision(opts, cfg, stem, title, measure, boot) -> None:
     whose label is the same."""
     fast = opts.inference
     if not fast.reduced:
-        raise Co3sopError("--ablation precision compares --precision bfloat16 or float16 with float32: name one of them")
+        raise Co3sopError(
+            "--ablation precision compares --precision bfloat16 or float16 with float32: name one of them"
+        )
     reference = replace(fast, precision="float32")
     labels: dict[str, dict] = {}
     runs = {}
@@ -343,9 +354,17 @@ def _precision(opts, cfg, stem, title, measure, boot) -> None:
     same = sum(int((labels["float32"][i] == labels[fast.precision][i]).sum()) for i in labels["float32"])
     total = sum(v.size for v in labels["float32"].values())
     agreement = same / max(1, total)
-    _compare(opts, f"{stem}_precision", f"Inference precision ({fast.device})", title, runs, "float32", boot,
-             f"Labels equal to float32's on {100 * agreement:.2f} % of {total} voxels ({len(labels['float32'])} samples).",
-             {"device": fast.device, "label_agreement": agreement, "voxels": total})
+    _compare(
+        opts,
+        f"{stem}_precision",
+        f"Inference precision ({fast.device})",
+        title,
+        runs,
+        "float32",
+        boot,
+        f"Labels equal to float32's on {100 * agreement:.2f} % of {total} voxels ({len(labels['float32'])} samples).",
+        {"device": fast.device, "label_agreement": agreement, "voxels": total},
+    )
 
 
 ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs,
@@ -354,8 +373,12 @@ ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", nargs="+", help="checkpoints (model.pt or state.pt, or a shipped model by name: tiny-lidar, tiny, "
-                        "small); one column each (default: the shipped tiny one)")
+    parser.add_argument(
+        "--model",
+        nargs="+",
+        help="checkpoints (model.pt or state.pt, or a shipped model by name: tiny-lidar, tiny, "
+        "small); one column each (default: the shipped tiny one)",
+    )
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--out", type=Path, default=Path("results"))
@@ -366,9 +389,15 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     add_device_argument(parser)
-    parser.add_argument("--precision", default="float32", choices=PRECISIONS,
-                        help="inference precision (float32, the reference, by default; auto: what the machine computes fast)")
-    parser.add_argument("--reference-paths", action="store_true", help="the PyTorch reference paths instead of the compiled kernels")
+    parser.add_argument(
+        "--precision",
+        default="float32",
+        choices=PRECISIONS,
+        help="inference precision (float32, the reference, by default; auto: what the machine computes fast)",
+    )
+    parser.add_argument(
+        "--reference-paths", action="store_true", help="the PyTorch reference paths instead of the compiled kernels"
+    )
     opts = parser.parse_args(args)
     opts.command = shlex.join(["evaluate", *(sys.argv[1:] if args is None else args)])  # recorded beside every table
     if opts.collaborators is not None and opts.collaborators < 0:

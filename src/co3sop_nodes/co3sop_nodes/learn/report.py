@@ -56,7 +56,8 @@ ABLATION = ("title", "reference", "differences")  # any ablation (inputs, collab
 NEEDS = {"collaboration": (*ABLATION, "off", "on"), "evaluation": (), "distance": ("title", "command", "bins"),
          "precision": (*ABLATION, "command", "float32", "device", "label_agreement", "voxels"),
          "observed": ("splits", "range", "samples", "all", "classes")}
-META = {"title", "command", "trained", "reference", "differences", "splits", "device", "label_agreement", "voxels"}  # beside the scored runs
+# beside the scored runs
+META = {"title", "command", "trained", "reference", "differences", "splits", "device", "label_agreement", "voxels"}
 
 
 def _missing_runs(runs: dict) -> list[str]:
@@ -178,9 +179,12 @@ def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
     return lines
 
 
-GAIN_GOAL = 0.03  # the project's goal: a collaborative LiDAR gain of at least +3 mIoU points (1..23), every interval above zero
+# the project's goal: a collaborative LiDAR gain of at least +3 mIoU points (1..23), every interval above zero
+GAIN_GOAL = 0.03
 GAIN_GOAL_RANGES = ("51.2m", "76.8m")  # ... at these ranges; none at 25.6 m (the paper's own gain there: +0.68)
-CAMERA_GOAL = 0.15  # the project's goal: the camera model at least 15 mIoU (1..23) at 51.2 m, its gain's interval above zero
+CAMERA_GOAL = (
+    0.15  # the project's goal: the camera model at least 15 mIoU (1..23) at 51.2 m, its gain's interval above zero
+)
 HEADLINE = ("51.2m", 3)  # a headline model at 51.2 m is trained with at least 3 seeds
 
 
@@ -205,7 +209,8 @@ def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> l
                 continue
             score, goal, what = float(np.mean([point(r["on"], "co3sop-code") for r in reports])), CAMERA_GOAL, "mIoU 1..23 with collaboration"
         elif rng not in GAIN_GOAL_RANGES:
-            lines.append(about + f"mean gain {pct(mean)}; {intervals}; no goal at this range (the project sets +{pct(GAIN_GOAL)} at "
+            lines.append(about + f"mean gain {pct(mean)}; {intervals}; no goal at this range "
+                         f"(the project sets +{pct(GAIN_GOAL)} at "
                          f"{' and '.join(GAIN_GOAL_RANGES)})."
                          + why_short(results / f"observed-{rng}.json") + early_reference(runs, rng))
             continue
@@ -441,20 +446,27 @@ def precision_section(results: Path) -> list[str]:
     found = sorted((results / "precision").glob("*/*_precision.json"))
     if not found:
         return []
-    lines = ["## Inference precision against float32 (mIoU over classes 1..23, %)", "",
-             "The shipped weights on every test sample, float32 and the reduced precision on the same device; the difference is",
-             "paired (the same resampled scenarios), the label agreement is over every voxel of every sample.", "",
-             "| model | range | device | precision | float32 | this precision | difference [95 % interval] | labels equal to float32's |",
-             "|---|---|---|---|---:|---:|---:|---:|"]
+    lines = [
+        "## Inference precision against float32 (mIoU over classes 1..23, %)",
+        "",
+        "The shipped weights on every test sample, float32 and the reduced precision on the same device; the",
+        "difference is paired (the same resampled scenarios), the label agreement is over every voxel of every sample.",
+        "",
+        "| model | range | device | precision | float32 | this precision | difference [95 % interval] "
+        "| labels equal to float32's |",
+        "|---|---|---|---|---:|---:|---:|---:|",
+    ]
     commands = []
     for path in found:
         report = read_json(path, "precision")
         precision = next(iter(report["differences"]))
         diff = report["differences"][precision]["co3sop-code"]
         name, rng = path.stem.removesuffix("_precision").rsplit("_", 1)
-        lines.append(f"| {name} | {rng} | {report['device']} | {precision} | {pct(point(report['float32'], 'co3sop-code'))} | "
-                     f"{pct(point(report[precision], 'co3sop-code'))} | {pct(diff['delta'])} {span(diff['ci95'])} | "
-                     f"{100 * report['label_agreement']:.2f} % of {report['voxels']:,} |")
+        lines.append(
+            f"| {name} | {rng} | {report['device']} | {precision} | {pct(point(report['float32'], 'co3sop-code'))} | "
+            f"{pct(point(report[precision], 'co3sop-code'))} | {pct(diff['delta'])} {span(diff['ci95'])} | "
+            f"{100 * report['label_agreement']:.2f} % of {report['voxels']:,} |"
+        )
         commands.append(f"    {report['command']}")
     return [*lines, "", "Made by:", "", *commands, ""]
 
@@ -504,7 +516,8 @@ def render(results: Path, command: str) -> str:
            *(["An early-fusion model (the collaborators' LiDAR scans merged into the ego's before one network) has",
               "one stage; its `off` is the same network given the ego's scan only."] if any(model_preset(n).early_fusion for n, _, _ in runs) else []),
            "",
-           *headline(runs), "", "Against the project's goals (computed from the table above):", "", *goals(runs, results), "",
+           *headline(runs), "", "Against the project's goals (computed from the table above):", "",
+           *goals(runs, results), "",
            *table2_section(results, runs),
            *across_ranges(runs, "collaborators", "Number of collaborators, nearest first",
                           "The paper (its camera Co3SOP-Base, a figure without printed values): the gain comes mainly from the 1-2"
@@ -512,7 +525,8 @@ def render(results: Path, command: str) -> str:
            *across_ranges(runs, "pose_noise", "Pose noise (sigma 0.02 m, neighbours only)",
                           "The paper's column: its camera Co3SOP-Base on its CARLA data (compare the trend, not the level).",
                           PAPER_POSE_NOISE),
-           *single_agent_section(results), *precision_section(results), *validate_section(results), *levers_section(results),
+           *single_agent_section(results), *precision_section(results), *validate_section(results),
+           *levers_section(results),
            *observed_section(results)]
     for (preset, rng, steps), seeds in runs.items():
         first = seeds[min(seeds)]

@@ -230,8 +230,12 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
     parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
     parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one global batch each)")
-    parser.add_argument("--batch", type=int, default=1, help="samples per step in each process; under torchrun the global batch is "
-                        "this times the processes")
+    parser.add_argument(
+        "--batch",
+        type=int,
+        default=1,
+        help="samples per step in each process; under torchrun the global batch is this times the processes",
+    )
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
                         help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")

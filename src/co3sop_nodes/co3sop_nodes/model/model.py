@@ -65,8 +65,9 @@ class VehicleHalf(nn.Module):
         self.path = InferencePath()  # set by Co3SOP.use
 
     def forward(self, images=None, lidar2img=None, occupancy=None) -> VehicleOutput:
-        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4). LiDAR: occupancy (B, 1, X, Y, Z) 0/1.
-        Features and confidence in float32 whatever the path's precision (the wire's codecs take float32)."""
+        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4).
+        LiDAR: occupancy (B, 1, X, Y, Z) 0/1. Features and confidence in float32 whatever the path's precision (the
+        wire's codecs take float32)."""
         with self.path.autocast():
             out = self._forward(images, lidar2img, occupancy)
         return VehicleOutput(out.features.float().contiguous(), out.confidence.float().contiguous())

@@ -76,7 +76,10 @@ def array(t, dtype=np.float32) -> np.ndarray:
     """A tensor as a C-contiguous numpy array of `dtype` for a kernel (a view where it already is one; bfloat16
     and float16, which numpy lacks or the kernels do not read, widened to float32 first)."""
     t = t.detach().cpu()
-    if str(t.dtype) in ("torch.bfloat16", "torch.float16"):  # without importing torch: the simulator's kernels need none
+    if str(t.dtype) in (
+        "torch.bfloat16",
+        "torch.float16",
+    ):  # without importing torch: the simulator's kernels need none
         t = t.float()
     return np.ascontiguousarray(t.numpy(), dtype)
 

@@ -156,7 +156,11 @@ def played_topics(cavs: list[int], sensors: str) -> list[str]:
 def ensure_scenario(opts) -> Path:
     if opts.bag:
         return opts.bag
-    data, bags = (opts.data, opts.bags) if opts.frames == DEMO_FRAMES else (opts.data / f"{opts.frames}f", opts.bags / f"{opts.frames}f")
+    data, bags = (
+        (opts.data, opts.bags)
+        if opts.frames == DEMO_FRAMES
+        else (opts.data / f"{opts.frames}f", opts.bags / f"{opts.frames}f")
+    )
     bag = bags / "test" / generate.scenario_name("test", 0, DEMO_SEED)
     if not (bag / "metadata.yaml").exists():
         say(f"no demo scenario of {opts.frames} frames yet: generating one (3 CAVs) into {data} and {bags} "
@@ -171,8 +175,13 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
     parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
     parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
-    parser.add_argument("--frames", type=int, default=DEMO_FRAMES, help="10 Hz frames of the generated demo scenario (the same "
-                        "town and traffic, longer; generated once per length)")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=DEMO_FRAMES,
+        help="10 Hz frames of the generated demo scenario (the same "
+        "town and traffic, longer; generated once per length)",
+    )
     parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
     parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
     parser.add_argument("--model", default=DEFAULT_MODEL,
@@ -181,8 +190,13 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--params", nargs="*", default=[],
                         help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
     parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
-    parser.add_argument("--precision", default="auto", choices=PRECISIONS, help="inference precision of every node (auto: what the "
-                        "machine computes fast; float32 on CPUs without AMX or AVX-512 BF16)")
+    parser.add_argument(
+        "--precision",
+        default="auto",
+        choices=PRECISIONS,
+        help="inference precision of every node (auto: what the "
+        "machine computes fast; float32 on CPUs without AMX or AVX-512 BF16)",
+    )
     parser.add_argument("--device", default="cpu", help="where every node's model runs: cpu, cuda, cuda:N, auto")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
     parser.add_argument("--channel-rate", type=float, metavar="MBIT",
@@ -232,7 +246,11 @@ def frames_accounted(supervisor: Supervisor, ego: int) -> int:
     /diagnostics: the newest frame is never skipped, so the last report counts every skip before it)."""
     fused = supervisor.reports("ego")
     encoder = supervisor.reports(f"vehicle cav_{ego}")
-    return len(fused) + (int(fused[-1].get("skipped", 0)) if fused else 0) + (int(encoder[-1].get("skipped", 0)) if encoder else 0)
+    return (
+        len(fused)
+        + (int(fused[-1].get("skipped", 0)) if fused else 0)
+        + (int(encoder[-1].get("skipped", 0)) if encoder else 0)
+    )
 
 
 def _interrupt(signum, frame):
@@ -278,7 +296,8 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say("bag played; waiting for the ego to fuse the last frames")
-        supervisor.wait(f"the ego to fuse (or skip) all {frames} frames", lambda: frames_accounted(supervisor, ego) >= frames, timeout=120)
+        accounted = lambda: frames_accounted(supervisor, ego) >= frames  # noqa: E731
+        supervisor.wait(f"the ego to fuse (or skip) all {frames} frames", accounted, timeout=120)
     finally:
         for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
             if p is not None:
@@ -290,8 +309,14 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
     statuses = {"ego": reports, **{f"vehicle cav_{c}": supervisor.reports(f"vehicle cav_{c}") for c in cavs}}
     (opts.out / "diagnostics.json").write_text(json.dumps(statuses, indent=1) + "\n")
     skipped = frames_accounted(supervisor, ego) - published
-    say(f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames"
-        + (f", {skipped} skipped to stay current (the graph fuses slower than rate {opts.rate:g} feeds it)" if skipped else ""))
+    say(
+        f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames"
+        + (
+            f", {skipped} skipped to stay current (the graph fuses slower than rate {opts.rate:g} feeds it)"
+            if skipped
+            else ""
+        )
+    )
     if channel:  # what crossed the links in time, frame by frame
         say("neighbours fused per frame: " + " ".join(r.get("neighbours_used", "?") for r in reports) + "; heard but late: " +
             " ".join(r["neighbours_missing"] or "-" for r in reports) + "; never received: " +

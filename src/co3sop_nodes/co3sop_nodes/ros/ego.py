@@ -59,43 +59,151 @@ from .lifecycle import AUTOSTART, ManagedNode
 from .worker import Worker
 
 PARAMS = (
-    Param("ego_id", int, "the CAV this ego runs on: its own features come on cav_<ego_id>/voxel_features (relative: remap it "
-                         "where its encoder publishes elsewhere)", range=(0, 2**31 - 1)),
-    Param("checkpoint", str, "model checkpoint, the vehicles' model: a .pt file or a shipped model by name (tiny-lidar, tiny, "
-          "small); empty: tiny", ""),
-    Param("tolerance", float, "s: a neighbour's frame pairs with the ego's within this (and is waited for, up to max_wait)", 0.05, True, (0.0, 10.0)),
-    Param("max_age", float, "s: a neighbour whose frame of the ego's stamp never came (it skipped it, or it is late) is fused "
-          "with its nearest frame this close to the stamp, placed by its own pose at its own stamp", 0.5, True, (0.0, 10.0)),
+    Param(
+        "ego_id",
+        int,
+        "the CAV this ego runs on: its own features come on cav_<ego_id>/voxel_features (relative: remap it "
+        "where its encoder publishes elsewhere)",
+        range=(0, 2**31 - 1),
+    ),
+    Param(
+        "checkpoint",
+        str,
+        "model checkpoint, the vehicles' model: a .pt file or a shipped model by name (tiny-lidar, tiny, "
+        "small); empty: tiny",
+        "",
+    ),
+    Param(
+        "tolerance",
+        float,
+        "s: a neighbour's frame pairs with the ego's within this (and is waited for, up to max_wait)",
+        0.05,
+        True,
+        (0.0, 10.0),
+    ),
+    Param(
+        "max_age",
+        float,
+        "s: a neighbour whose frame of the ego's stamp never came (it skipped it, or it is late) is fused "
+        "with its nearest frame this close to the stamp, placed by its own pose at its own stamp",
+        0.5,
+        True,
+        (0.0, 10.0),
+    ),
     Param("comm_range", float, "m: neighbours farther away are not used", COMM_RANGE, True, (0.0, 10_000.0)),
     Param("max_collaborators", int, "the nearest neighbours used, at most the model's maximum", 6, True, (0, 64)),
     Param("max_wait", float, "s: how long a frame waits for live neighbours", 2.0, True, (0.0, 600.0)),
-    Param("neighbour_timeout", float, "s: a neighbour silent this long (while the ego's frames flow) is not waited for", 5.0, True,
-          (0.0, 3600.0)),
-    Param("pose_noise_mu", float, "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)", 0.0, True, (-100.0, 100.0)),
-    Param("pose_noise_sigma", float, "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)", 0.0, True, (0.0, 100.0)),
+    Param(
+        "neighbour_timeout",
+        float,
+        "s: a neighbour silent this long (while the ego's frames flow) is not waited for",
+        5.0,
+        True,
+        (0.0, 3600.0),
+    ),
+    Param(
+        "pose_noise_mu",
+        float,
+        "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)",
+        0.0,
+        True,
+        (-100.0, 100.0),
+    ),
+    Param(
+        "pose_noise_sigma",
+        float,
+        "m: Co3SOP's pose noise on neighbours, dx, dy ~ N(mu, sigma)",
+        0.0,
+        True,
+        (0.0, 100.0),
+    ),
     Param("seed", int, "seed of the pose noise", 0),
-    Param("max_stamp_ahead", float, "s: a message stamped further ahead of this node's clock (the bag's /clock under "
-          "use_sim_time) is refused, so one glitching or hostile stamp cannot make later frames look stale", 1.0, True, (0.0, 3600.0)),
-    Param("max_payload_mb", float, "declared uncompressed payloads above this are refused before decompressing", 64.0, True,
-          (0.001, 65536.0)),
-    Param("publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True),
-    Param("request_maps", bool, "publish /ego/request_map after each frame (vehicles with codec.selection request use it)", True, True),
+    Param(
+        "max_stamp_ahead",
+        float,
+        "s: a message stamped further ahead of this node's clock (the bag's /clock under "
+        "use_sim_time) is refused, so one glitching or hostile stamp cannot make later frames look stale",
+        1.0,
+        True,
+        (0.0, 3600.0),
+    ),
+    Param(
+        "max_payload_mb",
+        float,
+        "declared uncompressed payloads above this are refused before decompressing",
+        64.0,
+        True,
+        (0.001, 65536.0),
+    ),
+    Param(
+        "publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True
+    ),
+    Param(
+        "request_maps",
+        bool,
+        "publish /ego/request_map after each frame (vehicles with codec.selection request use it)",
+        True,
+        True,
+    ),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
     Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
-    Param("precision", str, "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
-          "float16 on other GPUs, else float32), float32, bfloat16, float16", "auto", choices=PRECISIONS),
-    Param("queue_depth", int, "messages per neighbour topic held by DDS until taken (the ego takes them as they come)", 10,
-          range=(1, 1000)),
-    Param("max_pending", int, "own frames waiting for neighbours at once; one more ends the oldest's wait (behind its input, "
-          "the ego fuses the newest ready frame and skips older ones)", PairingConfig.max_pending, True, (1, 1000)),
-    Param("stay_current", bool, "behind its input, fuse the newest ready own frame and skip older ones; false: fuse every own "
-          "frame, oldest first (to record every frame of a bag played faster than the ego fuses; latency then grows)", True, True),
-    Param("features_reliability", str, "QoS of the features subscriptions: reliable, or best_effort (matches both kinds of "
-          "vehicle; a reliable subscription does not match a best-effort vehicle)", "reliable", choices=tuple(RELIABILITIES)),
-    Param("max_topics", int, "VoxelFeatures topics subscribed at most (a flood of topics must not exhaust memory); topics "
-          "whose publishers left are released first", 32, range=(1, 4096)),
-    Param("discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)),
-    Param("reference_paths", bool, "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)", False),
+    Param(
+        "precision",
+        str,
+        "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
+        "float16 on other GPUs, else float32), float32, bfloat16, float16",
+        "auto",
+        choices=PRECISIONS,
+    ),
+    Param(
+        "queue_depth",
+        int,
+        "messages per neighbour topic held by DDS until taken (the ego takes them as they come)",
+        10,
+        range=(1, 1000),
+    ),
+    Param(
+        "max_pending",
+        int,
+        "own frames waiting for neighbours at once; one more ends the oldest's wait (behind its input, "
+        "the ego fuses the newest ready frame and skips older ones)",
+        PairingConfig.max_pending,
+        True,
+        (1, 1000),
+    ),
+    Param(
+        "stay_current",
+        bool,
+        "behind its input, fuse the newest ready own frame and skip older ones; false: fuse every own "
+        "frame, oldest first (to record every frame of a bag played faster than the ego fuses; latency then grows)",
+        True,
+        True,
+    ),
+    Param(
+        "features_reliability",
+        str,
+        "QoS of the features subscriptions: reliable, or best_effort (matches both kinds of "
+        "vehicle; a reliable subscription does not match a best-effort vehicle)",
+        "reliable",
+        choices=tuple(RELIABILITIES),
+    ),
+    Param(
+        "max_topics",
+        int,
+        "VoxelFeatures topics subscribed at most (a flood of topics must not exhaust memory); topics "
+        "whose publishers left are released first",
+        32,
+        range=(1, 4096),
+    ),
+    Param(
+        "discovery_period", float, "s between looks for new VoxelFeatures topics in the graph", 0.5, range=(0.01, 60.0)
+    ),
+    Param(
+        "reference_paths",
+        bool,
+        "the PyTorch reference paths instead of the compiled kernels (same outputs, slower)",
+        False,
+    ),
 )
 RUNTIME = [p.name for p in PARAMS if p.runtime]
 FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
@@ -139,7 +247,8 @@ class Ego(ManagedNode):
         # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
         # for bench_graph's same-run ratios
         self.reference_paths = p["reference_paths"]
-        self.model = model.use(inference_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter "))
+        path = inference_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter ")
+        self.model = model.use(path)
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.pairing: Pairing[str, Received] = Pairing(self.own_topic)
@@ -154,9 +263,12 @@ class Ego(ManagedNode):
         self._points = self.create_lifecycle_publisher(PointCloud2, topics.relative(topics.EGO_POINTS), OCCUPANCY_QOS)
         self._request = self.create_lifecycle_publisher(RequestMap, topics.relative(topics.EGO_REQUEST), REQUEST_QOS)
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
-        self.get_logger().info(f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
-                               f"{self.max_collaborators} collaborators within {self.comm_range:g} m; inference on {self.model.path.describe()}; "
-                               f"compiled kernels: {', '.join(self.kernels) or 'none'}")
+        self.get_logger().info(
+            f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
+            f"{self.max_collaborators} collaborators within {self.comm_range:g} m; "
+            f"inference on {self.model.path.describe()}; "
+            f"compiled kernels: {', '.join(self.kernels) or 'none'}"
+        )
 
     def activate(self) -> None:
         with self._worker.lock:
@@ -192,14 +304,24 @@ class Ego(ManagedNode):
         if values.get("max_collaborators", 0) > self.cfg.max_collaborators:
             raise Co3sopError(f"max_collaborators {values['max_collaborators']} is above the model's {self.cfg.max_collaborators}")
         cfg = self.pairing.cfg
-        self.pairing.cfg = replace(cfg, tolerance_ns=int(values.get("tolerance", cfg.tolerance_ns / 1e9) * 1e9),
-                                   max_wait_s=values.get("max_wait", cfg.max_wait_s),
-                                   neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9),
-                                   max_pending=values.get("max_pending", cfg.max_pending),
-                                   stay_current=values.get("stay_current", cfg.stay_current),
-                                   max_age_ns=int(values.get("max_age", cfg.max_age_ns / 1e9) * 1e9))
-        for name in ("comm_range", "max_collaborators", "pose_noise_mu", "pose_noise_sigma", "publish_points", "request_maps",
-                     "max_stamp_ahead"):
+        self.pairing.cfg = replace(
+            cfg,
+            tolerance_ns=int(values.get("tolerance", cfg.tolerance_ns / 1e9) * 1e9),
+            max_wait_s=values.get("max_wait", cfg.max_wait_s),
+            neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9),
+            max_pending=values.get("max_pending", cfg.max_pending),
+            stay_current=values.get("stay_current", cfg.stay_current),
+            max_age_ns=int(values.get("max_age", cfg.max_age_ns / 1e9) * 1e9),
+        )
+        for name in (
+            "comm_range",
+            "max_collaborators",
+            "pose_noise_mu",
+            "pose_noise_sigma",
+            "publish_points",
+            "request_maps",
+            "max_stamp_ahead",
+        ):
             if name in values:
                 setattr(self, name, values[name])
         if "max_payload_mb" in values:
@@ -211,20 +333,33 @@ class Ego(ManagedNode):
         if topic != self.own_topic:
             with self._worker.lock:
                 self.pairing.discovered(topic, time.time_ns())
-        sub = subscribe_foreign(self, VoxelFeatures, topic, lambda msg, raw, t=topic: self._on_features(t, msg, raw), self._qos,
-                                self.drops, raw=True)
+        sub = subscribe_foreign(
+            self,
+            VoxelFeatures,
+            topic,
+            lambda msg, raw, t=topic: self._on_features(t, msg, raw),
+            self._qos,
+            self.drops,
+            raw=True,
+        )
         with self._worker.lock:  # the worker reads the subscriptions (for the topics still silent)
             self._subs[topic] = sub
 
     def _discover(self) -> None:
         """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace, up to max_topics
         (to make room, topics without a publisher left are released)."""
-        new = [name for name, types in self.get_topic_names_and_types() if FEATURES_TYPE in types and name not in self._subs]
+        new = [
+            name
+            for name, types in self.get_topic_names_and_types()
+            if FEATURES_TYPE in types and name not in self._subs
+        ]
         if new and len(self._subs) + len(new) > self.params["max_topics"]:
             self._release_silent()
         for name in new:
             if len(self._subs) >= self.params["max_topics"]:
-                self.drops(name, "topics", f"not subscribed: already {len(self._subs)} VoxelFeatures topics (max_topics)")
+                self.drops(
+                    name, "topics", f"not subscribed: already {len(self._subs)} VoxelFeatures topics (max_topics)"
+                )
                 continue
             self._subscribe(name)
             self.get_logger().info(f"neighbour discovered: {name}")
@@ -278,15 +413,22 @@ class Ego(ManagedNode):
             return self.drops(topic, "header", str(exc))
         now = self.get_clock().now().nanoseconds  # 0 under use_sim_time before the first /clock: no bound yet
         if now and stamp > now + self.max_stamp_ahead * 1e9:
-            return self.drops(topic, "future", f"stamp {stamp} is {(stamp - now) / 1e9:.3f} s ahead of this node's clock, more than "
-                                               f"max_stamp_ahead {self.max_stamp_ahead:g} s")
+            return self.drops(
+                topic,
+                "future",
+                f"stamp {stamp} is {(stamp - now) / 1e9:.3f} s ahead of this node's clock, more than "
+                f"max_stamp_ahead {self.max_stamp_ahead:g} s",
+            )
         with self._worker.lock:
             stale, repeated = self.pairing.stale(stamp), topic == self.own_topic and self.pairing.repeated(stamp)
         if repeated:
-            return self.drops(topic, "repeated", f"own frame {stamp} was fused already or waits to be (a duplicate or a replay)")
+            return self.drops(
+                topic, "repeated", f"own frame {stamp} was fused already or waits to be (a duplicate or a replay)"
+            )
         if stale:
-            return self.drops(topic, "stale", f"stamp {stamp} is {(self.pairing.last_fused - stamp) / 1e6:.0f} ms older than the last "
-                                              f"fused frame, more than max_age / tolerance ({self.pairing.cfg.reach_ns / 1e6:.0f} ms)")
+            age_ms, reach_ms = (self.pairing.last_fused - stamp) / 1e6, self.pairing.cfg.reach_ns / 1e6
+            return self.drops(topic, "stale", f"stamp {stamp} is {age_ms:.0f} ms older than the last fused frame, "
+                                              f"more than max_age / tolerance ({reach_ms:.0f} ms)")
         t0 = time.perf_counter()
         try:
             enc = features_from_msg(msg)
@@ -322,23 +464,33 @@ class Ego(ManagedNode):
         if self.pairing.skipped > self._skipped_seen:
             n, self._skipped_seen = self.pairing.skipped - self._skipped_seen, self.pairing.skipped
             for _ in range(n):
-                self.skips(self.own_topic, "behind", "frames skipped: a newer own frame was ready (the ego fuses slower than "
-                                                     "its input comes)")
+                self.skips(
+                    self.own_topic,
+                    "behind",
+                    "frames skipped: a newer own frame was ready (the ego fuses slower than its input comes)",
+                )
         ego = self.pairing.match(self.own_topic, stamp)
         if ego is None:  # evicted by newer own frames while waiting
             return None
         heard = self.pairing.heard()
-        matched = {r.agent: r for t in heard if (r := self.pairing.match(t, stamp) or self.pairing.nearest(t, stamp)) is not None}
+        matched = {
+            r.agent: r
+            for t in heard
+            if (r := self.pairing.match(t, stamp) or self.pairing.nearest(t, stamp)) is not None
+        }
         missing = sorted(a for t in heard if (a := self._agents.get(t)) is not None and a not in matched)
         # discovered, yet not one frame received (a link that cannot carry its features, say): by topic, no id is known
         silent = sorted(t for t in self._subs if t != self.own_topic and t not in self._agents)
         self.pairing.fused(stamp)  # from now on, frames older than this one are stale
         return lambda: self._fuse(stamp, ego, matched, missing, silent)
 
-    def _fuse(self, stamp: int, ego: Received, matched: dict[int, Received], missing: list[int], silent: list[str]) -> None:
+    def _fuse(
+        self, stamp: int, ego: Received, matched: dict[int, Received], missing: list[int], silent: list[str]
+    ) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
-        pred = predict_frame(self.model, ego.out, ego.world_from_lidar, {a: (r.out, r.world_from_lidar) for a, r in matched.items()},
-                             self.comm_range, self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng)
+        candidates = {a: (r.out, r.world_from_lidar) for a, r in matched.items()}
+        pred = predict_frame(self.model, ego.out, ego.world_from_lidar, candidates, self.comm_range,
+                             self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng)
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
         t2 = time.perf_counter()
         frame = topics.lidar_frame(self.ego_id)
@@ -378,8 +530,12 @@ class Ego(ManagedNode):
 
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
-    parser = argparse.ArgumentParser(prog="ego", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=parameters_help((*PARAMS, AUTOSTART)))
+    parser = argparse.ArgumentParser(
+        prog="ego",
+        description=__doc__.split("\n\n")[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=parameters_help((*PARAMS, AUTOSTART)),
+    )
     parser.parse_args(remove_ros_args(argv)[1:])  # --help, or a usage error for anything but ROS arguments
     return spin_node(lambda: Ego().start(), argv, "ego")
 

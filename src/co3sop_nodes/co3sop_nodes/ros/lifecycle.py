@@ -56,8 +56,10 @@ class ManagedNode(LifecycleNode):
             valid = {label: tid for tid, label, *_ in machine.available_transitions}
             wanted = request.transition.label or request.transition.id
             if wanted not in (valid if request.transition.label else set(valid.values())):
-                self.get_logger().warning(f"lifecycle transition {wanted!r} refused: not valid from state {state!r} "
-                                          f"(valid: {', '.join(f'{label} ({tid})' for label, tid in valid.items()) or 'none'})")
+                self.get_logger().warning(
+                    f"lifecycle transition {wanted!r} refused: not valid from state {state!r} "
+                    f"(valid: {', '.join(f'{label} ({tid})' for label, tid in valid.items()) or 'none'})"
+                )
                 response.success = False
                 return response
             return change_state(request, response)

@@ -90,7 +90,12 @@ def main(args: list[str] | None = None) -> int:
                         help="hold the first frame up to this many seconds until every topic has a subscriber")
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
-    for name, value, low in (("rate", opts.rate, 0.0), ("frames", opts.frames, 0), ("channels", opts.channels, 0), ("topk", opts.topk, 0)):
+    for name, value, low in (
+        ("rate", opts.rate, 0.0),
+        ("frames", opts.frames, 0),
+        ("channels", opts.channels, 0),
+        ("topk", opts.topk, 0),
+    ):
         if not value > low:
             parser.error(f"--{name} {value}: must be above {low}")
     if opts.wait_subscribers < 0:

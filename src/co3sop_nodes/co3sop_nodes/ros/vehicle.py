@@ -57,40 +57,118 @@ SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and fo
 
 
 PARAMS = (
-    Param("id", int, "this vehicle's CAV id, carried in its messages (--id N also puts the node in namespace /cav_<id>)",
-          range=(0, 2**31 - 1)),
-    Param("checkpoint", str, "model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, small); empty: tiny", ""),
-    Param("modality", str, "camera or lidar, checked against the checkpoint's; empty: the checkpoint's", "", choices=("", "camera", "lidar")),
-    Param("range", str, "benchmark range, checked against the checkpoint's; empty: the checkpoint's", "",
-          choices=("", *BENCHMARK_RANGES)),
+    Param(
+        "id",
+        int,
+        "this vehicle's CAV id, carried in its messages (--id N also puts the node in namespace /cav_<id>)",
+        range=(0, 2**31 - 1),
+    ),
+    Param(
+        "checkpoint",
+        str,
+        "model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, small); empty: tiny",
+        "",
+    ),
+    Param(
+        "modality",
+        str,
+        "camera or lidar, checked against the checkpoint's; empty: the checkpoint's",
+        "",
+        choices=("", "camera", "lidar"),
+    ),
+    Param(
+        "range",
+        str,
+        "benchmark range, checked against the checkpoint's; empty: the checkpoint's",
+        "",
+        choices=("", *BENCHMARK_RANGES),
+    ),
     Param("cameras", list, "camera names of a camera model's frame", ["camera0", "camera1", "camera2", "camera3"]),
     Param("threads", int, "torch CPU threads (several vehicles share a machine in the demo)", 1, range=(1, 256)),
     Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
-    Param("precision", str, "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
-          "float16 on other GPUs, else float32), float32, bfloat16, float16", "auto", choices=PRECISIONS),
+    Param(
+        "precision",
+        str,
+        "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
+        "float16 on other GPUs, else float32), float32, bfloat16, float16",
+        "auto",
+        choices=PRECISIONS,
+    ),
     Param("max_pending", int, "incomplete frames kept while waiting for their last message", 10, range=(1, 1000)),
-    Param("stay_current", bool, "slower than the sensors, encode the newest complete frame and skip older ones; false: encode "
-          "every frame, oldest first (latency then grows)", True, True),
+    Param(
+        "stay_current",
+        bool,
+        "slower than the sensors, encode the newest complete frame and skip older ones; false: encode "
+        "every frame, oldest first (latency then grows)",
+        True,
+        True,
+    ),
     Param("codec.dtype", str, "feature precision on the wire", "float16", True, choices=tuple(FEATURE_DTYPES)),
-    Param("codec.selection", str, "which voxels are sent: dense, topk (highest confidence), threshold, or request (confidence x "
-          "the ego's request map; without one, as topk)", "dense", True, choices=SELECTIONS),
+    Param(
+        "codec.selection",
+        str,
+        "which voxels are sent: dense, topk (highest confidence), threshold, or request (confidence x "
+        "the ego's request map; without one, as topk)",
+        "dense",
+        True,
+        choices=SELECTIONS,
+    ),
     Param("codec.topk", int, "voxels kept by topk", 4096, True, (1, 2**31 - 1)),
     Param("codec.threshold", float, "confidence kept by threshold", 0.5, True, (0.0, 1.0)),
     Param("codec.compression", str, "payload compression", "zstd", True, choices=CODECS),
     Param("codec.level", int, "zstd level", 3, True, (1, 22)),
-    Param("request_timeout", float, "s: an ego's request map not renewed within this is no longer served", 1.0, True, (0.0, 3600.0)),
+    Param(
+        "request_timeout",
+        float,
+        "s: an ego's request map not renewed within this is no longer served",
+        1.0,
+        True,
+        (0.0, 3600.0),
+    ),
     Param("comm_range", float, "m: request maps of egos farther away are refused", COMM_RANGE, True, (0.0, 10_000.0)),
     Param("max_egos", int, "egos answered per frame with codec.selection request, nearest first", 4, True, (1, 64)),
-    Param("max_request_topics", int, "RequestMap topics subscribed at most (a flood of topics must not exhaust memory); "
-          "topics whose publishers left are released first", 32, range=(1, 4096)),
-    Param("codec.max_bytes", int, "byte budget per message for topk / request (0: none; then codec.topk voxels)", 0, True, (0, 2**31 - 1)),
-    Param("codec.burst_bytes", int, "with codec.max_bytes: the most one message may take, max_bytes then being the average per "
-          "message to each ego (what a message leaves unspent is saved for the next; 0: every message capped at max_bytes)",
-          0, True, (0, 2**31 - 1)),
-    Param("codec.rank", int, "transform coding: K coefficients per voxel on the message's own K principal directions (0: the "
-          "channels as they are)", 0, True, (0, 4096)),
-    Param("features_reliability", str, "QoS of the published features: reliable (resends lost fragments) or best_effort (a "
-          "sample with a lost fragment is dropped; only best-effort subscribers match)", "reliable", choices=tuple(RELIABILITIES)),
+    Param(
+        "max_request_topics",
+        int,
+        "RequestMap topics subscribed at most (a flood of topics must not exhaust memory); "
+        "topics whose publishers left are released first",
+        32,
+        range=(1, 4096),
+    ),
+    Param(
+        "codec.max_bytes",
+        int,
+        "byte budget per message for topk / request (0: none; then codec.topk voxels)",
+        0,
+        True,
+        (0, 2**31 - 1),
+    ),
+    Param(
+        "codec.burst_bytes",
+        int,
+        "with codec.max_bytes: the most one message may take, max_bytes then being the average per message to each "
+        "ego (what a message leaves unspent is saved for the next; 0: every message capped at max_bytes)",
+        0,
+        True,
+        (0, 2**31 - 1),
+    ),
+    Param(
+        "codec.rank",
+        int,
+        "transform coding: K coefficients per voxel on the message's own K principal directions (0: the "
+        "channels as they are)",
+        0,
+        True,
+        (0, 4096),
+    ),
+    Param(
+        "features_reliability",
+        str,
+        "QoS of the published features: reliable (resends lost fragments) or best_effort (a "
+        "sample with a lost fragment is dropped; only best-effort subscribers match)",
+        "reliable",
+        choices=tuple(RELIABILITIES),
+    ),
 )
 CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.topk": "topk", "codec.threshold": "threshold",
                 "codec.compression": "codec", "codec.level": "level", "codec.max_bytes": "max_bytes",
@@ -182,16 +260,25 @@ class Vehicle(ManagedNode):
     def _discover_requests(self) -> None:
         """Every RequestMap topic in the graph, up to max_request_topics (topics without a publisher are released)."""
         limit = self.params["max_request_topics"]
-        new = [name for name, types in self.get_topic_names_and_types() if REQUEST_TYPE in types and name not in self._request_subs]
+        new = [
+            name
+            for name, types in self.get_topic_names_and_types()
+            if REQUEST_TYPE in types and name not in self._request_subs
+        ]
         if new and len(self._request_subs) + len(new) > limit:
             for topic in [t for t in self._request_subs if self.count_publishers(t) == 0]:
                 self.destroy_subscription(self._request_subs.pop(topic))
         for name in new:
             if len(self._request_subs) >= limit:
-                self.drops(name, "topics", f"not subscribed: already {len(self._request_subs)} RequestMap topics (max_request_topics)")
+                self.drops(
+                    name,
+                    "topics",
+                    f"not subscribed: already {len(self._request_subs)} RequestMap topics (max_request_topics)",
+                )
                 continue
-            self._request_subs[name] = subscribe_foreign(self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg),
-                                                         REQUEST_QOS, self.drops)
+            self._request_subs[name] = subscribe_foreign(
+                self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg), REQUEST_QOS, self.drops
+            )
 
     def _on_request(self, topic: str, msg: RequestMap) -> None:
         try:
@@ -207,7 +294,9 @@ class Vehicle(ManagedNode):
             return
         request = Request(need, pose.matrix(), stamp_to_ns(msg.header.stamp), time.time_ns())
         with self._worker.lock:
-            refused = self._requests.offer(topic, msg.agent_id, request, self._pose, lambda t: self.count_publishers(t) > 0)
+            refused = self._requests.offer(
+                topic, msg.agent_id, request, self._pose, lambda t: self.count_publishers(t) > 0
+            )
         if refused is not None:
             self.drops(topic, refused.kind, refused.reason)
 
@@ -282,13 +371,18 @@ class Vehicle(ManagedNode):
             if self.params["stay_current"]:
                 ready, passed = ready[-1:], ready[:-1]
                 for frame in passed:
-                    self.skips(self.get_namespace(), "behind", f"frame {frame.stamp} skipped: frame {ready[0].stamp} is complete "
-                                                               "and this vehicle encodes slower than its sensors send")
+                    self.skips(
+                        self.get_namespace(),
+                        "behind",
+                        f"frame {frame.stamp} skipped: frame {ready[0].stamp} is complete "
+                        "and this vehicle encodes slower than its sensors send",
+                    )
             self._ready = ready
             self._worker.wake()
 
     def _take(self):
-        """On the worker, under its lock: the oldest complete frame waiting (with stay_current, the only one), as a job."""
+        """On the worker, under its lock: the oldest complete frame waiting (with stay_current, the only one), as a
+        job."""
         if not self._ready:
             return None
         frame = self._ready.pop(0)
@@ -347,8 +441,12 @@ class Vehicle(ManagedNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="vehicle", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=parameters_help((*PARAMS, AUTOSTART)))
+    parser = argparse.ArgumentParser(
+        prog="vehicle",
+        description=__doc__.split("\n\n")[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=parameters_help((*PARAMS, AUTOSTART)),
+    )
     parser.add_argument("--id", type=int, help="this vehicle's CAV id: sets parameter id and, unless __ns is given, the namespace /cav_<id>")
     argv = list(sys.argv if args is None else args)
     opts = parser.parse_args(remove_ros_args(argv)[1:])
