@@ -7,7 +7,7 @@ import torch
 
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig
 from co3sop_nodes.model.head import OccupancyHead
-from co3sop_nodes.model.outputs import labels_from_logits
+from co3sop_nodes.inference.outputs import labels_from_logits
 
 # a model small enough to train for a few steps or time a frame in seconds on CPU, of any preset's structure
 MICRO = dict(custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)), image_size=(64, 48), backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=16,

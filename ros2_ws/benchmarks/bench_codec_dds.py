@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from co3sop_nodes import synthetic
-from co3sop_nodes.classes import NUM_CLASSES
-from co3sop_nodes.codec import STANDARD_FEATURE_SETTINGS, decode_features, decode_labels, encode_features, encode_labels
-from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.data import synthetic
+from co3sop_nodes.common.classes import NUM_CLASSES
+from co3sop_nodes.v2x.codec import STANDARD_FEATURE_SETTINGS, decode_features, decode_labels, encode_features, encode_labels
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from timing import timed
 
 HERE = Path(__file__).resolve().parent

@@ -38,11 +38,11 @@ from pathlib import Path
 import numpy as np
 from ament_index_python.packages import get_package_prefix
 
-from co3sop_nodes.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
-from co3sop_nodes.learn.evaluate import plot_codecs
+from co3sop_nodes.v2x.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
+from co3sop_nodes.eval.evaluate import plot_codecs
 from co3sop_nodes.ros.demo import DEFAULT_MODEL
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
-from co3sop_nodes.scoring import read_recording
+from co3sop_nodes.eval.scoring import read_recording
 
 # The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps
 # (the ego's previous frame's) at several budgets, among those `evaluate --ablation codec` compares offline

@@ -28,14 +28,14 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from co3sop_nodes.inference import PRECISIONS, InferencePath, cpu_bfloat16_unit
-from co3sop_nodes.learn.device import add_device_argument, select_device
-from co3sop_nodes.model import pace
-from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
+from co3sop_nodes.cli.device import add_device_argument, select_device
+from co3sop_nodes.inference import pace
+from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.model import VehicleOutput, build_model
-from co3sop_nodes.model.outputs import labels_from_logits
-from co3sop_nodes.model.predict import predict_frame
-from co3sop_nodes.model.warp import warp_compiled, warp_with_mask
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model
+from co3sop_nodes.inference.outputs import labels_from_logits
+from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
 from timing import timed
 
 

@@ -27,9 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from co3sop_nodes import native, opv2v
-from co3sop_nodes.bags import BagWriter
-from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes import kernels
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.data.bags import BagWriter
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.sim import camera, lidar, rig
 from co3sop_nodes.sim.raycast import ObjectMeshes, RayScene
 from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
@@ -149,7 +150,7 @@ def generation_table(frames: int) -> str:
     ]
     per_cav_frame = {}
     for enabled in (False, True):
-        native.ENABLED = enabled
+        kernels.ENABLED = enabled
         dt, cav_frames, bag_mb, bag_s = generate_once(frames)
         per_cav_frame[enabled] = dt / cav_frames
         rows.append(f"| {'on' if enabled else 'off'} | {frames / dt:.2f} | {cav_frames / dt:.2f} | {dt / cav_frames:.2f} | "

@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from co3sop_nodes.grid import BENCHMARK_RANGES
-from co3sop_nodes.learn.dataset import OccupancyDataset
-from co3sop_nodes.learn.device import add_device_argument, select_device
-from co3sop_nodes.learn.train import Trainer
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.cli.device import add_device_argument, select_device
+from co3sop_nodes.train.trainer import Trainer
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.co3sop import build_model
 from timing import timed
 
 

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import torch
 
-from co3sop_nodes.codec import QUANTIZED, FeatureCodecConfig
-from co3sop_nodes.learn.dataset import OccupancyDataset
-from co3sop_nodes.learn.evaluate import evaluate
-from co3sop_nodes.metrics import Bootstrap, point
-from co3sop_nodes.model.checkpoint import load_model
+from co3sop_nodes.v2x.codec import QUANTIZED, FeatureCodecConfig
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.eval.evaluate import evaluate
+from co3sop_nodes.eval.metrics import Bootstrap, point
+from co3sop_nodes.inference.checkpoint import load_model
 
 UNBOUNDED = 2**31 - 1  # the largest codec.max_bytes: every requested voxel fits
 

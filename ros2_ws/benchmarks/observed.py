@@ -1,5 +1,5 @@
 """What neighbours can add: the share of ground-truth occupied voxels that the ego's LiDAR hits, and that the
-ego's and its collaborators' LiDARs hit together (co3sop_nodes.learn.observed).
+ego's and its collaborators' LiDARs hit together (co3sop_nodes.eval.observed).
 
     ros2_ws/benchmarks/observed.py --data data/bench --splits test [--range 51.2m] [--out FILE.json]
 
@@ -16,8 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-from co3sop_nodes.learn.dataset import OccupancyDataset
-from co3sop_nodes.learn.observed import observed, observed_table
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.eval.observed import observed, observed_table
 from co3sop_nodes.model.config import preset
 
 

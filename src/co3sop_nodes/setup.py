@@ -8,7 +8,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "tests"]),
-    package_data={PACKAGE: ["native/*.c"]},  # C kernels, compiled on first use (co3sop_nodes.native)
+    package_data={PACKAGE: ["kernels/*.c"]},  # C kernels, compiled on first use (co3sop_nodes.kernels)
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml", "rosdep.yaml"]),
@@ -37,9 +37,9 @@ setup(
             f"convert = {PACKAGE}.cli.convert:entry",
             f"info = {PACKAGE}.cli.info:entry",
             f"voxelize = {PACKAGE}.cli.voxelize:entry",
-            f"train = {PACKAGE}.learn.train:entry",
-            f"evaluate = {PACKAGE}.learn.evaluate:entry",
-            f"report = {PACKAGE}.learn.report:entry",
+            f"train = {PACKAGE}.train.trainer:entry",
+            f"evaluate = {PACKAGE}.eval.evaluate:entry",
+            f"report = {PACKAGE}.eval.report:entry",
         ],
     },
 )

@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 from conftest import executable
 
-from co3sop_nodes import channel as ch
-from co3sop_nodes import topics
-from co3sop_nodes.channel import Channel, ChannelError, Link
+from co3sop_nodes.v2x import channel as ch
+from co3sop_nodes.common import topics
+from co3sop_nodes.v2x.channel import Channel, ChannelError, Link
 from co3sop_nodes.ros.dds import channel_environment
-from co3sop_nodes.scoring import message_counts
+from co3sop_nodes.eval.scoring import message_counts
 
 FRAMES = 5
 
@@ -102,7 +102,7 @@ def test_channel_is_removed_when_its_user_fails():
 
 LAUNCHER = """
 import time
-from co3sop_nodes.channel import Channel, Link
+from co3sop_nodes.v2x.channel import Channel, Link
 channel = Channel({"ego": Link(10.0), "cav1": Link(10.0)}).__enter__()
 print("up", flush=True)
 time.sleep(120)

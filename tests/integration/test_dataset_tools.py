@@ -14,7 +14,8 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from co3sop_nodes import bags, opv2v
+from co3sop_nodes.data import bags
+from co3sop_nodes.data import opv2v
 from conftest import executable
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
@@ -282,9 +283,9 @@ def test_damaged_bags_are_explained(damaged_bags, command, damage):
 
 def _recording(path: Path, malformed_at: int | None) -> Path:
     """A recording of 3 predictions and their ground truth; the prediction at `malformed_at` is not valid CDR."""
-    from co3sop_nodes.codec import encode_labels
-    from co3sop_nodes.grid import BENCHMARK_RANGES
-    from co3sop_nodes.recording import McapRecorder
+    from co3sop_nodes.v2x.codec import encode_labels
+    from co3sop_nodes.common.grid import BENCHMARK_RANGES
+    from co3sop_nodes.data.recording import McapRecorder
 
     grid, store = BENCHMARK_RANGES["51.2m"], bags.typestore()
     with McapRecorder(path) as rec:

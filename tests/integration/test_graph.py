@@ -21,19 +21,19 @@ from rclpy.serialization import deserialize_message
 from ament_index_python.packages import get_package_share_directory
 from conftest import executable
 
-from co3sop_nodes import topics
-from co3sop_nodes.bags import read_frames
-from co3sop_nodes.byte_budget import SenderBudgets
-from co3sop_nodes.codec import FeatureCodecConfig, decode_features, decode_request
-from co3sop_nodes.learn.bag_eval import predict_bag, vehicle_outputs
-from co3sop_nodes.model.checkpoint import export_model, load_model, shipped_checkpoint
+from co3sop_nodes.common import topics
+from co3sop_nodes.data.bags import read_frames
+from co3sop_nodes.v2x.sender_budget import SenderBudgets
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
+from co3sop_nodes.eval.bag_eval import predict_bag, vehicle_outputs
+from co3sop_nodes.inference.checkpoint import export_model, load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.model import build_model
-from co3sop_nodes.model.outputs import encode_output
-from co3sop_nodes.model.request import request_for_neighbour
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.inference.outputs import encode_output
+from co3sop_nodes.v2x.request_map import request_for_neighbour
 from co3sop_nodes.ros.convert import features_from_msg, pose_from_msg, request_from_msg, stamp_to_ns
 from co3sop_nodes.ros.supervisor import Supervisor
-from co3sop_nodes.scoring import read_recording
+from co3sop_nodes.eval.scoring import read_recording
 
 FRAMES = 4
 # the ego fuses (and vehicles encode) every frame, waiting for every neighbour, whatever the machine keeps up with:

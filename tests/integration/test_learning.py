@@ -13,17 +13,17 @@ import numpy as np
 import pytest
 import torch
 
-from co3sop_nodes import synthetic
+from co3sop_nodes.data import synthetic
 from co3sop_nodes.inference import InferencePath
-from co3sop_nodes.learn.dataset import OccupancyDataset
-from co3sop_nodes.learn.evaluate import evaluate
-from co3sop_nodes.metrics import Confusion
-from co3sop_nodes.model.checkpoint import load_model, shipped_checkpoint
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.eval.evaluate import evaluate
+from co3sop_nodes.eval.metrics import Confusion
+from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.inputs import to_batch
+from co3sop_nodes.inference.inputs import to_batch
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
-from co3sop_nodes.model.model import build_model
-from co3sop_nodes.model.predict import predict_frame
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.inference.predict import predict_frame
 from conftest import executable
 from model_checks import MICRO, assert_labels_equal, reference
 

@@ -12,7 +12,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from test_node_faults import EGO, start, wait_for
 
-from co3sop_nodes import topics
+from co3sop_nodes.common import topics
 
 VALID = {
     "unconfigured": {Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_UNCONFIGURED_SHUTDOWN},

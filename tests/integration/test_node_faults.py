@@ -25,11 +25,11 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 from rosbags.highlevel import AnyReader
 
-from co3sop_nodes import topics
-from co3sop_nodes.cloud import occupancy_cloud
-from co3sop_nodes.codec import FeatureCodecConfig, encode_features, encode_labels, encode_request
-from co3sop_nodes.geometry import Pose
-from co3sop_nodes.grid import BENCHMARK_RANGES
+from co3sop_nodes.common import topics
+from co3sop_nodes.viz.cloud import occupancy_cloud
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_labels, encode_request
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.convert import cloud_to_msg, features_to_msg, labels_to_msg, ns_to_stamp, request_to_msg
 from co3sop_nodes.ros.dds import REQUEST_QOS

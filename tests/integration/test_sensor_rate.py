@@ -15,7 +15,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 from test_node_faults import EGO, LIDAR_CAV, OTHER, QOS, T0, features, lidar_frame, start, wait_ready, wait_subscribed
 
-from co3sop_nodes import topics
+from co3sop_nodes.common import topics
 
 FRAMES = 40
 PERIOD_NS = 20_000_000  # 50 Hz: several times what one core fuses or encodes

@@ -1,11 +1,11 @@
-"""co3sop_nodes.assembly: a vehicle's messages grouped into frames by stamp (late, missing, repeated and
+"""co3sop_nodes.v2x.sender_frames: a vehicle's messages grouped into frames by stamp (late, missing, repeated and
 interleaved parts)."""
 
 from __future__ import annotations
 
 import pytest
 
-from co3sop_nodes.assembly import FrameAssembly
+from co3sop_nodes.v2x.sender_frames import FrameAssembly
 
 PARTS = ("pose", "image:camera0", "info:camera0")
 

@@ -1,14 +1,14 @@
-"""The byte budget of a rate-limited link (byte_budget.py) and the codec settings that ask for it."""
+"""The byte budget of a rate-limited link (v2x/sender_budget.py) and the codec settings that ask for it."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from co3sop_nodes.byte_budget import ByteBudget, SenderBudgets, budget_for
-from co3sop_nodes.codec import FeatureCodecConfig, encode_features
-from co3sop_nodes.errors import CodecError
-from co3sop_nodes.grid import GridSpec
+from co3sop_nodes.v2x.sender_budget import ByteBudget, SenderBudgets, budget_for
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features
+from co3sop_nodes.common.errors import CodecError
+from co3sop_nodes.common.grid import GridSpec
 
 
 def test_unspent_bytes_carry_over_up_to_the_burst():

@@ -6,10 +6,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.model.checkpoint import export_model, load_graph_model, load_model, save_training_state
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.inference.checkpoint import export_model, load_graph_model, load_model, save_training_state
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
-from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.co3sop import build_model
 
 SMALL = dict(custom_grid=((-6.4, -6.4, -2.0), 0.4, (32, 32, 8)), image_size=(32, 24),
              backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=8, embed_dims=8,
@@ -75,7 +75,7 @@ SHIPPED = sorted(p.stem for p in (Path(__file__).parents[2] / "src/co3sop_nodes/
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_every_shipped_checkpoint_is_installed_small_and_loads(name):
-    from co3sop_nodes.model.checkpoint import shipped_checkpoint
+    from co3sop_nodes.inference.checkpoint import shipped_checkpoint
 
     path = shipped_checkpoint(f"{name}.pt")
     assert path.stat().st_size <= 5 * 2**20
@@ -89,7 +89,7 @@ def test_every_shipped_checkpoint_is_installed_small_and_loads(name):
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_every_shipped_checkpoints_card_lists_the_commands_that_made_it(name):
-    from co3sop_nodes.model.checkpoint import shipped_checkpoint
+    from co3sop_nodes.inference.checkpoint import shipped_checkpoint
 
     card = (Path(__file__).parents[2] / f"src/co3sop_nodes/checkpoints/{name}.md").read_text()
     _, data = load_model(shipped_checkpoint(f"{name}.pt"))
@@ -135,7 +135,7 @@ def test_checkpoints_without_weights_or_config_or_that_do_not_fit_are_explained(
 
 
 def test_a_checkpoint_is_named_by_path_or_by_shipped_name(tmp_path):
-    from co3sop_nodes.model.checkpoint import resolve_checkpoint, shipped_checkpoint
+    from co3sop_nodes.inference.checkpoint import resolve_checkpoint, shipped_checkpoint
 
     assert resolve_checkpoint("tiny-lidar") == shipped_checkpoint("tiny-lidar.pt")
     assert resolve_checkpoint("") == resolve_checkpoint(None) == shipped_checkpoint()

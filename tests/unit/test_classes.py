@@ -1,11 +1,11 @@
-"""Unit tests for co3sop_nodes.classes: the 24 labels and the paper's palette."""
+"""Unit tests for co3sop_nodes.common.classes: the 24 labels and the paper's palette."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from co3sop_nodes import classes
+from co3sop_nodes.common import classes
 
 
 def test_24_classes():

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from co3sop_nodes.classes import IGNORE, PALETTE
-from co3sop_nodes.cloud import CLOUD_DTYPE, cloud_xyz, occupancy_cloud, occupancy_cloud_reference
-from co3sop_nodes.errors import DatasetError
-from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.common.classes import IGNORE, PALETTE
+from co3sop_nodes.viz.cloud import CLOUD_DTYPE, cloud_xyz, occupancy_cloud, occupancy_cloud_reference
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 
 
 def test_occupied_voxel_centres_in_the_palette():

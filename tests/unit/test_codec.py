@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.codec (ROS-free, CPU only, fast).
+"""Unit tests for co3sop_nodes.v2x.codec (ROS-free, CPU only, fast).
 
 Round trips are property tests over small random grids for every codec
 setting; the wire layout is checked against VoxelFeatures.msg /
@@ -22,8 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from co3sop_nodes import codec
-from co3sop_nodes.codec import (
+from co3sop_nodes.v2x import codec
+from co3sop_nodes.v2x.codec import (
     CODECS,
     DEFAULT_MAX_RAW_BYTES,
     FEATURE_DTYPES,
@@ -38,7 +38,7 @@ from co3sop_nodes.codec import (
     encode_features,
     encode_labels,
 )
-from co3sop_nodes.errors import (
+from co3sop_nodes.common.errors import (
     CodecError,
     Co3sopError,
     CorruptPayloadError,
@@ -47,7 +47,7 @@ from co3sop_nodes.errors import (
     SizeMismatchError,
     UnknownCodecError,
 )
-from co3sop_nodes.grid import GridSpec
+from co3sop_nodes.common.grid import GridSpec
 
 MIB = 1024 * 1024
 EPS32 = 2.0**-24  # unit round-off of float32

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from co3sop_nodes.collaboration import nearest_collaborators, noisy_relative
+from co3sop_nodes.v2x.neighbours import nearest_collaborators, noisy_relative
 
 
 def at(x: float, y: float) -> np.ndarray:

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from co3sop_nodes.errors import DatasetError
-from co3sop_nodes.learn.controls import GREY, ControlledInputs
-from co3sop_nodes.learn.dataset import AgentRecord, OccupancyDataset
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.eval.controls import GREY, ControlledInputs
+from co3sop_nodes.train.dataset import AgentRecord, OccupancyDataset
 
 
 def fake_dataset(scenarios: int, frames: int = 2, agents: int = 2, modality: str = "camera") -> OccupancyDataset:

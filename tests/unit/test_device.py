@@ -1,12 +1,12 @@
-"""Unit tests for co3sop_nodes.learn.device: --device names checked against what torch can use."""
+"""Unit tests for co3sop_nodes.cli.device: --device names checked against what torch can use."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.device import select_device
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.cli.device import select_device
 
 
 def test_auto_and_cpu():

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from co3sop_nodes.codec import FeatureCodecConfig
-from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.grid import GridSpec
-from co3sop_nodes.learn.dataset import AgentRecord, OccupancyDataset
-from co3sop_nodes.learn.evaluate import evaluate
-from co3sop_nodes.learn.train import _Forward
+from co3sop_nodes.v2x.codec import FeatureCodecConfig
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.train.dataset import AgentRecord, OccupancyDataset
+from co3sop_nodes.eval.evaluate import evaluate
+from co3sop_nodes.train.trainer import _Forward
 from co3sop_nodes.model.config import LidarConfig, preset
-from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.co3sop import build_model
 
 GRID = GridSpec((-6.4, -6.4, -2.0), 0.4, (32, 32, 8))
 CFG = preset("tiny-sscnet-early", custom_grid=(GRID.origin, GRID.voxel_size, GRID.dims), lidar=LidarConfig("sscnet", 8),

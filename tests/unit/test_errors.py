@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.errors: one root type for every core error."""
+"""Unit tests for co3sop_nodes.common.errors: one root type for every core error."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import inspect
 
 import pytest
 
-from co3sop_nodes import errors
+from co3sop_nodes.common import errors
 
 SUBCLASSES = {
     "GridError": errors.Co3sopError,

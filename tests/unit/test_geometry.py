@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.geometry: poses, quaternions and the CARLA <-> REP-103 boundary.
+"""Unit tests for co3sop_nodes.common.geometry: poses, quaternions and the CARLA <-> REP-103 boundary.
 
 Every expected value is built independently of the module under test: the
 standard right-handed elementary rotations, Rodrigues' formula for quaternions,
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from co3sop_nodes.geometry import (
+from co3sop_nodes.common.geometry import (
     Pose,
     carla_matrix_to_pose,
     carla_pose_to_matrix,
@@ -28,7 +28,7 @@ from co3sop_nodes.geometry import (
     rotation_to_quaternion,
     yaw_of,
 )
-from co3sop_nodes.grid import GridSpec
+from co3sop_nodes.common.grid import GridSpec
 
 # --- independent references ---------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.grid: GridSpec validation and the paper's benchmark ranges."""
+"""Unit tests for co3sop_nodes.common.grid: GridSpec validation and the paper's benchmark ranges."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from co3sop_nodes.errors import Co3sopError, GridError
-from co3sop_nodes.grid import BENCHMARK_RANGES, BENCHMARK_Z, GridSpec
+from co3sop_nodes.common.errors import Co3sopError, GridError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, BENCHMARK_Z, GridSpec
 
 # name -> (voxel size m, dims): 256 x 256 in x/y, z in [-2.0, 2.8] m
 PAPER_RANGES = {

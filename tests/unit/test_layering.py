@@ -49,7 +49,7 @@ def _import_with_ros_blocked(modules: list[str]) -> subprocess.CompletedProcess:
 
 def test_core_imports_with_ros_unimportable():
     modules = core_modules()
-    assert {"co3sop_nodes.codec", "co3sop_nodes.grid", "co3sop_nodes.synthetic"} <= set(modules)
+    assert {"co3sop_nodes.v2x.codec", "co3sop_nodes.common.grid", "co3sop_nodes.data.synthetic"} <= set(modules)
     result = _import_with_ros_blocked(modules)
     assert result.returncode == 0, result.stderr
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from co3sop_nodes.classes import IGNORE, LABEL_BY_NAME as L
-from co3sop_nodes.metrics import SCORES, Bootstrap, Confusion, confusions_of, difference_table, markdown_table, point, pooled, scores
+from co3sop_nodes.common.classes import IGNORE, LABEL_BY_NAME as L
+from co3sop_nodes.eval.metrics import SCORES, Bootstrap, Confusion, confusions_of, difference_table, markdown_table, point, pooled, scores
 
 
 def grids():

@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.model.model and config: the vehicle half, the ego half and Co3SOP.
+"""Unit tests for co3sop_nodes.model.co3sop and config: the vehicle half, the ego half and Co3SOP.
 
 Two configurations, both small in channels:
 - `BIG`: the real "76.8m" benchmark range (label grid 256 x 256 x 16, feature
@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 import torch
 
-from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.model.backbone import DeformConv2d
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, LidarConfig, ModelConfig, preset
 from co3sop_nodes.model.lifting import project
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupancy_loss
-from co3sop_nodes.model.model import Co3SOP, EgoHalf, VehicleHalf, VehicleOutput, build_model
+from co3sop_nodes.model.co3sop import Co3SOP, EgoHalf, VehicleHalf, VehicleOutput, build_model
 
 
 W, H = 32, 24
@@ -425,7 +425,7 @@ def test_max_collaborators_caps_the_number_used():
 @pytest.mark.parametrize("fault", ["nan-intrinsics", "inf-mount", "singular-mount", "zero-intrinsics", "empty-image"])
 def test_sensor_inputs_refuse_degenerate_cameras(fault):
     """What a vehicle receives may be anything: a camera that cannot project is an input error, never NaN features."""
-    from co3sop_nodes.model.inputs import sensor_inputs
+    from co3sop_nodes.inference.inputs import sensor_inputs
 
     cfg = preset("tiny")
     rgb, k, mount = np.zeros((48, 64, 3), np.uint8), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), np.eye(4)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from co3sop_nodes import native
-from co3sop_nodes.model import octant_kernel
+from co3sop_nodes import kernels
+from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.head import OccupancyHead
 from model_checks import assert_labels_equal, reference
@@ -68,20 +68,20 @@ def test_chunking_threads_and_batches_do_not_change_the_result(chunk, compiled, 
 
 def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("CO3SOP_CACHE", str(tmp_path))
-    native.load.cache_clear()
+    kernels.load.cache_clear()
     octant_kernel._kernel.cache_clear()
     try:
         assert octant_kernel.available(16, 8, 24)  # CI machines have a C compiler, as every ROS 2 install
         assert len(list((tmp_path / "native").glob("octant_labels-*.so"))) == 1
     finally:
-        native.load.cache_clear()
+        kernels.load.cache_clear()
         octant_kernel._kernel.cache_clear()
 
 
 def test_without_a_compiler_the_head_takes_its_pytorch_path(tmp_path, monkeypatch):
     monkeypatch.setenv("CO3SOP_CACHE", str(tmp_path))
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
-    native.load.cache_clear()
+    kernels.load.cache_clear()
     octant_kernel._kernel.cache_clear()
     try:
         head = random_head((8, 8, 4), 8, 3)
@@ -90,5 +90,5 @@ def test_without_a_compiler_the_head_takes_its_pytorch_path(tmp_path, monkeypatc
         labels, _ = head.labels(x)
         assert_labels_equal(labels.numpy(), reference(head, x)[0], head, x)
     finally:
-        native.load.cache_clear()
+        kernels.load.cache_clear()
         octant_kernel._kernel.cache_clear()

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from co3sop_nodes.grid import GridSpec
-from co3sop_nodes.model.inputs import hits_in_ego_grid, merged_occupancy
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.inference.inputs import hits_in_ego_grid, merged_occupancy
 
 GRID = GridSpec((-4.0, -4.0, -1.0), 0.5, (16, 16, 4))
 

@@ -8,12 +8,14 @@ import math
 import pytest
 import torch
 
-from co3sop_nodes import native
-from co3sop_nodes.model import deform_kernel, octant_kernel, pace
+from co3sop_nodes import kernels
+from co3sop_nodes.kernels import deform as deform_kernel
+from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.inference import pace
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
-from co3sop_nodes.model.model import VehicleOutput, build_model
-from co3sop_nodes.model.warp import compiled_available
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model
+from co3sop_nodes.kernels.warp import compiled_available
 from model_checks import MICRO
 
 
@@ -109,5 +111,5 @@ def test_the_compiled_warp_equals_grid_sample(yaw, shift):
 
 
 def test_disabled_kernels_leave_the_pytorch_paths(monkeypatch):
-    monkeypatch.setattr(native, "ENABLED", False)
+    monkeypatch.setattr(kernels, "ENABLED", False)
     assert not deform_kernel.available(8) and not octant_kernel.available(16, 8, 24) and not compiled_available()

@@ -13,7 +13,7 @@ from collections import Counter
 import pytest
 import torch
 
-from co3sop_nodes.classes import EMPTY, IGNORE
+from co3sop_nodes.common.classes import EMPTY, IGNORE
 from co3sop_nodes.model.losses import (
     SCALE_WEIGHTS,
     confidence_loss,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from co3sop_nodes.grid import GridSpec
-from co3sop_nodes.model.request import request_for_neighbour, request_of
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 
 GRID = GridSpec((-8.0, -8.0, -2.0), 1.0, (16, 16, 4))
 

@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.model.warp: resampling a neighbour's voxel volume on the ego's grid.
+"""Unit tests for co3sop_nodes.kernels.warp: resampling a neighbour's voxel volume on the ego's grid.
 
 Convention under test: volumes are (B, C, X, Y, Z) on a GridSpec (origin = min
 corner, voxel centres at origin + (i + 0.5) * voxel_size), and the transform is
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from co3sop_nodes.grid import GridSpec
-from co3sop_nodes.model.warp import warp, warp_with_mask
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.kernels.warp import warp, warp_with_mask
 
 
 # square in x/y and centred on the sensor: a 90-degree yaw maps the grid onto itself

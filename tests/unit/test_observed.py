@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from co3sop_nodes.learn.observed import observed_table
+from co3sop_nodes.eval.observed import observed_table
 
 
 def test_table_lists_the_share_each_adds():

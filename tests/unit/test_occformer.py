@@ -10,15 +10,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from co3sop_nodes.model import pace
-from co3sop_nodes.model.checkpoint import export_model, load_model
+from co3sop_nodes.inference import pace
+from co3sop_nodes.inference.checkpoint import export_model, load_model
 from co3sop_nodes.model.config import OccFormerConfig, preset
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels
 from co3sop_nodes.model.mask_loss import class_guided_points, mask_classification_loss
 from co3sop_nodes.model.matching import min_cost_assignment
-from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.occformer import OccFormerHead, WindowBlock, class_scores, log_scores, masks_at
-from co3sop_nodes.model.outputs import labels_from_logits
+from co3sop_nodes.inference.outputs import labels_from_logits
 from model_checks import MICRO
 
 OCC = OccFormerConfig(stages=(16, 32), blocks=2, window=7, queries=8, dims=16, layers=3, heads=2, points=2048)

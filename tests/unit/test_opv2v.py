@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from co3sop_nodes import geometry as geo
-from co3sop_nodes import opv2v
-from co3sop_nodes.errors import Co3sopError, DatasetError
+from co3sop_nodes.common import geometry as geo
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.common.errors import Co3sopError, DatasetError
 from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
 from co3sop_nodes.sim.lidar import LidarConfig
 from co3sop_nodes.sim.traffic import TrafficConfig
@@ -250,7 +250,7 @@ def test_not_a_dataset(tmp_path):
 
 def test_label_grids_larger_than_the_range_are_cropped_as_co3sop_loads_them(tmp_path):
     """Co3SOP's LoadOccupancy: voxels[(X - nx) // 2 : (X + nx) // 2, (Y - ny) // 2 : (Y + ny) // 2, :nz] of the file."""
-    from co3sop_nodes.grid import BENCHMARK_RANGES
+    from co3sop_nodes.common.grid import BENCHMARK_RANGES
 
     nx, ny, nz = BENCHMARK_RANGES["51.2m"].dims
     big = np.random.default_rng(0).integers(0, 24, (nx + 7, ny + 4, nz + 3), dtype=np.uint8)

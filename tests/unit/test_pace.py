@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from co3sop_nodes.model import pace
+from co3sop_nodes.inference import pace
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.model import build_model
+from co3sop_nodes.model.co3sop import build_model
 from model_checks import MICRO
 
 

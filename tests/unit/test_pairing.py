@@ -1,11 +1,11 @@
-"""co3sop_nodes.pairing: which of the ego's frames to fuse when, with which neighbours (late, missing,
+"""co3sop_nodes.v2x.ego_pairing: which of the ego's frames to fuse when, with which neighbours (late, missing,
 silent, out-of-order and duplicate frames). Times are passed in: no clock, no DDS."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
-from co3sop_nodes.pairing import Pairing, PairingConfig
+from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
 
 EGO, A, B = 1, 2, 3
 MS = 1_000_000

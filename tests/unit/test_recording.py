@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from co3sop_nodes.bags import occupancy_message, typestore
+from co3sop_nodes.data.bags import occupancy_message, typestore
 from co3sop_nodes.cli.info import main as info
-from co3sop_nodes.codec import encode_labels
-from co3sop_nodes.errors import DatasetError
-from co3sop_nodes.grid import BENCHMARK_RANGES
-from co3sop_nodes.recording import McapRecorder, recover
-from co3sop_nodes.scoring import read_recording, score
+from co3sop_nodes.v2x.codec import encode_labels
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.data.recording import McapRecorder, recover
+from co3sop_nodes.eval.scoring import read_recording, score
 
 GRID = BENCHMARK_RANGES["51.2m"]
 TYPE = "co3sop_msgs/msg/SemanticOccupancy"
@@ -143,7 +143,7 @@ def test_score_prints_every_class_and_explains_its_conventions(tmp_path, capsys)
 
 
 def test_score_draws_titled_panels_with_a_legend(tmp_path):
-    from co3sop_nodes.bev import save_comparison
+    from co3sop_nodes.viz.bev import save_comparison
     from co3sop_nodes.cli.score import main as score_main
 
     path = recording(tmp_path / "run.mcap")

@@ -1,4 +1,4 @@
-"""learn/report.py: its reading of a LiDAR gain short of its goal, its Table 2 and ablations across ranges, its errors on damaged evaluation JSON (ROS-free)."""
+"""eval/report.py: its reading of a LiDAR gain short of its goal, its Table 2 and ablations across ranges, its errors on damaged evaluation JSON (ROS-free)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from co3sop_nodes.errors import Co3sopError
-from co3sop_nodes.learn.report import (PAPER_POSE_NOISE, across_ranges, collect, goals, levers_section, main, method, render,
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.eval.report import (PAPER_POSE_NOISE, across_ranges, collect, goals, levers_section, main, method, render,
                                        table2_section, training, why_short)
-from co3sop_nodes.metrics import point
+from co3sop_nodes.eval.metrics import point
 from co3sop_nodes.model.config import PRESETS
 
 

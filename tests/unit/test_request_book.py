@@ -1,10 +1,10 @@
-"""co3sop_nodes.request_book: what a request map may cost its sender, whoever sends it. Times are passed in."""
+"""co3sop_nodes.v2x.sender_requests: what a request map may cost its sender, whoever sends it. Times are passed in."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from co3sop_nodes.request_book import Request, RequestBook
+from co3sop_nodes.v2x.sender_requests import Request, RequestBook
 
 S = 1_000_000_000
 HERE = np.eye(4)

@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from co3sop_nodes import native
-from co3sop_nodes.classes import LABEL_BY_NAME as L
-from co3sop_nodes.geometry import carla_pose_to_matrix, carla_to_ros_matrix
+from co3sop_nodes import kernels
+from co3sop_nodes.common.classes import LABEL_BY_NAME as L
+from co3sop_nodes.common.geometry import carla_pose_to_matrix, carla_to_ros_matrix
 from co3sop_nodes.sim import camera, lidar, rig
 from co3sop_nodes.sim.raycast import ObjectMeshes, RayScene
 from co3sop_nodes.sim.scene import SceneObject
@@ -314,10 +314,10 @@ def test_single_threaded_blas_keeps_the_products_and_restores_the_threads():
     rng = np.random.default_rng(5)
     body, pose = rng.normal(size=(200_000, 3)), rng.normal(size=(4, 4))
     threaded = body @ pose[:3, :3].T
-    setter = native._blas_threads_setter()
+    setter = kernels._blas_threads_setter()
     if "openblas" in np.show_config(mode="dicts")["Build Dependencies"]["blas"]["name"]:
         assert setter is not None  # numpy's OpenBLAS (0.3.27 on) has per-thread counts
-    with native.single_threaded_blas():
+    with kernels.single_threaded_blas():
         alone = body @ pose[:3, :3].T
         if setter is not None:
             assert setter(1) == 1
@@ -325,7 +325,7 @@ def test_single_threaded_blas_keeps_the_products_and_restores_the_threads():
     if setter is not None:
         original = setter(3)  # what the block restored
         assert setter(original) == 3
-        with native.single_threaded_blas():
+        with kernels.single_threaded_blas():
             pass
         assert setter(original) == original
 

@@ -1,10 +1,10 @@
-"""co3sop_nodes.topics: the one place topic names are built and taken apart."""
+"""co3sop_nodes.common.topics: the one place topic names are built and taken apart."""
 
 from __future__ import annotations
 
 import pytest
 
-from co3sop_nodes import topics
+from co3sop_nodes.common import topics
 
 
 @pytest.mark.parametrize("build, rest", [

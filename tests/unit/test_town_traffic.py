@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from co3sop_nodes.classes import CLASS_NAMES, LABEL_BY_NAME as L
+from co3sop_nodes.common.classes import CLASS_NAMES, LABEL_BY_NAME as L
 from co3sop_nodes.sim.shapes import Box, Sphere
 from co3sop_nodes.sim.town import LANE_WIDTH, Lane, Road, Town, TownConfig, generate_town
 from co3sop_nodes.sim.traffic import DT, VEHICLE_KINDS, Traffic, TrafficConfig, vehicle_primitives

@@ -1,10 +1,10 @@
-"""learn/train.py's log on resume: the steps an interrupted run logged past its last saved state are dropped (ROS-free)."""
+"""train/trainer.py's log on resume: the steps an interrupted run logged past its last saved state are dropped (ROS-free)."""
 
 from __future__ import annotations
 
 import csv
 
-from co3sop_nodes.learn.train import keep_log_until
+from co3sop_nodes.train.trainer import keep_log_until
 
 
 def write_log(path, steps):

@@ -1,4 +1,4 @@
-"""Unit tests for co3sop_nodes.learn.train's sample order and learning-rate schedule (no training)."""
+"""Unit tests for co3sop_nodes.train.trainer's sample order and learning-rate schedule (no training)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from co3sop_nodes.learn.train import learning_rate, sample_order
+from co3sop_nodes.train.trainer import learning_rate, sample_order
 
 
 def test_sample_order_visits_every_sample_once_per_epoch_and_does_not_depend_on_the_step_count():

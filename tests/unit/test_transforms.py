@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from co3sop_nodes.errors import DatasetError
-from co3sop_nodes.geometry import Pose
-from co3sop_nodes.transforms import StaticTransforms
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.common.transforms import StaticTransforms
 
 
 def tree() -> StaticTransforms:

@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from co3sop_nodes import topics
-from co3sop_nodes.bags import occupancy_message, typestore
-from co3sop_nodes.classes import NUM_CLASSES
-from co3sop_nodes.cloud import occupancy_cloud
-from co3sop_nodes.codec import encode_labels
-from co3sop_nodes.errors import DatasetError
-from co3sop_nodes.foxglove import CAMERAS, layout
-from co3sop_nodes.grid import BENCHMARK_RANGES
-from co3sop_nodes.truth_points import OCCUPANCY, POINTS, TruthPoints, truth_key
+from co3sop_nodes.common import topics
+from co3sop_nodes.data.bags import occupancy_message, typestore
+from co3sop_nodes.common.classes import NUM_CLASSES
+from co3sop_nodes.viz.cloud import occupancy_cloud
+from co3sop_nodes.v2x.codec import encode_labels
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.viz.foxglove import CAMERAS, layout
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.viz.truth_points import OCCUPANCY, POINTS, TruthPoints, truth_key
 
 STORE = typestore()
 EGO, OTHER = 3, 8

@@ -13,8 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from co3sop_nodes.classes import LABEL_BY_NAME as L
-from co3sop_nodes.grid import GridSpec
+from co3sop_nodes.common.classes import LABEL_BY_NAME as L
+from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.sim import rig
 from co3sop_nodes.sim.scene import SceneObject
 from co3sop_nodes.sim.shapes import Box, Cylinder, Sphere

@@ -17,8 +17,8 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
-from co3sop_nodes import topics
-from co3sop_nodes.model.checkpoint import read_checkpoint, resolve_checkpoint
+from co3sop_nodes.common import topics
+from co3sop_nodes.inference.checkpoint import read_checkpoint, resolve_checkpoint
 from co3sop_nodes.ros.demo import DEFAULT_MODEL, LOSSLESS, bag_contents, played_topics
 
 CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])

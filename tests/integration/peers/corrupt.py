@@ -11,7 +11,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 
 from cases import encoded
-from co3sop_nodes.geometry import Pose
+from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.ros.convert import features_to_msg
 from co3sop_nodes.ros.dds import FEATURES_QOS, configure_environment
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 
-from co3sop_nodes.codec import EncodedFeatures, decode_features, decode_labels
+from co3sop_nodes.v2x.codec import EncodedFeatures, decode_features, decode_labels
 
 
 def _sha(array) -> str | None:

@@ -17,8 +17,8 @@ from rclpy.node import Node
 
 from cases import CASES, encoded
 from digest import decoded_digest
-from co3sop_nodes.codec import EncodedFeatures
-from co3sop_nodes.geometry import Pose
+from co3sop_nodes.v2x.codec import EncodedFeatures
+from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.ros.convert import features_from_msg, features_to_msg, labels_from_msg, labels_to_msg
 from co3sop_nodes.ros.dds import FEATURES_QOS, OCCUPANCY_QOS, configure_environment
 

@@ -15,9 +15,9 @@ import numpy as np
 import rclpy
 from co3sop_msgs.msg import RequestMap
 
-from co3sop_nodes import topics
-from co3sop_nodes.codec import encode_request
-from co3sop_nodes.geometry import Pose
+from co3sop_nodes.common import topics
+from co3sop_nodes.v2x.codec import encode_request
+from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.convert import request_to_msg
 from co3sop_nodes.ros.dds import REQUEST_QOS

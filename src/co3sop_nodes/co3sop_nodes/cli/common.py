@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 from tqdm import tqdm
 
-from ..errors import Co3sopError
+from co3sop_nodes.common.errors import Co3sopError
 
 
 def run(main: Callable[[list[str] | None], int]) -> Callable[[], None]:

@@ -14,11 +14,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .. import opv2v
-from ..bags import BagWriter
-from ..errors import DatasetError
-from ..grid import BENCHMARK_RANGES
-from .common import progress, run
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.data.bags import BagWriter
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.cli.common import progress, run
 
 
 def convert_scenario(root: Path, split: str, scenario: str, bag: Path, on_error: str, ranges) -> list[str]:

@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .. import opv2v
-from ..bev import bev_image
-from ..errors import DatasetError
-from ..frames import CavFrame
-from ..sim.scenario import ScenarioConfig, simulate
-from ..sim.town import TownConfig
-from ..sim.traffic import TrafficConfig
-from .common import progress, run
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.viz.bev import bev_image
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.frames import CavFrame
+from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
+from co3sop_nodes.sim.town import TownConfig
+from co3sop_nodes.sim.traffic import TrafficConfig
+from co3sop_nodes.cli.common import progress, run
 
 
 def scenario_name(split: str, index: int, seed: int) -> str:
@@ -124,7 +124,7 @@ def generate_scenario(job: dict, events) -> str:
         except OSError:  # another scenario is still being written
             break
     if job["bags"]:
-        from ..bags import BagWriter
+        from co3sop_nodes.data.bags import BagWriter
 
         bag = Path(job["bags"]) / split / name
         bag.parent.mkdir(parents=True, exist_ok=True)

@@ -14,12 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import opv2v, topics
-from ..bags import occupancy_labels, open_reader, open_recording
-from ..classes import CLASS_NAMES, NUM_CLASSES
-from ..errors import DatasetError
-from ..truth_points import OCCUPANCY
-from .common import progress, run
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.common import topics
+from co3sop_nodes.data.bags import occupancy_labels, open_reader, open_recording
+from co3sop_nodes.common.classes import CLASS_NAMES, NUM_CLASSES
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.viz.truth_points import OCCUPANCY
+from co3sop_nodes.cli.common import progress, run
 
 
 def class_table(counts: dict[str, np.ndarray]) -> str:

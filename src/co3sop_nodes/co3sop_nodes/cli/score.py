@@ -3,7 +3,7 @@
     ros2 run co3sop_nodes score results/demo/demo.mcap [--out results/demo] [--pictures 3] [--frames STAMP ...]
 
 Pairs each /ego/occupancy with the ego's ground truth of the same stamp and
-prints per-class IoU and mIoU in the three conventions (co3sop_nodes.metrics)
+prints per-class IoU and mIoU in the three conventions (co3sop_nodes.eval.metrics)
 at the recorded range, as markdown (also written to OUT/score.md) and JSON
 (OUT/score.json). Frames with ground truth but no prediction count as missed:
 they are listed and scored as all-empty predictions. Pictures show, per
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bev import save_comparison
-from ..grid import BENCHMARK_RANGES
-from ..metrics import CONVENTIONS_NOTE, markdown_table
-from ..scoring import read_recording, score
-from .common import run
+from co3sop_nodes.viz.bev import save_comparison
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.eval.metrics import CONVENTIONS_NOTE, markdown_table
+from co3sop_nodes.eval.scoring import read_recording, score
+from co3sop_nodes.cli.common import run
 
 
 def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:

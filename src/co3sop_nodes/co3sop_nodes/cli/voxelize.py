@@ -18,14 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import geometry as geo
-from .. import opv2v
-from ..errors import DatasetError
-from ..grid import GridSpec
-from ..sim import rig
-from ..sim.scenario import config_from_dict, world_states
-from ..sim.voxel_sensor import annotate
-from .common import progress, run
+from co3sop_nodes.common import geometry as geo
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.sim import rig
+from co3sop_nodes.sim.scenario import config_from_dict, world_states
+from co3sop_nodes.sim.voxel_sensor import annotate
+from co3sop_nodes.cli.common import progress, run
 
 
 def main(args: list[str] | None = None) -> int:

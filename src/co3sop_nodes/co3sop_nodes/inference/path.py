@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from ..errors import Co3sopError
+from co3sop_nodes.common.errors import Co3sopError
 
 PRECISIONS = ("auto", "float32", "bfloat16", "float16")
 DEVICES = ("auto", "cpu", "cuda")

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import BackboneConfig
+from co3sop_nodes.model.config import BackboneConfig
 
 
 def deform_conv2d(x, offset, mask, weight, bias, stride: int = 1, padding: int = 1):

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from ..errors import Co3sopError
-from ..grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 
 
 @dataclass(frozen=True)

@@ -13,9 +13,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import AttentionConfig
-from .deform_attn import DeformableAttention3d
-from .positional import sine_encoding_3d
+from co3sop_nodes.model.config import AttentionConfig
+from co3sop_nodes.model.deform_attn import DeformableAttention3d
+from co3sop_nodes.model.positional import sine_encoding_3d
 
 
 def hybrid_mask(ego_conf, warped_conf, warp_mask):

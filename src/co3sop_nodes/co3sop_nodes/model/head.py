@@ -18,8 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..inference import InferencePath
-from . import octant_kernel
+from co3sop_nodes.inference import InferencePath
+from co3sop_nodes.kernels import octant as octant_kernel
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:

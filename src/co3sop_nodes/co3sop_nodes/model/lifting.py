@@ -11,10 +11,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..grid import GridSpec
-from ..inference import InferencePath
-from . import deform_kernel
-from .deform_attn import sample_2d
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.inference import InferencePath
+from co3sop_nodes.kernels import deform as deform_kernel
+from co3sop_nodes.model.deform_attn import sample_2d
 
 
 def voxel_centres(grid: GridSpec) -> torch.Tensor:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..classes import EMPTY, IGNORE
+from co3sop_nodes.common.classes import EMPTY, IGNORE
 
 SCALE_WEIGHTS = (0.25, 0.5, 1.0)
 SCALE_NAMES = ("1/4", "1/2", "1")

@@ -20,9 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .losses import IGNORE
-from .matching import min_cost_assignment
-from .occformer import masks_at
+from co3sop_nodes.model.losses import IGNORE
+from co3sop_nodes.model.matching import min_cost_assignment
+from co3sop_nodes.model.occformer import masks_at
 
 CLASS_WEIGHT, MASK_WEIGHT, DICE_WEIGHT, NO_OBJECT_WEIGHT = 2.0, 5.0, 5.0, 0.1
 GAMMA = 0.25

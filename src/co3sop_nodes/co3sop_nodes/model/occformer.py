@@ -37,8 +37,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import ModelConfig, OccFormerConfig
-from .positional import sine_encoding_3d
+from co3sop_nodes.model.config import ModelConfig, OccFormerConfig
+from co3sop_nodes.model.positional import sine_encoding_3d
 
 LEVELS = 3  # the decoder attends to the coarsest three encoder levels, as OccFormer's
 

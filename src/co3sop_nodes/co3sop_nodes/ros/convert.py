@@ -12,11 +12,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
-from ..cloud import CLOUD_DTYPE, CLOUD_FIELDS, cloud_xyz
-from ..codec import EncodedFeatures, EncodedLabels, EncodedRequest
-from ..errors import Co3sopError, DatasetError
-from ..geometry import Pose
-from ..grid import GridSpec
+from co3sop_nodes.viz.cloud import CLOUD_DTYPE, CLOUD_FIELDS, cloud_xyz
+from co3sop_nodes.v2x.codec import EncodedFeatures, EncodedLabels, EncodedRequest
+from co3sop_nodes.common.errors import Co3sopError, DatasetError
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.common.grid import GridSpec
 
 
 def stamp_to_ns(stamp: Time) -> int:

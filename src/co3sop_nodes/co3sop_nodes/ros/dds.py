@@ -17,7 +17,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from ..errors import Co3sopError, exception_line
+from co3sop_nodes.common.errors import Co3sopError, exception_line
 
 PACKAGE = "co3sop_nodes"
 
@@ -164,7 +164,7 @@ def fastdds_profile_path(name: str = "fastdds.xml") -> str:
 
 
 def channel_environment(member: str | None) -> dict[str, str]:
-    """What a DDS process of an emulated V2X channel (channel.py) needs: discovery past localhost and the Fast DDS
+    """What a DDS process of an emulated V2X channel (v2x/channel.py) needs: discovery past localhost and the Fast DDS
     profile of where it runs. The ego's car (member "ego": the fusion node, its own encoder, the recorder) and the
     machine's side (None: the simulator, which stands for the ego's sensors too, and the launcher): shared memory
     among themselves, UDP to the neighbours (fastdds_onboard.xml), so the ego's own lossless feature volume never

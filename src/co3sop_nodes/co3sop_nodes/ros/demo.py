@@ -16,7 +16,7 @@ for the recording: prediction | ground truth in 3D, the ego's cameras) and check
 holds every /ego/occupancy message the ego published. Nothing is decided from
 the nodes' logs.
 
-With --channel-rate the graph runs over an emulated V2X channel (channel.py,
+With --channel-rate the graph runs over an emulated V2X channel (v2x/channel.py,
 root and nftables needed): the ego (with its own encoder and the recorder) and
 each neighbour in its own network namespace, their transmit limited to
 --channel-rate Mbit/s of real time (times --rate, so that the link keeps its
@@ -45,20 +45,20 @@ from pathlib import Path
 
 from ament_index_python.packages import get_package_prefix
 
-from .. import topics
-from ..bags import open_reader
-from ..channel import Channel, Link
-from ..cli import generate, score
-from ..cli.common import run
-from ..errors import Co3sopError
-from ..foxglove import CAMERAS, write_layout
-from ..inference import PRECISIONS, inference_path
-from ..model import pace
-from ..model.checkpoint import load_graph_model, resolve_checkpoint
-from ..scoring import message_counts
-from .dds import channel_environment
-from .recorder import DEFAULT_TOPICS
-from .supervisor import Supervisor
+from co3sop_nodes.common import topics
+from co3sop_nodes.data.bags import open_reader
+from co3sop_nodes.v2x.channel import Channel, Link
+from co3sop_nodes.cli import generate, score
+from co3sop_nodes.cli.common import run
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.viz.foxglove import CAMERAS, write_layout
+from co3sop_nodes.inference import PRECISIONS, inference_path
+from co3sop_nodes.inference import pace
+from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
+from co3sop_nodes.eval.scoring import message_counts
+from co3sop_nodes.ros.dds import channel_environment
+from co3sop_nodes.ros.recorder import DEFAULT_TOPICS
+from co3sop_nodes.ros.supervisor import Supervisor
 
 # A scene whose CAVs can help each other: seed 11 is the first base seed (counting from 1) whose three CAVs all
 # stay within 30 m of the ego over the 10 frames (most seeds spread them 50-100 m apart, where a 51.2 m grid

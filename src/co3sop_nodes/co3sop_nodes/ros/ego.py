@@ -13,7 +13,7 @@ age) and decoded on
 arrival; a bad one is dropped and counted by reason, with a warning naming the
 topic and the reason once per burst. Each of its own frames waits (at most
 max_wait s) for every live neighbour's frame within `tolerance` s of its stamp
-(the rules: pairing.py); behind its input, it fuses the newest frame that
+(the rules: v2x/ego_pairing.py); behind its input, it fuses the newest frame that
 is ready and skips the older ones (counted as `skipped`), so its latency stays
 bounded at any play rate; frames are fused on a thread of their own
 (worker.py) while the executor keeps receiving. The ego keeps the nearest max_collaborators within
@@ -39,24 +39,24 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 
-from .. import topics
-from ..cloud import occupancy_cloud, occupancy_cloud_reference
-from ..codec import decode_features, encode_labels, encode_request
-from ..collaboration import COMM_RANGE
-from ..errors import Co3sopError, NonFiniteError, PayloadTooLargeError
-from ..geometry import Pose
-from ..inference import PRECISIONS, inference_path
-from ..model.checkpoint import load_graph_model, resolve_checkpoint
-from ..model.model import VehicleOutput
-from ..model.outputs import decoded_output
-from ..model.predict import compile_kernels, predict_frame
-from ..model.request import request_of
-from ..pairing import Pairing, PairingConfig
-from .convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
-from .params import Param, parameters_help
-from .dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
-from .lifecycle import AUTOSTART, ManagedNode
-from .worker import Worker
+from co3sop_nodes.common import topics
+from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
+from co3sop_nodes.v2x.codec import decode_features, encode_labels, encode_request
+from co3sop_nodes.v2x.neighbours import COMM_RANGE
+from co3sop_nodes.common.errors import Co3sopError, NonFiniteError, PayloadTooLargeError
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.inference import PRECISIONS, inference_path
+from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
+from co3sop_nodes.model.co3sop import VehicleOutput
+from co3sop_nodes.inference.outputs import decoded_output
+from co3sop_nodes.inference.predict import compile_kernels, predict_frame
+from co3sop_nodes.v2x.request_map import request_of
+from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
+from co3sop_nodes.ros.convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
+from co3sop_nodes.ros.params import Param, parameters_help
+from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
+from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
+from co3sop_nodes.ros.worker import Worker
 
 PARAMS = (
     Param(
@@ -500,7 +500,7 @@ class Ego(ManagedNode):
         if self.publish_points:
             cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
             self._points.publish(cloud_to_msg(cloud, stamp_ns=stamp, frame_id=frame))
-        if self.request_maps:  # for the vehicles' next frame: where this one was unsure (model/request.py)
+        if self.request_maps:  # for the vehicles' next frame: where this one was unsure (v2x/request_map.py)
             need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid)
             self._request.publish(request_to_msg(need, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id,
                                                  pose=Pose.from_matrix(ego.world_from_lidar)))

@@ -28,8 +28,8 @@ from __future__ import annotations
 from lifecycle_msgs.srv import ChangeState
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from ..errors import Co3sopError
-from .params import Param, Parameters
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.ros.params import Param, Parameters
 
 AUTOSTART = Param("autostart", bool, "configure and activate on start; false: stay unconfigured until a lifecycle manager "
                                      "(or `ros2 lifecycle set`) drives the node", True)

@@ -24,11 +24,11 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from rclpy.utilities import remove_ros_args
 
-from ..classes import CLASS_NAMES
-from ..codec import decode_features, decode_labels
-from ..errors import Co3sopError, exception_line
-from .convert import features_from_msg, labels_from_msg, stamp_to_ns
-from .dds import OCCUPANCY_QOS, spin_node
+from co3sop_nodes.common.classes import CLASS_NAMES
+from co3sop_nodes.v2x.codec import decode_features, decode_labels
+from co3sop_nodes.common.errors import Co3sopError, exception_line
+from co3sop_nodes.ros.convert import features_from_msg, labels_from_msg, stamp_to_ns
+from co3sop_nodes.ros.dds import OCCUPANCY_QOS, spin_node
 
 MONITORED = {
     "co3sop_msgs/msg/VoxelFeatures": VoxelFeatures,

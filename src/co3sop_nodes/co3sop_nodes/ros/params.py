@@ -20,7 +20,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from ..errors import Co3sopError, exception_line
+from co3sop_nodes.common.errors import Co3sopError, exception_line
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER, float: ParameterType.PARAMETER_DOUBLE,
           str: ParameterType.PARAMETER_STRING, list: ParameterType.PARAMETER_STRING_ARRAY}

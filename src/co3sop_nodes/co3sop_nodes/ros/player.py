@@ -22,10 +22,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 
-from ..bags import open_reader
-from ..errors import DatasetError
-from .convert import message_class, ns_to_stamp
-from .dds import flush_publishers, spin_node
+from co3sop_nodes.data.bags import open_reader
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.ros.convert import message_class, ns_to_stamp
+from co3sop_nodes.ros.dds import flush_publishers, spin_node
 
 
 def recorded_qos(connection) -> QoSProfile:

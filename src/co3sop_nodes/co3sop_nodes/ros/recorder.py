@@ -8,7 +8,7 @@ its coloured points, the ground truth of every CAV, /diagnostics), and writes
 them to an MCAP file in the ros2 profile with their schemas embedded
 (rosbags, `ros2 bag` and Foxglove read it). The ego's ground truth at its
 prediction's range is also written as coloured points on
-/ego/ground_truth/points (truth_points.py), so a viewer draws prediction and
+/ego/ground_truth/points (viz/truth_points.py), so a viewer draws prediction and
 truth side by side. Chunks are flushed as they fill and at least every
 --flush-period s; SIGINT or SIGTERM finalises the file. After a crash, at
 most the last chunk is lost and `recover` makes the file readable again.
@@ -25,12 +25,12 @@ from pathlib import Path
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 
-from .. import topics
-from ..errors import Co3sopError
-from ..recording import McapRecorder
-from ..truth_points import POINTS, TruthPoints
-from .convert import message_class
-from .dds import DropLog, matching_qos, spin_node
+from co3sop_nodes.common import topics
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.data.recording import McapRecorder
+from co3sop_nodes.viz.truth_points import POINTS, TruthPoints
+from co3sop_nodes.ros.convert import message_class
+from co3sop_nodes.ros.dds import DropLog, matching_qos, spin_node
 
 DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), re.escape(topics.EGO_POINTS), r"/cav_\d+/ground_truth/occupancy_\w+",
                   re.escape(topics.DIAGNOSTICS))

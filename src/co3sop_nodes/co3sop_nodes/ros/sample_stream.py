@@ -17,13 +17,14 @@ import time
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 
-from .. import synthetic, topics
-from ..classes import NUM_CLASSES
-from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, encode_features, encode_labels
-from ..geometry import Pose
-from ..grid import BENCHMARK_RANGES, GridSpec
-from .convert import features_to_msg, labels_to_msg
-from .dds import FEATURES_QOS, OCCUPANCY_QOS, flush_publishers, spin_node
+from co3sop_nodes.data import synthetic
+from co3sop_nodes.common import topics
+from co3sop_nodes.common.classes import NUM_CLASSES
+from co3sop_nodes.v2x.codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, encode_features, encode_labels
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.ros.convert import features_to_msg, labels_to_msg
+from co3sop_nodes.ros.dds import FEATURES_QOS, OCCUPANCY_QOS, flush_publishers, spin_node
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 
 

@@ -19,9 +19,9 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
-from .. import topics
-from ..errors import Co3sopError
-from .dds import DIAGNOSTICS_QOS, configure_environment
+from co3sop_nodes.common import topics
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, configure_environment
 
 def _qualified(namespace: str, name: str) -> str:
     return f"{namespace.rstrip('/')}/{name}"

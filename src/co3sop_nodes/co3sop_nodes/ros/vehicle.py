@@ -31,27 +31,27 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
-from .. import topics
-from ..assembly import Frame, FrameAssembly
-from ..byte_budget import SenderBudgets
-from ..collaboration import COMM_RANGE
-from ..codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, check_codec_for, decode_request
-from ..errors import CodecError, Co3sopError
-from ..grid import BENCHMARK_RANGES
-from ..geometry import Pose
-from ..inference import PRECISIONS, inference_path
-from ..model.checkpoint import load_graph_model, resolve_checkpoint
-from ..model.predict import compile_kernels
-from ..model.inputs import sensor_inputs, to_batch
-from ..model.outputs import encode_output
-from ..model.request import request_for_neighbour
-from ..request_book import Request, RequestBook
-from ..transforms import StaticTransforms
-from .convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
-from .params import Param, parameters_help
-from .dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
-from .lifecycle import AUTOSTART, ManagedNode
-from .worker import Worker
+from co3sop_nodes.common import topics
+from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly
+from co3sop_nodes.v2x.sender_budget import SenderBudgets
+from co3sop_nodes.v2x.neighbours import COMM_RANGE
+from co3sop_nodes.v2x.codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, check_codec_for, decode_request
+from co3sop_nodes.common.errors import CodecError, Co3sopError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.inference import PRECISIONS, inference_path
+from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
+from co3sop_nodes.inference.predict import compile_kernels
+from co3sop_nodes.inference.inputs import sensor_inputs, to_batch
+from co3sop_nodes.inference.outputs import encode_output
+from co3sop_nodes.v2x.request_map import request_for_neighbour
+from co3sop_nodes.v2x.sender_requests import Request, RequestBook
+from co3sop_nodes.common.transforms import StaticTransforms
+from co3sop_nodes.ros.convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
+from co3sop_nodes.ros.params import Param, parameters_help
+from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
+from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
+from co3sop_nodes.ros.worker import Worker
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 

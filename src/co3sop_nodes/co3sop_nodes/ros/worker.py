@@ -13,7 +13,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from ..errors import exception_line
+from co3sop_nodes.common.errors import exception_line
 
 
 class Worker:

@@ -16,10 +16,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from .. import native
-from ..classes import LABEL_BY_NAME
-from . import ray_kernel
-from .raycast import Hits, RayScene
+from co3sop_nodes import kernels
+from co3sop_nodes.common.classes import LABEL_BY_NAME
+from co3sop_nodes.sim import ray_kernel
+from co3sop_nodes.sim.raycast import Hits, RayScene
 
 SUN = np.array([0.35, 0.45, 0.82]) / np.linalg.norm([0.35, 0.45, 0.82])  # towards the sun, world
 SKY_LABEL = LABEL_BY_NAME["sky"]
@@ -108,7 +108,7 @@ def render(scene: RayScene, world_from_camera: np.ndarray, width: int, height: i
     """compiled: rays and shading by the compiled kernel (default: where it compiles; bit-identical) or the reference;
     threads: the kernel's threads for this camera's rays."""
     body = pixel_rays(width, height, k)  # (H*W, 3)
-    with native.single_threaded_blas():
+    with kernels.single_threaded_blas():
         directions = body @ world_from_camera[:3, :3].T
     origin = world_from_camera[:3, 3]
     if compiled is None:

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import native
-from .raycast import RayScene
+from co3sop_nodes import kernels
+from co3sop_nodes.sim.raycast import RayScene
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,7 @@ def beam_directions(cfg: LidarConfig) -> np.ndarray:
 
 def scan(scene: RayScene, world_from_lidar: np.ndarray, cfg: LidarConfig, rng: np.random.Generator) -> LidarScan:
     local = beam_directions(cfg)
-    with native.single_threaded_blas():
+    with kernels.single_threaded_blas():
         directions = local @ world_from_lidar[:3, :3].T
     hits = scene.cast(np.broadcast_to(world_from_lidar[:3, 3], directions.shape), directions, cfg.range)
     hit = np.isfinite(hits.distance)

@@ -1,4 +1,4 @@
-"""The ray casts and the work around them as a compiled kernel (native/ray_shade.c): rays prepared for Embree,
+"""The ray casts and the work around them as a compiled kernel (kernels/ray_shade.c): rays prepared for Embree,
 cast, first hits located, camera pixels shaded.
 
 Embree itself casts millions of rays per second per core; the reference path
@@ -24,16 +24,16 @@ from functools import cache
 import numpy as np
 import trimesh
 
-from .. import native
-from .scene import SceneObject
+from co3sop_nodes import kernels
+from co3sop_nodes.sim.scene import SceneObject
 
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-TEXTURES = {"plain": 0, "bricks": 1, "stripes": 2, "noise": 3}  # as native/ray_shade.c numbers them
+TEXTURES = {"plain": 0, "bricks": 1, "stripes": 2, "noise": 3}  # as kernels/ray_shade.c numbers them
 
 
 @cache
 def _kernel():
-    lib = native.load("ray_shade")
+    lib = kernels.load("ray_shade")
     if lib is None:
         return None
     lib.prepare.argtypes = [_P, _I, _P, _P, _D, _P, _P, _P, _I, _I]
@@ -57,7 +57,7 @@ def _embree() -> ctypes.CDLL | None:
         importlib.import_module("embreex.rtcore_scene")  # loads the library
     except ImportError:
         return None
-    paths = native.mapped("libembree4")
+    paths = kernels.mapped("libembree4")
     if not paths:
         return None
     lib = ctypes.CDLL(paths[0])
@@ -75,7 +75,7 @@ def _embree() -> ctypes.CDLL | None:
 
 def available() -> bool:
     """Whether the kernels are enabled and compile here (compiling them on first call) and Embree is loadable."""
-    return native.ENABLED and _kernel() is not None and _embree() is not None
+    return kernels.ENABLED and _kernel() is not None and _embree() is not None
 
 
 class _EmbreeScene:
@@ -109,7 +109,7 @@ class _EmbreeScene:
         """(N,) int32: the triangle each ray (float32 (N, 3) origins and directions in the scene's units) hits
         first, -1 for none."""
         prim = np.empty(len(dir32), np.int32)
-        native.interleaved(_kernel().cast, (self.scene, self.intersect, _ptr(org32), _ptr(dir32), _ptr(prim), len(dir32)), threads)
+        kernels.interleaved(_kernel().cast, (self.scene, self.intersect, _ptr(org32), _ptr(dir32), _ptr(prim), len(dir32)), threads)
         return prim
 
 
@@ -152,12 +152,12 @@ class CompiledScene:
         org, stride = _rows(origins)
         dirs = np.ascontiguousarray(directions, np.float64)
         unit, org32, dir32 = np.empty((n, 3)), np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-        native.parallel(lib.prepare, (_ptr(org), stride, _ptr(dirs), _ptr(self.shift), self.scale, _ptr(unit), _ptr(org32),
+        kernels.parallel(lib.prepare, (_ptr(org), stride, _ptr(dirs), _ptr(self.shift), self.scale, _ptr(unit), _ptr(org32),
                                       _ptr(dir32)), n, threads)
         prim = self.embree.first_triangles(org32, dir32, threads)  # (N,) triangle, -1 for none
         distance, owner = np.empty(n), np.empty(n, np.int64)
         normal, point = np.empty((n, 3)), np.empty((n, 3))
-        native.parallel(lib.finish, (_ptr(org), stride, _ptr(dirs), _ptr(unit), _ptr(prim), _ptr(self.plane_origins),
+        kernels.parallel(lib.finish, (_ptr(org), stride, _ptr(dirs), _ptr(unit), _ptr(prim), _ptr(self.plane_origins),
                                      _ptr(self.plane_normals), _ptr(self.face_owner), float(max_distance), _ptr(distance),
                                      _ptr(owner), _ptr(normal), _ptr(point)), n, threads)
         return distance, owner, normal, point
@@ -171,7 +171,7 @@ class CompiledScene:
         dirs = np.ascontiguousarray(directions, np.float64)
         sun = np.ascontiguousarray(sun, np.float64)
         distance, owner, rgb = np.empty(n), np.empty(n, np.int64), np.empty((n, 3), np.uint8)
-        native.interleaved(_kernel().camera, (self.embree.scene, self.embree.intersect, _ptr(origin), _ptr(dirs), _ptr(self.shift),
+        kernels.interleaved(_kernel().camera, (self.embree.scene, self.embree.intersect, _ptr(origin), _ptr(dirs), _ptr(self.shift),
                                               self.scale, _ptr(self.plane_origins), _ptr(self.plane_normals), _ptr(self.face_owner),
                                               _ptr(self.albedo), _ptr(self.kind), _ptr(sun), _ptr(distance), _ptr(owner), _ptr(rgb), n),
                            threads)

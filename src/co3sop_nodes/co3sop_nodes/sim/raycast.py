@@ -11,8 +11,8 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from . import ray_kernel
-from .scene import SceneObject
+from co3sop_nodes.sim import ray_kernel
+from co3sop_nodes.sim.scene import SceneObject
 
 
 @dataclass(frozen=True)

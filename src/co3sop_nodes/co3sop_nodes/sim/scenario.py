@@ -7,14 +7,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..frames import CameraFrame, CavFrame, OtherVehicle
-from ..grid import BENCHMARK_RANGES, GridSpec
-from . import camera, lidar, rig
-from .raycast import ObjectMeshes, RayScene
-from .scene import SceneObject
-from .town import Town, TownConfig, generate_town
-from .traffic import Traffic, TrafficConfig
-from .voxel_sensor import annotate
+from co3sop_nodes.common.frames import CameraFrame, CavFrame, OtherVehicle
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.sim import camera, lidar, rig
+from co3sop_nodes.sim.raycast import ObjectMeshes, RayScene
+from co3sop_nodes.sim.scene import SceneObject
+from co3sop_nodes.sim.town import Town, TownConfig, generate_town
+from co3sop_nodes.sim.traffic import Traffic, TrafficConfig
+from co3sop_nodes.sim.voxel_sensor import annotate
 
 FIRST_TIMESTAMP = 70  # OPV2V keys are CARLA frame numbers: dumping starts after ~60 ticks, every 2nd tick
 

@@ -7,7 +7,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .shapes import Box, Cylinder, Primitive, Sphere
+from co3sop_nodes.sim.shapes import Box, Cylinder, Primitive, Sphere
 
 
 @dataclass(frozen=True, eq=False)

@@ -89,7 +89,7 @@ class Box:
         """The separating axis test's constants: 15 candidate axes (15, 3) (the cube's faces, the box's faces, their
         edge crossings; a degenerate crossing is all zeros), per axis |a| summed (15,) and the box's reach (15,)
         (inf for a degenerate axis, which separates nothing). Written as elementwise float64 arithmetic, as the
-        compiled voxel sensor (native/voxel_sensor.c) repeats it, so both decide every voxel alike."""
+        compiled voxel sensor (kernels/voxel_sensor.c) repeats it, so both decide every voxel alike."""
         eye, r = np.eye(3), self.rot
         e, b = np.repeat(eye, 3, axis=0), np.tile(r.T, (3, 1))  # (9, 3): e_i and box axis j, i major
         edges = np.stack([e[:, 1] * b[:, 2] - e[:, 2] * b[:, 1], e[:, 2] * b[:, 0] - e[:, 0] * b[:, 2],

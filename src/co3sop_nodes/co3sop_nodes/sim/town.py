@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..classes import LABEL_BY_NAME as L
-from .scene import SceneObject
-from .shapes import Box, Cylinder, Sphere
+from co3sop_nodes.common.classes import LABEL_BY_NAME as L
+from co3sop_nodes.sim.scene import SceneObject
+from co3sop_nodes.sim.shapes import Box, Cylinder, Sphere
 
 LANE_WIDTH = 3.5  # m
 SIDEWALK_WIDTH = 3.5  # m

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..classes import LABEL_BY_NAME as L
-from .scene import SceneObject
-from .shapes import Box, Cylinder, Sphere
-from .town import Lane, Town
+from co3sop_nodes.common.classes import LABEL_BY_NAME as L
+from co3sop_nodes.sim.scene import SceneObject
+from co3sop_nodes.sim.shapes import Box, Cylinder, Sphere
+from co3sop_nodes.sim.town import Lane, Town
 
 DT = 0.1  # s
 # name -> (length, width, height) m, and relative frequency among moving vehicles

@@ -1,4 +1,4 @@
-"""The voxel sensor's stages as a compiled kernel (native/voxel_sensor.c): the same three stages as
+"""The voxel sensor's stages as a compiled kernel (kernels/voxel_sensor.c): the same three stages as
 voxel_sensor.py's NumPy path, per object in C, objects spread over threads.
 
 The kernel decides overlap with the primitives' own constants (`overlap_constants`
@@ -14,18 +14,18 @@ from functools import cache
 
 import numpy as np
 
-from .. import native
-from ..grid import GridSpec
-from .scene import SceneObject
-from .shapes import EPS, Box, Cylinder, Primitive
+from co3sop_nodes import kernels
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.sim.scene import SceneObject
+from co3sop_nodes.sim.shapes import EPS, Box, Cylinder, Primitive
 
-STRIDE = 96  # float64 per primitive, as native/voxel_sensor.c lays them out
+STRIDE = 96  # float64 per primitive, as kernels/voxel_sensor.c lays them out
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 
 
 @cache
 def _kernel():
-    lib = native.load("voxel_sensor")
+    lib = kernels.load("voxel_sensor")
     if lib is None:
         return None
     lib.annotate_objects.argtypes, lib.annotate_objects.restype = [_P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P], ctypes.c_int
@@ -35,7 +35,7 @@ def _kernel():
 
 def available() -> bool:
     """Whether the kernel is enabled and compiles here (compiling it on first call)."""
-    return native.ENABLED and _kernel() is not None
+    return kernels.ENABLED and _kernel() is not None
 
 
 def _packed(p: Primitive) -> tuple[int, np.ndarray]:
@@ -71,7 +71,7 @@ def ranks(grid: GridSpec, objects: Sequence[SceneObject], rank: np.ndarray, boxe
     queue = np.zeros(1, np.int64)  # the next object to take
     args = [a.ctypes.data for a in (g, dims)] + [len(objects)] + [a.ctypes.data for a in
                                                                    (order, first, boxes, rank, kind, param, primitive_boxes, out, queue)]
-    if any(native.together(lambda: fn(*args), threads)):
+    if any(kernels.together(lambda: fn(*args), threads)):
         raise MemoryError(f"voxel sensor: out of memory annotating {len(objects)} objects on {'x'.join(map(str, grid.dims))}")
     return out
 
@@ -79,5 +79,5 @@ def ranks(grid: GridSpec, objects: Sequence[SceneObject], rank: np.ndarray, boxe
 def to_labels(grid_ranks: np.ndarray, label_of_rank: np.ndarray, threads: int) -> np.ndarray:
     """Ranks to labels in place: label_of_rank (256,) uint8."""
     lut = np.ascontiguousarray(label_of_rank, np.uint8)
-    native.parallel(_kernel().ranks_to_labels, (grid_ranks.ctypes.data, lut.ctypes.data), grid_ranks.size, threads)
+    kernels.parallel(_kernel().ranks_to_labels, (grid_ranks.ctypes.data, lut.ctypes.data), grid_ranks.size, threads)
     return grid_ranks

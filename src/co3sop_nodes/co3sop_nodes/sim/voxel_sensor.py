@@ -28,7 +28,7 @@ stage 1; it is then seeded from an exact check of the voxels inside its own
 bounding box, so no object that intersects the volume is missed. The oracle
 checks every voxel against every object and must give the identical grid.
 
-The stages run in a compiled kernel (voxel_kernel.py, native/voxel_sensor.c)
+The stages run in a compiled kernel (voxel_kernel.py, kernels/voxel_sensor.c)
 where a C compiler is present, else in NumPy here; both give the same grid.
 """
 
@@ -39,10 +39,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..classes import LABEL_BY_NAME
-from ..grid import GridSpec
-from . import voxel_kernel
-from .scene import SceneObject
+from co3sop_nodes.common.classes import LABEL_BY_NAME
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.sim import voxel_kernel
+from co3sop_nodes.sim.scene import SceneObject
 
 # Lowest first; a voxel shared by two objects takes the later label.
 LABEL_PRIORITY: tuple[int, ...] = tuple(

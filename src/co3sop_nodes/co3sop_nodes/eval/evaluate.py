@@ -1,0 +1,438 @@
+"""`evaluate`: per-class IoU and mIoU of a model on a split, and the paper's ablations.
+
+    ros2 run co3sop_nodes evaluate --model runs/tiny/model.pt --data data/ --splits validate --out results/
+    ros2 run co3sop_nodes evaluate ... --ablation collaborators   # 0..6 collaborators, nearest first
+    ros2 run co3sop_nodes evaluate ... --ablation pose-noise      # mu in 0, 0.1, ..., 0.5, sigma 0.02
+    ros2 run co3sop_nodes evaluate ... --ablation collaboration   # off vs on
+    ros2 run co3sop_nodes evaluate ... --ablation codec           # bytes per agent-frame vs mIoU per feature codec
+    ros2 run co3sop_nodes evaluate ... --ablation inputs          # real vs blank vs shuffled sensors (input controls)
+    ros2 run co3sop_nodes evaluate ... --ablation distance        # off vs on by the nearest collaborator's distance
+    ros2 run co3sop_nodes evaluate ... --precision bfloat16 --ablation precision   # against float32, labels compared
+    ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
+
+Every CAV of every frame is the ego in turn. Results are printed as markdown
+(per-class IoU in %, mIoU in the three conventions of co3sop_nodes.eval.metrics)
+and written as <out>/<name>.md and .json; ablations also write a PNG plot.
+Every mIoU carries a 95 % bootstrap interval over scenarios, and every
+ablation step its paired difference to the step's reference (off, 0
+collaborators, no noise, real inputs, the lossless codec) with its interval
+(co3sop_nodes.eval.metrics.Bootstrap).
+Pose noise follows Co3SOP: neighbours only, dx, dy ~ N(mu, sigma) (a biased
+offset), dz ~ N(0, 0.01), applied to their world poses before alignment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from co3sop_nodes.v2x.sender_budget import SenderBudgets
+from co3sop_nodes.cli.common import progress, run
+from co3sop_nodes.v2x.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
+from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.inference import PRECISIONS, InferencePath, inference_path
+from co3sop_nodes.eval.metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
+from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint, shipped_checkpoint
+from co3sop_nodes.inference.inputs import to_batch
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
+from co3sop_nodes.inference.outputs import through_codec
+from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
+from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.eval.controls import INPUT_CONTROLS, ControlledInputs
+from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
+from co3sop_nodes.cli.device import add_device_argument
+
+
+
+@torch.no_grad()
+def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
+             codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
+             cache: dict | None = None, inputs: str = "real",
+             where: Callable[[Sample], bool] | None = None, later_frames: dict | None = None,
+             path: InferencePath | None = None, labels: dict | None = None) -> tuple[dict, float]:
+    """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
+
+    `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
+    `inputs` is one of learn.controls.INPUT_CONTROLS; `where` keeps only the samples it accepts (judged on the
+    sample with every collaborator in range, whatever `collaborators` is). `later_frames`, where given, is
+    filled as the result with the samples whose ego was there the frame before (those a request map reaches:
+    every one but the ego's first frame of a scenario). `path`, where given, is the inference path the model
+    runs on from now on (`Co3SOP.use`: a cache is valid for one path only); `labels`, where given, is filled with
+    each sample's predicted labels by sample index.
+    """
+    early = model.cfg.early_fusion
+    if early and codec is not None:
+        raise Co3sopError(f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no features to encode")
+    rng = np.random.default_rng(seed)
+    if path is not None:
+        model.use(path)
+    device = model.path.torch_device
+    confusions, sent = {}, []
+    senders: dict[tuple, SenderBudgets] = {}  # (scenario, sender) -> its byte budgets, one per ego
+    cache = {} if cache is None else cache
+    controlled = ControlledInputs(dataset, inputs)
+    bar = progress(len(dataset), desc, "sample")
+    for i in range(len(dataset)):
+        if where is not None and not where(dataset.sample(i)):
+            bar.update(1)
+            continue
+        sample = dataset.sample(i, collaborators)
+        f, _ = dataset.index[i]
+        position = {a.cav_id: j for j, a in enumerate(dataset.frames[f][1])}
+
+        def vehicle(record, frame: int = f, j: int | None = None) -> VehicleOutput:
+            key = (frame, record.cav_id, inputs)
+            if key not in cache:
+                cache[key] = model.vehicle(**to_batch(controlled(frame, position[record.cav_id] if j is None else j), device))
+            return cache[key]
+
+        def previous_frame(frame: int, cav: int) -> int | None:
+            """`cav`'s index among the agents one frame before `frame` in the same scenario, if it was there."""
+            if frame == 0 or dataset.frames[frame - 1][0][:2] != dataset.frames[frame][0][:2]:
+                return None
+            return next((k for k, a in enumerate(dataset.frames[frame - 1][1]) if a.cav_id == cav), None)
+
+        def previous_request(frame: int, cav: int) -> tuple[np.ndarray, np.ndarray] | None:
+            """(request, world_from_ego) of `cav` one frame before `frame` in the same scenario, if it was there."""
+            j = previous_frame(frame, cav)
+            if j is None:
+                return None
+            agent = dataset.frames[frame - 1][1][j]
+            return request_of(vehicle(agent, frame - 1, j).confidence), agent.world_from_lidar
+
+        others = sample.others
+        if early:  # the collaborators' scans merged into the ego's (where the pose noise puts them), then the model alone
+            key, noisy = (f, sample.ego.cav_id, inputs, tuple(a.cav_id for a in others)), bool(mu or sigma)
+            ego = None if noisy else cache.get(key)  # a noisy merge is drawn anew each time, never kept
+            if ego is None:
+                placed = [noisy_relative(sample.ego.world_from_lidar, a.world_from_lidar, mu, sigma, rng) for a in others]
+                merged = early_fused(replace(sample, neighbour_from_ego=np.reshape(placed, (-1, 4, 4))), model.cfg.grid,
+                                     lambda r: controlled(f, position[r.cav_id])["occupancy"])
+                ego = model.vehicle(**to_batch(merged.ego.inputs, device))
+                if not noisy:
+                    cache[key] = ego
+            others = []
+        else:
+            ego = vehicle(sample.ego)
+        # a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on a
+        # scenario's first frame: the neighbour then weighs by its own confidence alone)
+        request = previous_request(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
+        candidates = {}
+        for record in others:
+            out = vehicle(record)
+            if codec is not None:
+                wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)
+                key = (sample.key[:2], record.cav_id)
+                if key not in senders:
+                    senders[key] = SenderBudgets(codec)
+                out, size = through_codec(out, model.cfg.feature_grid, senders[key].config(sample.ego.cav_id), wanted)
+                senders[key].spend(sample.ego.cav_id, size)
+                sent.append(size)
+            candidates[record.cav_id] = (out, record.world_from_lidar)
+        pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
+        scenario = "/".join(sample.key[:2])
+        confusions.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
+        if labels is not None:
+            labels[i] = pred.labels
+        if later_frames is not None and previous_frame(f, sample.ego.cav_id) is not None:
+            later_frames.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
+        bar.update(1)
+    bar.close()
+    return confusions, float(np.mean(sent)) if sent else 0.0
+
+
+def _plot(path: Path, x, series: dict[str, list[float]], xlabel: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, ys in series.items():
+        ax.plot(x, [100 * y for y in ys], marker="o", label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("mIoU (%)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _write(out: Path, name: str, text: str, data: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.md").write_text(text + "\n")
+    (out / f"{name}.json").write_text(json.dumps(data, indent=2) + "\n")
+    print(text)
+
+
+def _compare(
+    opts,
+    stem: str,
+    heading: str,
+    title: str,
+    runs: dict[str, dict],
+    reference: str,
+    boot: Bootstrap,
+    note: str = "",
+    extra: dict | None = None,
+) -> dict:
+    """Writes runs (per-scenario confusions) as one table with intervals, plus each run's paired difference to
+    `reference` (and a `note` below it, `extra` in the JSON)."""
+    summaries = {name: boot.summary(c) for name, c in runs.items()}
+    differences = {name: boot.difference(c, runs[reference]) for name, c in runs.items() if name != reference}
+    text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
+            + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
+            + difference_table(differences, reference) + (f"\n\n{note}" if note else ""))
+    _write(opts.out, stem, text, {"title": title, "command": opts.command, "trained": opts.trained, "reference": reference, **summaries,
+                                  "differences": differences, **(extra or {})})
+    return summaries
+
+
+def _collaboration(opts, cfg, stem, title, measure, boot) -> None:
+    runs = {"off": measure(collaborators=0, desc="collaboration off")[0], "on": measure(desc="collaboration on")[0]}
+    _compare(opts, f"{stem}_collaboration", "Collaboration off / on", title, runs, "off", boot)
+
+
+def _collaborators(opts, cfg, stem, title, measure, boot) -> None:
+    counts = list(range(cfg.max_collaborators + 1))
+    runs = {f"{n} collaborators": measure(collaborators=n, desc=f"{n} collaborators")[0] for n in counts}
+    summaries = _compare(opts, f"{stem}_collaborators", "Number of collaborators (nearest first)", title, runs, "0 collaborators", boot)
+    _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS}, "collaborators used", title)
+
+
+def _pose_noise(opts, cfg, stem, title, measure, boot) -> None:
+    mus = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    runs = {f"mu={m:.1f}": measure(mu=m, sigma=0.02 if m else 0.0, desc=f"pose noise {m:.1f}")[0] for m in mus}
+    summaries = _compare(opts, f"{stem}_pose_noise", "Pose noise (sigma 0.02 m, neighbours only)", title, runs, "mu=0.0", boot)
+    _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS}, "pose noise mean mu (m)", title)
+
+
+def _inputs(opts, cfg, stem, title, measure, boot) -> None:
+    runs = {mode: measure(inputs=mode, desc=f"{mode} inputs")[0] for mode in INPUT_CONTROLS}
+    _compare(opts, f"{stem}_inputs", "Input controls (real, blank and shuffled sensors of every agent)", title, runs, "real", boot)
+
+
+def _codec(opts, cfg, stem, title, measure, boot) -> None:
+    """Bytes per neighbour-frame against mIoU and the share of the collaboration gain each codec keeps (gain: the
+    lossless codec against no collaborator; kept: (codec - alone) / (lossless - alone), a paired interval each), over
+    every sample and over the later frames (the ego there the frame before: a request map reaches them)."""
+    rows = ["| feature codec | bytes per neighbour-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc | "
+            "Δ co3sop-code vs float32-dense-none | gain kept (%) [95 % interval] | gain kept after the first frame (%) |",
+            "|---|---:|---:|---:|---:|---:|---|---|"]
+    alone_later: dict = {}
+    alone = measure(collaborators=0, desc="no collaborator", later_frames=alone_later)[0]
+    results, runs, later = {"alone": boot.summary(alone)}, {}, {}
+    lossless = STANDARD_FEATURE_SETTINGS[0].name
+    for setting in (*STANDARD_FEATURE_SETTINGS, *BUDGET_FEATURE_SETTINGS, *RANK_FEATURE_SETTINGS):
+        later[setting.name] = {}
+        runs[setting.name], size = measure(codec=setting, desc=setting.name, later_frames=later[setting.name])
+        summary = boot.summary(runs[setting.name])
+        diff = boot.difference(runs[setting.name], runs[lossless])["co3sop-code"]
+        kept = boot.ratio(runs[setting.name], runs[lossless], alone)
+        kept_later = boot.ratio(later[setting.name], later[lossless], alone_later)
+        results[setting.name] = {"bytes": size, **summary, "difference": diff, "gain_kept": kept, "gain_kept_later_frames": kept_later}
+        rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
+                    f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} | "
+                    f"{100 * diff['delta']:+.2f} [{100 * diff['ci95'][0]:.2f}, {100 * diff['ci95'][1]:.2f}] | "
+                    f"{100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] | "
+                    f"{100 * kept_later['ratio']:.0f} [{100 * kept_later['ci95'][0]:.0f}, {100 * kept_later['ci95'][1]:.0f}] |")
+    text = (f"### Feature codecs over V2X: {title}\n\nAlone (no collaborator): mIoU co3sop-code "
+            f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its "
+            "motion (none on the ego's first frame of a scenario, where a vehicle weighs by its own confidence alone): the "
+            "last column leaves those first frames out.\n\n" + "\n".join(rows))
+    _write(opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results})
+    plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
+
+
+# What the papers' collaborators send per neighbour-frame: the curve is read against them
+PAPER_SIZES = {"Co3SOP (dense float32)": 18.9e6, "CoHFF": 0.78e6, "VOGS-CP": 0.27e6}
+
+
+def plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
+    """Share of the collaboration gain kept against bytes per neighbour-frame (log scale), with intervals: results[codec
+    name] = {"bytes": ..., "gain_kept": {"ratio": ..., "ci95": (low, high)}}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9.5, 4.5))
+    colours = plt.get_cmap("tab20").colors  # one per codec (the default cycle repeats after 10; int4's own marker after 20)
+    for i, (name, r) in enumerate(results.items()):
+        low, high = r["gain_kept"]["ci95"]
+        kept = r["gain_kept"]["ratio"]
+        marker = "D" if name.startswith("int4") else "s" if "request" in name else "o"
+        ax.errorbar(r["bytes"], 100 * kept, yerr=[[100 * (kept - low)], [100 * (high - kept)]], fmt=marker, capsize=3, label=name,
+                    color=colours[i % len(colours)], markerfacecolor="none" if "pca" in name else None)
+    for name, size in PAPER_SIZES.items():
+        ax.axvline(size, color="grey", linestyle=":", linewidth=1)
+        ax.text(size, ax.get_ylim()[1], name, rotation=90, va="top", ha="right", fontsize=7, color="grey")
+    ax.axvline(65536, color="red", linestyle="--", linewidth=1)
+    ax.axhline(90, color="red", linestyle="--", linewidth=1)
+    ax.set_xscale("log")
+    ax.set_xlabel("bytes per neighbour-frame")
+    ax.set_ylabel("collaboration gain kept (%)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes: no point hidden
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def nearest_distance(sample: Sample) -> float:
+    """Ground distance (m) from the ego to its nearest collaborator in communication range; inf without one."""
+    if not sample.others:
+        return math.inf
+    return float(np.hypot(*(sample.others[0].world_from_lidar[:2, 3] - sample.ego.world_from_lidar[:2, 3])))
+
+
+DISTANCE_BINS: dict[str, Callable[[float], bool]] = {
+    "under 20 m": lambda d: d < 20.0,
+    "20-40 m": lambda d: 20.0 <= d < 40.0,
+    f"40-{COMM_RANGE:.0f} m": lambda d: 40.0 <= d <= COMM_RANGE,
+    f"none within {COMM_RANGE:.0f} m": math.isinf,
+}
+
+
+def _distance(opts, cfg, stem, title, measure, boot) -> None:
+    """Off / on per bin of the nearest collaborator's distance, each bin over the test scenarios that have samples in it."""
+    results = {}
+    for name, accept in DISTANCE_BINS.items():
+        def where(sample, accept=accept):
+            return accept(nearest_distance(sample))
+
+        off = measure(collaborators=0, where=where, desc=f"{name}: off")[0]
+        if off:
+            on = measure(where=where, desc=f"{name}: on")[0]
+            binned = Bootstrap(list(off), seed=opts.seed)
+            results[name] = {"samples": sum(c.frames for c in off.values()), "off": binned.summary(off), "on": binned.summary(on),
+                             "difference": binned.difference(on, off)}
+    text = f"### Collaboration gain by the nearest collaborator's distance: {title}\n\n" + "\n".join(distance_table(results))
+    _write(opts.out, f"{stem}_distance", text, {"title": title, "command": opts.command, "trained": opts.trained, "bins": results})
+
+
+def distance_table(bins: dict) -> list[str]:
+    """The rows of the distance ablation from its JSON `bins` (report prints the same table)."""
+    def delta(d: dict) -> str:
+        return f"{100 * d['delta']:+.2f} [{100 * d['ci95'][0]:.2f}, {100 * d['ci95'][1]:.2f}]"
+
+    rows = ["| nearest collaborator | samples | scenarios | off mIoU 1..23 | on mIoU 1..23 | Δ mIoU 1..23 [95 %] | Δ geometry IoU [95 %] |",
+            "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, r in bins.items():
+        rows.append(f"| {name} | {r['samples']} | {r['off']['scenarios']} | {100 * point(r['off'], 'co3sop-code'):.2f} | "
+                    f"{100 * point(r['on'], 'co3sop-code'):.2f} | {delta(r['difference']['co3sop-code'])} | {delta(r['difference']['geometry'])} |")
+    return rows
+
+
+def _precision(opts, cfg, stem, title, measure, boot) -> None:
+    """--precision (reduced) against float32 on the same device: the paired mIoU difference and the share of voxels
+    whose label is the same."""
+    fast = opts.inference
+    if not fast.reduced:
+        raise Co3sopError(
+            "--ablation precision compares --precision bfloat16 or float16 with float32: name one of them"
+        )
+    reference = replace(fast, precision="float32")
+    labels: dict[str, dict] = {}
+    runs = {}
+    for path in (reference, fast):  # the model's own path last: it stays on it
+        labels[path.precision] = {}
+        runs[path.precision] = measure(path=path, shared={}, labels=labels[path.precision], desc=path.precision)[0]
+    same = sum(int((labels["float32"][i] == labels[fast.precision][i]).sum()) for i in labels["float32"])
+    total = sum(v.size for v in labels["float32"].values())
+    agreement = same / max(1, total)
+    _compare(
+        opts,
+        f"{stem}_precision",
+        f"Inference precision ({fast.device})",
+        title,
+        runs,
+        "float32",
+        boot,
+        f"Labels equal to float32's on {100 * agreement:.2f} % of {total} voxels ({len(labels['float32'])} samples).",
+        {"device": fast.device, "label_agreement": agreement, "voxels": total},
+    )
+
+
+ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs,
+             "distance": _distance, "precision": _precision}
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "--model",
+        nargs="+",
+        help="checkpoints (model.pt or state.pt, or a shipped model by name: tiny-lidar, tiny, "
+        "small); one column each (default: the shipped tiny one)",
+    )
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--splits", nargs="+", default=["validate"])
+    parser.add_argument("--out", type=Path, default=Path("results"))
+    parser.add_argument("--ablation", nargs="*", default=[], choices=sorted(ABLATIONS),
+                        help="ablations to run for each model (they share the vehicle halves' outputs)")
+    parser.add_argument("--collaborators", type=int, metavar="N",
+                        help="at most N collaborators, nearest first (0: every model alone; default: each model's maximum)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    add_device_argument(parser)
+    parser.add_argument(
+        "--precision",
+        default="float32",
+        choices=PRECISIONS,
+        help="inference precision (float32, the reference, by default; auto: what the machine computes fast)",
+    )
+    parser.add_argument(
+        "--reference-paths", action="store_true", help="the PyTorch reference paths instead of the compiled kernels"
+    )
+    opts = parser.parse_args(args)
+    opts.command = shlex.join(["evaluate", *(sys.argv[1:] if args is None else args)])  # recorded beside every table
+    if opts.collaborators is not None and opts.collaborators < 0:
+        parser.error("--collaborators must be 0 or more")
+    if opts.threads < 1:
+        parser.error("--threads must be 1 or more")
+    torch.set_num_threads(opts.threads)
+    opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
+    table: dict[str, dict] = {}
+    for path in [resolve_checkpoint(m, "--model") for m in opts.model] if opts.model else [shipped_checkpoint()]:
+        model, checkpoint = load_model(path)
+        opts.trained = checkpoint.get("meta", checkpoint).get("history", [])  # the train commands behind the weights, in the JSON
+        model.use(opts.inference)
+        cfg = model.cfg
+        dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+        title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
+        shared: dict = {}
+
+        boot = Bootstrap(["/".join(k) for k in dataset.scenarios], seed=opts.seed)
+
+        def measure(model=model, dataset=dataset, shared=shared, **kw) -> tuple[dict, float]:
+            return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)  # runs of one model share vehicle outputs
+
+        if not opts.ablation:
+            label = f"{cfg.name} {cfg.range}" + ("" if opts.collaborators is None else f", {opts.collaborators} collaborators")
+            if label in table:  # two runs of one preset: tell the columns apart by run folder
+                label += f" ({path.parent.name})"
+            table[label] = {**boot.summary(measure(collaborators=opts.collaborators, desc=label)[0]), "model": str(path), "trained": opts.trained}
+        for ablation in opts.ablation:
+            ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure, boot)
+    if table:
+        splits = "+".join(opts.splits)
+        _write(opts.out, "evaluation", f"### Per-class IoU (%) and mIoU on {splits} (95 % intervals over scenarios)\n\n" + markdown_table(table),
+               {"splits": opts.splits, "command": opts.command, **table})
+    return 0
+
+
+entry = run(main)

@@ -1,0 +1,119 @@
+"""Scores a recording of the graph: each /ego/occupancy against its ground truth by stamp and agent (ROS-free).
+
+Ground truth of an ego agent with no prediction at that stamp is a missed
+frame: it is listed and scored as an all-empty prediction (a deployed system
+that says nothing has seen nothing), never dropped. Predictions without
+ground truth are listed and not scored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from co3sop_nodes.common import topics
+from co3sop_nodes.data.bags import BagReader, header_stamp_ns, occupancy_labels, open_recording
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.eval.metrics import Confusion
+
+
+def range_of(grid: GridSpec) -> str:
+    for name, spec in BENCHMARK_RANGES.items():
+        if spec == grid:
+            return name
+    raise DatasetError(f"grid {grid} is none of the benchmark ranges ({', '.join(BENCHMARK_RANGES)})")
+
+
+@dataclass
+class Recording:
+    predictions: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> (X, Y, Z) labels
+    range_name: str
+    truths: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> labels at range_name, ego agents only
+    diagnostics: dict[str, list[dict[str, str]]] = field(default_factory=dict)  # status name ("ego", "vehicle cav_3") -> per-frame key/values
+
+
+def _open(path: Path) -> BagReader:
+    reader = open_recording(path)
+    reader.open()
+    return reader
+
+
+def _messages(reader: BagReader, connections: list):
+    """Deserialized messages of these connections, with their log time."""
+    for conn, stamp, raw in reader.messages(connections=connections):
+        yield conn, stamp, reader.deserialize(raw, conn, stamp)
+
+
+def message_counts(path: Path) -> dict[str, int]:
+    """Messages per topic of a recording, from its index (nothing is decoded)."""
+    reader = _open(path)
+    try:
+        return {c.topic: c.msgcount for c in reader.connections}
+    finally:
+        reader.close()
+
+
+def read_recording(path: Path, range_name: str | None = None) -> Recording:
+    """Predictions, the ego agents' ground truth at the predictions' range, and the ego's diagnostics."""
+    reader = _open(path)
+    try:
+        preds: dict[tuple[int, int], np.ndarray] = {}
+        ranges = set()
+        pred_conns = [c for c in reader.connections if c.topic == topics.EGO_OCCUPANCY]
+        for conn, stamp, msg in _messages(reader, pred_conns):
+            with reader.about(conn, stamp):
+                labels, grid = occupancy_labels(msg)
+            ranges.add(range_of(grid))
+            preds[(msg.agent_id, header_stamp_ns(msg.header))] = labels
+        if not preds and range_name is None:
+            raise DatasetError(f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames")
+        if len(ranges) > 1:
+            raise DatasetError(f"{path}: predictions at several ranges ({', '.join(sorted(ranges))})")
+        recorded = ranges.pop() if ranges else None
+        range_name = range_name or recorded
+        if range_name not in BENCHMARK_RANGES:
+            raise DatasetError(f"unknown range {range_name!r} (known: {', '.join(BENCHMARK_RANGES)})")
+        if recorded is not None and range_name != recorded:
+            raise DatasetError(f"{path}: the predictions are at {recorded}, not at the range {range_name} asked for: "
+                               f"score them at {recorded} (leave out --range)")
+        egos = {a for a, _ in preds}  # no prediction at all: every agent's ground truth counts as missed
+        wanted = {topics.ground_truth(a, range_name) for a in egos}
+        suffix = topics.ground_truth(0, range_name).removeprefix(topics.namespace(0))
+        gt_conns = [c for c in reader.connections if c.topic in wanted or (not egos and c.topic.endswith(suffix))]
+        truths = {}
+        for conn, stamp, msg in _messages(reader, gt_conns):
+            with reader.about(conn, stamp):
+                truths[(msg.agent_id, header_stamp_ns(msg.header))] = occupancy_labels(msg)[0]
+        diagnostics: dict[str, list[dict[str, str]]] = {}
+        for _, _, msg in _messages(reader, [c for c in reader.connections if c.topic == topics.DIAGNOSTICS]):
+            for status in msg.status:
+                diagnostics.setdefault(status.name, []).append({kv.key: kv.value for kv in status.values})
+    finally:
+        reader.close()
+    return Recording(preds, range_name, truths, diagnostics)
+
+
+@dataclass
+class Score:
+    summary: dict  # metrics.Confusion.summary() over scored frames
+    range_name: str
+    scored: int  # frames with ground truth (predicted + missed)
+    missed: list[tuple[int, int]]  # (agent, stamp) with ground truth but no prediction
+    unmatched: list[tuple[int, int]]  # predictions without ground truth
+
+
+def score(rec: Recording) -> Score:
+    confusion = Confusion()
+    missed = []
+    for key in sorted(rec.truths):
+        truth = rec.truths[key]
+        prediction = rec.predictions.get(key)
+        if prediction is None:
+            missed.append(key)
+            prediction = np.zeros_like(truth)
+        confusion.add(prediction, truth)
+    unmatched = sorted(k for k in rec.predictions if k not in rec.truths)
+    return Score(confusion.summary(), rec.range_name, len(rec.truths), missed, unmatched)

@@ -1,0 +1,120 @@
+"""Checkpoints: training state (resumable) and exported models (weights + config + provenance)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+from pathlib import Path
+
+import torch
+
+from co3sop_nodes.common.errors import Co3sopError, exception_line
+from co3sop_nodes.model.config import ModelConfig, config_from_dict
+from co3sop_nodes.model.co3sop import Co3SOP, build_model
+
+
+SHIPPED = "tiny.pt"  # trained by `train`; how is recorded beside it in checkpoints/tiny.md
+
+
+def shipped_checkpoint(name: str = SHIPPED) -> Path:
+    """The checkpoint installed with co3sop_nodes (found on AMENT_PREFIX_PATH, as ROS tools find packages)."""
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        candidate = Path(prefix, "share", "co3sop_nodes", "checkpoints", name)
+        if candidate.is_file():
+            return candidate
+    raise Co3sopError(f"no installed checkpoint {name!r}: build the workspace (ros2_ws/bootstrap.sh) and source ros2_ws/env.sh")
+
+
+def shipped_names() -> list[str]:
+    """The shipped checkpoints by name (tiny-lidar, tiny, small), as installed."""
+    folder = shipped_checkpoint().parent
+    return sorted(p.stem for p in folder.glob("*.pt"))
+
+
+def resolve_checkpoint(value: str | Path | None, what: str = "checkpoint") -> Path:
+    """A checkpoint given as a path (a .pt file) or as the name of a shipped one (tiny-lidar, tiny, small); empty:
+    the shipped default. `what` names the option or parameter in errors."""
+    if not value:
+        return shipped_checkpoint()
+    path = Path(value)
+    if path.suffix == ".pt" or path.exists() or len(path.parts) > 1:
+        if not path.is_file():
+            raise Co3sopError(f"{what} {value}: no such checkpoint file")
+        return path
+    known = shipped_names()
+    if str(value) not in known:
+        raise Co3sopError(f"{what} {value!r}: neither a checkpoint file nor a shipped model ({', '.join(known)})")
+    return shipped_checkpoint(f"{value}.pt")
+
+
+def _atomic_save(obj, path: Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)  # a crash never leaves a half-written checkpoint under the real name
+
+
+def save_training_state(path: Path, model: Co3SOP, optimizer, step: int, stage: str, extra: dict) -> None:
+    _atomic_save({"config": dataclasses.asdict(model.cfg), "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                  "step": step, "stage": stage, **extra}, path)
+
+
+def export_model(path: Path, model: Co3SOP, meta: dict, half: bool = True) -> None:
+    """Weights (float16 by default: half the size, cast back on load) + config + how they were made."""
+    state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in model.state_dict().items()}
+    _atomic_save({"config": dataclasses.asdict(model.cfg), "model": state, "meta": meta}, path)
+
+
+def read_checkpoint(path: Path) -> dict:
+    """The dict a checkpoint holds, loaded without running code: tensors, numbers, strings and containers
+    only (`weights_only`), so a crafted pickle is refused instead of executed."""
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise Co3sopError(f"{path}: no such checkpoint") from None
+    except IsADirectoryError:
+        raise Co3sopError(f"{path}: a directory, not a checkpoint") from None
+    except pickle.UnpicklingError as exc:
+        if "Unsupported global" in str(exc):  # a pickled object (class, function) rather than weights
+            raise Co3sopError(f"{path}: refused: holds Python objects other than weights (loading it could run code); "
+                              "not a Co3SOP checkpoint") from None
+        raise Co3sopError(f"{path}: not a readable checkpoint (damaged, or not a PyTorch file)") from None
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
+        raise Co3sopError(f"{path}: not a readable checkpoint ({exception_line(exc)})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("config"), dict) or not isinstance(data.get("model"), dict):
+        raise Co3sopError(f"{path}: not a Co3SOP checkpoint (no config/model)")
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in data["model"].items()):
+        raise Co3sopError(f"{path}: not a Co3SOP checkpoint (its model entry is not a dict of named tensors)")
+    return data
+
+
+def load_model(path: Path) -> tuple[Co3SOP, dict]:
+    """A model in eval mode from a training state or an exported checkpoint, and the checkpoint's dict."""
+    data = read_checkpoint(path)
+    try:
+        cfg: ModelConfig = config_from_dict(data["config"])
+    except Co3sopError as exc:
+        raise Co3sopError(f"{path}: {exc}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise Co3sopError(f"{path}: its config is not one this version knows ({exc})") from None
+    model = build_model(cfg)
+    state = {k: v.float() if v.is_floating_point() else v for k, v in data["model"].items()}
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:  # missing, unexpected or mis-shaped weights
+        raise Co3sopError(f"{path}: its weights do not fit its config ({exception_line(exc)})") from None
+    return model.eval(), data
+
+
+def load_graph_model(path: Path) -> tuple[Co3SOP, dict]:
+    """load_model for the node graph, whose vehicles share voxel features: an early-fusion model (the
+    collaborators' scans merged before it, an offline reference) has no place there and is refused."""
+    model, data = load_model(path)
+    if model.cfg.early_fusion:
+        raise Co3sopError(f"{path}: {model.cfg.name} is an early-fusion reference (collaborators' LiDAR scans merged before the "
+                          "model); the node graph shares voxel features: score it with `evaluate`, run the graph with a "
+                          "Co3SOP-Base checkpoint")
+    return model, data
+

@@ -1,0 +1,102 @@
+"""How fast this machine can play a bag through the graph: a model's CPU cost per frame, measured (ROS-free).
+
+The demo plays its bag at the rate the machine keeps up with: every vehicle
+runs its half once per frame and the ego fuses and labels it, each process on
+one thread, all processes sharing the machine's cores. The frame's cost is
+measured here on inputs of the real shapes (random images through the OPV2V
+rig, or a LiDAR-like occupancy), since the work of every stage depends on the
+shapes, not the values.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from co3sop_nodes.viz.cloud import occupancy_cloud
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_labels
+from co3sop_nodes.common.frames import CameraFrame
+from co3sop_nodes.sim import rig
+from co3sop_nodes.inference.inputs import camera_inputs, to_batch
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
+from co3sop_nodes.inference.outputs import encode_output
+from co3sop_nodes.inference.predict import predict_frame
+
+# play at 1/1.5 of the rate the measured work allows: DDS, the player and the recorder (not measured here), the
+# scheduling of several processes on few cores, and jitter
+HEADROOM = 1.5
+
+
+@dataclass(frozen=True)
+class FrameCost:
+    vehicle_s: float  # one vehicle half + the feature codec (default settings), one thread
+    ego_s: float  # fusion of the ego and 2 neighbours, head to labels, label encoding and point cloud, one thread
+
+
+def shaped_inputs(model: Co3SOP, seed: int = 0) -> dict:
+    """VehicleHalf inputs of the model's shapes, on its device: random images seen through the OPV2V rig, or ~3 % of
+    voxels hit."""
+    cfg, device = model.cfg, model.path.torch_device
+    rng = np.random.default_rng(seed)
+    if cfg.modality == "lidar":
+        return to_batch({"occupancy": (rng.random((1, *cfg.grid.dims)) < 0.03).astype(np.uint8)}, device)
+    w, h = cfg.image_size
+    cams = [CameraFrame(name, mount, rig.intrinsics(w, h), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
+            for name, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras())]
+    images, lidar2img = camera_inputs(cams, rig.vehicle_from_lidar(), cfg.image_size)
+    return to_batch({"images": images, "lidar2img": lidar2img}, device)
+
+
+def _median_cpu(fn, repeats: int) -> float:
+    fn()  # warm-up: first-call allocations, the compiled head kernel
+    times = []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return float(np.median(times))
+
+
+@torch.inference_mode()
+def frame_cost(model: Co3SOP, repeats: int = 3) -> FrameCost:
+    """CPU seconds per frame of a vehicle and of the ego with 2 neighbours 10 m away, on one thread, as the nodes
+    compute them (the nodes' conversions of messages excepted)."""
+    cfg = model.cfg
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        inputs = shaped_inputs(model)
+        vehicle_s = _median_cpu(lambda: encode_output(model.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats)
+        ego = model.vehicle(**inputs)
+        others = {}
+        for i, dx in enumerate((10.0, -10.0)):
+            pose = np.eye(4)
+            pose[0, 3] = dx
+            others[i + 1] = (VehicleOutput(ego.features.roll(3, 2), ego.confidence.roll(3, 2)), pose)
+
+        def ego_frame():
+            pred = predict_frame(model, ego, np.eye(4), others)
+            encode_labels(pred.labels, cfg.grid, cfg.num_classes, confidence=pred.confidence)
+            occupancy_cloud(pred.labels, cfg.grid)
+
+        ego_s = _median_cpu(ego_frame, repeats)
+    finally:
+        torch.set_num_threads(threads)
+    return FrameCost(vehicle_s, ego_s)
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def sustainable_rate(cost: FrameCost, vehicles: int, period_s: float, n_cores: int, headroom: float = HEADROOM) -> float:
+    """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores, and the ego
+    (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real time."""
+    cpu = vehicles * cost.vehicle_s + cost.ego_s
+    wall = max(cpu / max(1, n_cores), cost.ego_s, cost.vehicle_s) * headroom
+    return float(min(1.0, period_s / wall))

@@ -1,0 +1,72 @@
+"""One ego frame from what the ego holds: collaborators chosen, aligned, fused, labelled (ROS-free).
+
+The ego node and offline bag evaluation both call `predict_frame`, so the
+graph and the offline path make identical predictions from identical inputs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
+from co3sop_nodes.kernels import deform as deform_kernel
+from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
+from co3sop_nodes.inference.outputs import labels_from_logits
+from co3sop_nodes.kernels.warp import compiled_available
+
+
+@dataclass
+class FramePrediction:
+    labels: np.ndarray  # (X, Y, Z) uint8
+    confidence: np.ndarray  # (X, Y, Z) uint8, round(255 * p(label))
+    collaborators: list[int]  # used, nearest first
+    fuse_s: float  # warp + fusion
+    head_s: float
+
+
+@torch.no_grad()
+def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
+                  candidates: Mapping[int, tuple[VehicleOutput, np.ndarray]], comm_range: float = COMM_RANGE,
+                  max_collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
+                  rng: np.random.Generator | None = None) -> FramePrediction:
+    """candidates: agent id -> (its output as received, its world_from_lidar); all go to the model's device.
+
+    On the model's inference path (`Co3SOP.use`); on its reference path (compiled kernels off), labels come
+    from the head's dense logits (their definition) instead of its exact fast path.
+    """
+    k = model.cfg.max_collaborators if max_collaborators is None else max_collaborators
+    chosen = nearest_collaborators(world_from_ego, {a: m for a, (_, m) in candidates.items()}, comm_range, k)
+    rng = rng or np.random.default_rng(0)
+    rel = [noisy_relative(world_from_ego, candidates[a][1], mu, sigma, rng) for a in chosen]
+    device = model.path.torch_device
+    ego = ego.to(device)
+    t0 = time.perf_counter()
+    fused = model.ego.fuse(ego, [candidates[a][0].to(device) for a in chosen],
+                           torch.from_numpy(np.stack(rel)).float()[None].to(device) if rel else None)
+    t1 = time.perf_counter()
+    if not model.path.compiled:
+        with model.path.autocast():
+            labels, confidence = labels_from_logits(model.ego.head(fused)[-1].float())
+    else:
+        labels, confidence = (t[0].cpu().numpy() for t in model.ego.head.labels(fused))  # exact fast path of labels_from_logits
+    return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)
+
+
+def compile_kernels(model: Co3SOP) -> list[str]:
+    """Compile (or load from the cache) the CPU kernels `model`'s inference uses, so that no frame waits for a
+    compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
+    cfg = model.cfg
+    c1, c2, _ = cfg.head_channels
+    kernels = {"head": lambda: octant_kernel.available(c1, c2, cfg.num_classes)} if cfg.head == "conv" else {}
+    if cfg.modality == "camera":
+        kernels["image sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.image_attention.heads)
+    if cfg.fusion:
+        kernels["warp"] = compiled_available
+        kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)
+    return [name for name, ready in kernels.items() if ready()]

@@ -1,0 +1,56 @@
+"""The head's full-resolution stage on the CPU as a compiled kernel (kernels/octant_labels.c).
+
+Parent features at 1/2 -> labels and confidence of their 8 octants, one
+parent at a time with the octants in one 8-lane vector: the transposed
+convolution, the pointwise layer, the classifier, the argmax and the label's
+softmax probability, never materialising the (N, 8, C) and (N, 8, K)
+intermediates that `OccupancyHead.labels`' PyTorch loop spends its time
+writing and reading. Threads split the parents (ctypes releases the GIL).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from functools import cache
+
+import numpy as np
+import torch
+
+from co3sop_nodes import kernels
+
+_POINTER = ctypes.c_void_p
+_ARGS = [_POINTER, *[ctypes.c_int64] * 4, *[_POINTER] * 8]
+
+
+@cache
+def _kernel(c1: int, c2: int, classes: int):
+    lib = kernels.load("octant_labels", C1=c1, C2=c2, K=classes)
+    if lib is None:
+        return None
+    fn = lib.octant_labels
+    fn.argtypes, fn.restype = _ARGS, None
+    return fn
+
+
+def available(c1: int, c2: int, classes: int) -> bool:
+    """Whether the kernel for this head shape compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
+    return kernels.ENABLED and _kernel(c1, c2, classes) is not None
+
+
+def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.nn.ConvTranspose3d, point: torch.nn.Conv3d,
+                  classify: torch.nn.Conv3d, threads: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """parents (P, C1) of the 1/2 grid `dims`, flat order, on the CPU -> labels, confidence (2X1, 2Y1, 2Z1) uint8,
+    on `threads` threads (the kernel must be `available`)."""
+    c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
+    fn = _kernel(c1, c2, k)
+    x = kernels.array(parents)  # (P, C1)
+    up_w = kernels.array(up.weight.flatten(2))  # (C1, C2, 8): octant (kernel offset i, j, k) last
+    up_b = kernels.array(up.bias[:, None].expand(c2, 8))  # (C2, 8)
+    point_w, point_b = kernels.array(point.weight[:, :, 0, 0, 0].t()), kernels.array(point.bias)  # (C2 in, C2 out), (C2,)
+    cls_w, cls_b = kernels.array(classify.weight[:, :, 0, 0, 0].t()), kernels.array(classify.bias)  # (C2, K), (K,)
+    n = x.shape[0]
+    x1, y1, z1 = dims
+    labels, confidence = np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8), np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8)
+    ptrs = [a.ctypes.data for a in (up_w, up_b, point_w, point_b, cls_w, cls_b, labels, confidence)]
+    kernels.parallel(lambda *bounds: fn(x.ctypes.data, y1, z1, *bounds, *ptrs), (), n, threads)
+    return torch.from_numpy(labels), torch.from_numpy(confidence)

@@ -1,0 +1,80 @@
+"""3D affine warp of a neighbour's voxel volume into the ego's frame (affine_grid + 5D grid_sample).
+
+Both volumes share one GridSpec, each in its own agent's LiDAR frame. For an
+ego voxel centre p_e, the neighbour's grid is read at p_n = T_n<-e p_e. In the
+normalised coordinates u of grid_sample (u = D^-1 (p - c), c the grid centre,
+D its half extents), that is u_n = (D^-1 R D) u_e + D^-1 (R c + t - c) with
+[R | t] = T_n<-e, an affine map `affine_grid` builds. grid_sample orders a 5D
+volume's axes (D, H, W) = (X, Y, Z) but its coordinates (W, H, D) = (z, y, x):
+the matrix is conjugated by that axis reversal. At inference on the CPU the
+resampling runs as a compiled kernel on channels-last volumes (`warp_compiled`,
+tested equal to `warp_with_mask`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from functools import cache
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from co3sop_nodes import kernels
+from co3sop_nodes.common.grid import GridSpec
+
+_REVERSE = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+
+
+def warp_theta(neighbour_from_ego: torch.Tensor, grid: GridSpec) -> torch.Tensor:
+    """(B, 4, 4) T_n<-e -> (B, 3, 4) affine_grid matrices in grid_sample's (z, y, x) order."""
+    t = neighbour_from_ego.to(torch.float64)
+    half = torch.tensor(grid.extent, dtype=torch.float64, device=t.device) / 2  # D
+    centre = torch.tensor(grid.origin, dtype=torch.float64, device=t.device) + half  # c
+    rot, trans = t[:, :3, :3], t[:, :3, 3]
+    a = rot * half[None, None, :] / half[None, :, None]  # D^-1 R D
+    b = (torch.einsum("bij,j->bi", rot, centre) + trans - centre) / half
+    rev = _REVERSE.to(t)
+    theta = torch.cat([rev @ a @ rev, (rev @ b[..., None])], dim=-1)
+    return theta.to(torch.float32)
+
+
+def warp(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, mode: str = "bilinear") -> torch.Tensor:
+    """volume: (B, C, X, Y, Z) in the neighbour's frame -> (B, C, X, Y, Z) resampled on the ego's grid (zeros outside)."""
+    theta = warp_theta(neighbour_from_ego, grid).to(volume.device)
+    sampling = F.affine_grid(theta, list(volume.shape), align_corners=False)
+    return F.grid_sample(volume, sampling, mode=mode, padding_mode="zeros", align_corners=False)
+
+
+def warp_with_mask(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec):
+    """The warped volume and the warp mask (B, 1, X, Y, Z): ego voxels the neighbour's grid covers."""
+    ones = torch.ones_like(volume[:, :1])
+    out = warp(torch.cat([volume, ones], dim=1), neighbour_from_ego, grid)
+    return out[:, :-1], out[:, -1:] > 0.5
+
+
+@cache
+def _kernel():
+    lib = kernels.load("warp")
+    if lib is None:
+        return None
+    fn = lib.warp_trilinear
+    fn.argtypes, fn.restype = [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 3, ctypes.c_int64, ctypes.c_int64], None
+    return fn
+
+
+def compiled_available() -> bool:
+    """Whether the compiled warp compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
+    return kernels.ENABLED and _kernel() is not None
+
+
+def warp_compiled(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, threads: int):
+    """`warp_with_mask` for one CPU volume (1, C, X, Y, Z), channels-last out: warped (X, Y, Z, C), warp mask (X, Y, Z)."""
+    _, c, nx, ny, nz = volume.shape
+    sampling = F.affine_grid(warp_theta(neighbour_from_ego, grid), [1, c, nx, ny, nz], align_corners=False)  # (1, X, Y, Z, 3)
+    src = kernels.array(volume[0].permute(1, 2, 3, 0))  # (X, Y, Z, C)
+    points = kernels.array(sampling[0]).reshape(-1, 3)
+    out, filled = np.empty((nx, ny, nz, c), np.float32), np.empty((nx, ny, nz), np.float32)
+    fn = _kernel()
+    kernels.parallel(fn, (src.ctypes.data, nx, ny, nz, c, points.ctypes.data, out.ctypes.data, filled.ctypes.data), len(points), threads)
+    return torch.from_numpy(out), torch.from_numpy(filled) > 0.5

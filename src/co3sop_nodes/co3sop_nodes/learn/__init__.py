@@ -1,1 +1,0 @@
-"""Training, evaluation and ablations of the model on generated (or converted) data (ROS-free)."""

@@ -1,0 +1,179 @@
+"""Co3SOP-Base, split into the half a vehicle runs and the half the ego runs, and `build_model(cfg)`.
+
+Vehicle half: cameras (ResNet + FPN + image-to-voxel deformable attention) or
+LiDAR (LMSCNet / SSCNet encoder) -> voxel features (B, C, X/4, Y/4, Z/4) and a
+confidence volume (1x1x1 conv + sigmoid), in the sender's LiDAR frame.
+Ego half: each collaborator's features and confidence warped into the ego
+frame, hybrid mask (warp mask x confidence mask), masked deformable fusion,
+then the prediction head (logits at 1/4, 1/2 and full resolution; or
+OccFormer's encoder and mask decoder, `occformer.py`).
+The node graph calls exactly these two halves; training calls both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from co3sop_nodes.inference import InferencePath
+from co3sop_nodes.model.backbone import ResNet
+from co3sop_nodes.model.config import ModelConfig
+from co3sop_nodes.model.fpn import FPN
+from co3sop_nodes.model.fusion import VoxelFusion, hybrid_mask
+from co3sop_nodes.model.head import OccupancyHead
+from co3sop_nodes.model.lidar import LMSCNetEncoder, SSCNetEncoder
+from co3sop_nodes.model.lifting import LiftingLayer, project, voxel_centres
+from co3sop_nodes.model.occformer import OccFormerHead
+from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
+
+# ImageNet-style normalisation of uint8 RGB inputs
+_MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1) * 255
+_STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1) * 255
+
+
+@dataclass
+class VehicleOutput:
+    features: torch.Tensor  # (B, C, X, Y, Z) feature grid, sender's LiDAR frame
+    confidence: torch.Tensor  # (B, 1, X, Y, Z) in [0, 1]
+
+    def to(self, device: torch.device) -> VehicleOutput:
+        return VehicleOutput(self.features.to(device), self.confidence.to(device))
+
+
+class VehicleHalf(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        fg = cfg.feature_grid
+        c = cfg.embed_dims
+        if cfg.modality == "camera":
+            self.backbone = ResNet(cfg.backbone)
+            self.fpn = FPN(cfg.backbone.channels[1:], cfg.fpn_channels, cfg.fpn_levels)
+            self.to_dims = nn.Conv2d(cfg.fpn_channels, c, 1) if cfg.fpn_channels != c else nn.Identity()
+            self.queries = nn.Parameter(torch.randn(fg.num_voxels, c) * 0.02)  # learnable voxel queries
+            att = cfg.image_attention
+            self.lifting = nn.ModuleList(LiftingLayer(c, att.heads, cfg.fpn_levels, att.points) for _ in range(att.layers))
+            self.register_buffer("centres", voxel_centres(fg), persistent=False)
+        elif cfg.modality == "lidar":
+            lc = cfg.lidar
+            self.encoder = (LMSCNetEncoder(cfg.grid.dims[2], c, lc.channels) if lc.kind == "lmscnet" else SSCNetEncoder(c, lc.channels))
+        else:
+            raise ValueError(f"unknown modality {cfg.modality!r}")
+        self.confidence = nn.Conv3d(c, 1, 1)
+        self.path = InferencePath()  # set by Co3SOP.use
+
+    def forward(self, images=None, lidar2img=None, occupancy=None) -> VehicleOutput:
+        """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4).
+        LiDAR: occupancy (B, 1, X, Y, Z) 0/1. Features and confidence in float32 whatever the path's precision (the
+        wire's codecs take float32)."""
+        with self.path.autocast():
+            out = self._forward(images, lidar2img, occupancy)
+        return VehicleOutput(out.features.float().contiguous(), out.confidence.float().contiguous())
+
+    def _forward(self, images, lidar2img, occupancy) -> VehicleOutput:
+        fg = self.cfg.feature_grid
+        if self.cfg.modality == "camera":
+            b, n = images.shape[:2]
+            x = (images.flatten(0, 1).float() - _MEAN.to(images.device)) / _STD.to(images.device)  # (B*N, 3, H, W)
+            feats = [self.to_dims(f) for f in self.fpn(self.backbone(x)[1:])]  # levels x (B*N, C, Hl, Wl)
+            uv, visible = project(self.centres, lidar2img, self.cfg.image_size)  # (B, N, Q, 2), (B, N, Q)
+            q = self.queries[None].expand(b, -1, -1)
+            for layer in self.lifting:
+                q = layer(q, uv, visible, feats)
+            volume = q.transpose(1, 2).reshape(b, -1, *fg.dims)  # (B, C, X, Y, Z)
+        else:
+            volume = self.encoder(occupancy.float())
+        return VehicleOutput(volume, torch.sigmoid(self.confidence(volume)))
+
+
+class EgoHalf(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        fg = cfg.feature_grid
+        self.fusion = VoxelFusion(cfg.embed_dims, cfg.fusion_attention, cfg.max_collaborators, fg.dims) if cfg.fusion else None
+        if cfg.head == "conv":
+            self.head = OccupancyHead(cfg.embed_dims, cfg.head_channels, cfg.num_classes)
+        elif cfg.head == "occformer":
+            self.head = OccFormerHead(cfg)
+        else:
+            raise ValueError(f"unknown head {cfg.head!r}")
+        self.path = InferencePath()  # set by Co3SOP.use
+
+    def align(self, ego: VehicleOutput, others: list[VehicleOutput], neighbour_from_ego: torch.Tensor):
+        """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
+        fg = self.cfg.feature_grid
+        feats, confs, masks = [], [], []
+        if self.path.kernels(ego.features) and len(ego.features) == 1 and compiled_available():
+            # inference on the CPU: the compiled warp, channels-last (the attention reads the features so)
+            threads = torch.get_num_threads()
+            for a, other in enumerate(others):
+                warped, filled = warp_compiled(torch.cat([other.features, other.confidence], 1), neighbour_from_ego[:, a], fg, threads)
+                feats.append(warped[..., :-1])
+                confs.append(warped[..., -1])
+                masks.append(filled)
+            feats = torch.stack(feats)[None].permute(0, 1, 5, 2, 3, 4)  # (1, A, C, X, Y, Z), channels-last in memory
+            confs, filled = torch.stack(confs)[None], torch.stack(masks)[None]
+            return feats, confs, hybrid_mask(ego.confidence, confs, filled)
+        for a, other in enumerate(others):
+            both = torch.cat([other.features, other.confidence], 1)
+            warped, filled = warp_with_mask(both, neighbour_from_ego[:, a], fg)
+            feats.append(warped[:, :-1])
+            confs.append(warped[:, -1])
+            masks.append(filled[:, 0])
+        feats, confs, filled = torch.stack(feats, 1), torch.stack(confs, 1), torch.stack(masks, 1)
+        return feats, confs, hybrid_mask(ego.confidence, confs, filled)
+
+    def fuse(self, ego: VehicleOutput, others=(), neighbour_from_ego: torch.Tensor | None = None, dense: bool = False):
+        """The ego's features after fusion (B, C, X, Y, Z); `others` nearest first, neighbour_from_ego (B, A, 4, 4)."""
+        others = list(others)[: self.cfg.max_collaborators]
+        if self.fusion is None or not others:
+            return ego.features
+        feats, _, mask = self.align(ego, others, neighbour_from_ego)
+        with self.path.autocast():
+            fused = self.fusion(ego.features, feats, mask, dense=dense)
+        return fused if torch.is_grad_enabled() else fused.float()
+
+    def forward(self, ego: VehicleOutput, others=(), neighbour_from_ego: torch.Tensor | None = None,
+                sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """Logits at 1/4, 1/2 and 1 (B, K, X, Y, Z); with sample_index (B, N), full resolution only there (B, K, N).
+        OccFormer's head: its decoder's predictions (`OccFormerHead.predict`), which its loss takes."""
+        fused = self.fuse(ego, others, neighbour_from_ego)
+        if isinstance(self.head, OccFormerHead):
+            return self.head.predict(fused)
+        return self.head(fused) if sample_index is None else self.head.forward_at(fused, sample_index)
+
+
+class Co3SOP(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.vehicle = VehicleHalf(cfg)
+        self.ego = EgoHalf(cfg)
+        self.path = InferencePath()
+
+    def use(self, path: InferencePath) -> Co3SOP:
+        """Run inference on `path` from now on: the weights moved to its device, every module that chooses
+        between a compiled kernel and its reference, or autocasts, told so. In reduced precision the
+        convolutions' weights go channels-last (oneDNN's and cuDNN's fast layouts)."""
+        self.to(path.torch_device)
+        layout = {4: torch.channels_last, 5: torch.channels_last_3d} if path.reduced else {}
+        for module in self.modules():
+            if "path" in vars(module):
+                module.path = path
+            if isinstance(module, (nn.Conv2d, nn.Conv3d, nn.ConvTranspose3d)):
+                fmt = layout.get(module.weight.dim(), torch.contiguous_format)
+                module.weight.data = module.weight.data.contiguous(memory_format=fmt)
+        return self
+
+    def forward(self, agents: list[dict], neighbour_from_ego: torch.Tensor | None = None,
+                sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """agents[0] is the ego, the rest its collaborators nearest first; each a dict of VehicleHalf inputs."""
+        outs = [self.vehicle(**inputs) for inputs in agents]
+        return self.ego(outs[0], outs[1:], neighbour_from_ego, sample_index)
+
+
+def build_model(cfg: ModelConfig) -> Co3SOP:
+    return Co3SOP(cfg)

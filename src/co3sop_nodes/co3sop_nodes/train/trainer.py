@@ -1,0 +1,347 @@
+"""`train`: train Co3SOP-Base or a baseline on a generated (or converted) split.
+
+    ros2 run co3sop_nodes train --data data/ --preset tiny --stage ego --steps 1500 --out runs/tiny-ego
+    ros2 run co3sop_nodes train --data data/ --stage fusion --init runs/tiny-ego/model.pt --steps 800 --out runs/tiny
+
+Stages as in Co3SOP: `ego` trains the vehicle half and the head on single
+agents; `fusion` starts from an ego checkpoint, freezes the vehicle half and
+trains the fusion and the head with collaborators; `joint` trains everything
+at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
+(log.csv), loss plot (loss.png), resumable training state (state.pt, written
+atomically every --save-every steps; --resume continues it) and the exported
+model (model.pt, float16 weights + config + the command that made it).
+`--device` picks CPU (the default without a GPU) or a CUDA GPU. `--batch B`
+is the samples each process takes per step, as DistributedDataParallel users
+expect: under `torchrun --nproc-per-node N` the same command trains
+data-parallel on a global batch of N x B (printed at the start;
+DistributedDataParallel averages the gradients, only rank 0 writes), and
+gives the weights one process gets with `--batch` N x B.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import math
+import os
+import random
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.inference.checkpoint import export_model, load_model, read_checkpoint, save_training_state
+from co3sop_nodes.model.config import PRESETS, preset
+from co3sop_nodes.inference.inputs import to_batch
+from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupancy_loss
+from co3sop_nodes.model.mask_loss import mask_classification_loss
+from co3sop_nodes.model.occformer import class_scores, log_scores
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model
+from co3sop_nodes.cli.common import progress, run
+from co3sop_nodes.train.dataset import OccupancyDataset, early_fused
+from co3sop_nodes.train import distributed
+from co3sop_nodes.cli.device import add_device_argument
+
+
+def learning_rate(lr: float, schedule: str, step: int, steps: int) -> float:
+    """The rate of step `step` (0-based) of `steps`: constant, or cosine-decayed from lr to 0 (a function of
+    the step alone, so a resumed run follows the same curve)."""
+    if schedule == "constant":
+        return lr
+    return 0.5 * lr * (1 + math.cos(math.pi * step / steps))
+
+
+def sample_order(samples: int, seed: int, steps: int) -> np.ndarray:
+    """The sample of every step: one permutation of the dataset per epoch, epoch e drawn from (seed, e).
+
+    Step k's sample does not depend on `steps`, so a finished run resumed with more --steps continues
+    the order a longer run would have followed (the first epoch is the single permutation runs of at most
+    one epoch have always used).
+    """
+    epochs = -(-steps // samples)
+    perms = [np.random.default_rng(seed if e == 0 else [seed, e]).permutation(samples) for e in range(epochs)]
+    return np.concatenate(perms)[:steps]
+
+
+def previous_history(out: Path, state: dict | None, init: Path | None) -> list[dict]:
+    """The commands that made the starting weights: a resumed run's own, the interrupted or finished one
+    included (kept in its state; for states written before they kept it: its finished model's), or the --init
+    checkpoint's."""
+    if state is not None:
+        if "history" in state:
+            return state["history"]
+        finished = out / "model.pt"
+        return read_checkpoint(finished).get("meta", {}).get("history", []) if finished.is_file() else []
+    return read_checkpoint(init).get("meta", {}).get("history", []) if init else []
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class _Forward(torch.nn.Module):
+    """One sample's training forward (its vehicle halves, then the ego half) as one module call, so that
+    DistributedDataParallel sees every parameter a step uses; the frozen vehicle half's outputs are cached in
+    the fusion stage."""
+
+    def __init__(self, model, dataset: OccupancyDataset, stage: str, device: torch.device):
+        super().__init__()
+        self.model, self.dataset, self.stage, self.device = model, dataset, stage, device
+        self.cache: dict[tuple[int, int], VehicleOutput] = {}
+
+    def _vehicle(self, record_key, inputs) -> VehicleOutput:
+        if self.stage != "fusion":
+            return self.model.vehicle(**to_batch(inputs, self.device))
+        if record_key not in self.cache:  # frozen: computed once, in eval mode
+            with torch.no_grad():
+                out = self.model.vehicle.eval()(**to_batch(inputs, self.device))
+            self.cache[record_key] = VehicleOutput(out.features.half(), out.confidence.half())
+        out = self.cache[record_key]
+        return VehicleOutput(out.features.float(), out.confidence.float())
+
+    def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
+        early = self.model.cfg.early_fusion  # the collaborators' scans join the ego's before the model: nothing fused after it
+        sample = self.dataset.sample(i, 0 if self.stage == "ego" and not early else None)
+        f, _ = self.dataset.index[i]
+        if early:
+            sample = early_fused(sample, self.model.cfg.grid)
+        ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
+        others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
+        rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None
+        return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels
+
+
+class Trainer:
+    """One optimisation step per global batch of samples (one sample by default), spread over the processes of a
+    torchrun world."""
+
+    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float,
+                 device: torch.device = torch.device("cpu"), world: distributed.World = distributed.World()):
+        self.model, self.stage, self.device, self.world = model, stage, device, world
+        self.sample_fraction = sample_fraction
+        if stage == "fusion":
+            if model.ego.fusion is None:
+                raise Co3sopError("--stage fusion needs a model with fusion (e.g. preset tiny, not tiny-single)")
+            for p in model.vehicle.parameters():
+                p.requires_grad_(False)
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
+        self.forward = _Forward(model, dataset, stage, device)
+        if world.size > 1:  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
+            self.forward = torch.nn.parallel.DistributedDataParallel(
+                self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
+
+    def _loss(self, i: int, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        cfg = self.model.cfg
+        if cfg.head == "occformer":  # mask classification on class-guided points (model/mask_loss.py)
+            preds, confidence, labels = self.forward(i, None)
+            labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
+            parts = mask_classification_loss(preds, labels, cfg.occformer.points, rng)
+            if self.stage != "fusion":
+                parts["confidence"] = confidence_loss(confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, cfg.num_classes))
+            return sum(parts.values()), parts
+        n = cfg.grid.num_voxels
+        index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(self.device)
+        logits, confidence, labels = self.forward(i, index)
+        labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
+        k = self.model.cfg.num_classes
+        targets = [downsample_labels(labels, 4, k), downsample_labels(labels, 2, k), torch.gather(labels.flatten(1), 1, index)]
+        parts = occupancy_loss(logits, targets)
+        if self.stage != "fusion":
+            parts["confidence"] = confidence_loss(confidence, logits[0], targets[0])
+        return sum(parts.values()), parts
+
+    def step(self, samples: list[int], rngs: list[np.random.Generator]) -> dict[str, float]:
+        """One optimisation step on this process's share of the global batch (samples[j] drawing its loss voxels
+        with rngs[j]); the gradient is the mean over the global batch. Returns the batch's mean losses."""
+        self.model.train()
+        if self.stage == "fusion":
+            self.model.vehicle.eval()
+        self.optimizer.zero_grad(set_to_none=True)
+        logged: dict[str, float] = {}
+        for j, (i, rng) in enumerate(zip(samples, rngs)):
+            last = j == len(samples) - 1  # DDP averages over processes once, after a process's last sample
+            sync = self.forward.no_sync() if self.world.size > 1 and not last else contextlib.nullcontext()
+            with sync:
+                loss, parts = self._loss(i, rng)
+                (loss / len(samples)).backward()
+            for k, v in {"loss": loss, **parts}.items():
+                logged[k] = logged.get(k, 0.0) + v.item() / len(samples)
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 5.0)
+        self.optimizer.step()
+        return distributed.mean_over_world(self.world, logged, self.device)
+
+
+def keep_log_until(csv_path: Path, step: int) -> None:
+    """Drop the rows after `step` from a run's log: an interrupted run logged steps past its last saved state,
+    which its resume trains again (the log then shows each step once, as the weights saw it)."""
+    if not csv_path.is_file():
+        return
+    with open(csv_path, newline="") as f:
+        lines = f.read().splitlines(keepends=True)
+    kept = lines[:1] + [line for row, line in zip(csv.DictReader(lines), lines[1:]) if int(row["step"]) <= step]
+    if len(kept) < len(lines):
+        tmp = csv_path.with_name(f".{csv_path.name}.tmp")
+        tmp.write_text("".join(kept))
+        tmp.replace(csv_path)  # atomic: an interruption leaves the whole log
+
+
+def plot_losses(csv_path: Path, png_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(csv_path) as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    steps = np.array([int(r["step"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, loss, lw=0.6, alpha=0.4, label="loss")
+    window = max(1, len(loss) // 30)
+    ax.plot(steps[window - 1 :], np.convolve(loss, np.ones(window) / window, mode="valid"), lw=2, label=f"mean of {window}")
+    for stage in sorted({r["stage"] for r in rows}):
+        first = next(int(r["step"]) for r in rows if r["stage"] == stage)
+        ax.axvline(first, color="grey", ls=":")
+        ax.text(first, ax.get_ylim()[1], f" {stage}", va="top", fontsize=8)
+    ax.set_xlabel("step")
+    ax.set_ylabel("total loss")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="train", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, help="dataset root written by `generate` (or an OPV2V root)")
+    parser.add_argument("--splits", nargs="+", default=["train"], help="splits to train on")
+    parser.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="model preset (ignored with --init or --resume)")
+    parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
+    parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
+    parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
+    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one global batch each)")
+    parser.add_argument(
+        "--batch",
+        type=int,
+        default=1,
+        help="samples per step in each process; under torchrun the global batch is this times the processes",
+    )
+    parser.add_argument("--lr", type=float, default=2e-3)
+    parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
+                        help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")
+    parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, help="CPU threads for torch (default 2; under torchrun the cores shared by its processes)")
+    add_device_argument(parser)
+    parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")
+    parser.add_argument("--save-every", type=int, default=200)
+    opts = parser.parse_args(args)
+    world = distributed.world_from_env()
+    for option, value, ok, needs in (("--steps", opts.steps, opts.steps >= 1, "at least 1"),
+                                     ("--batch", opts.batch, opts.batch >= 1, "at least 1"),
+                                     ("--save-every", opts.save_every, opts.save_every >= 1, "at least 1"),
+                                     ("--lr", opts.lr, opts.lr > 0, "above 0"),
+                                     ("--sample-fraction", opts.sample_fraction, 0 < opts.sample_fraction <= 1, "in (0, 1]"),
+                                     ("--threads", opts.threads, opts.threads is None or opts.threads >= 1, "at least 1")):
+        if not ok:  # refused before the dataset is read, which takes minutes
+            raise Co3sopError(f"{option} {value}: must be {needs}")
+    torch.set_num_threads(opts.threads or (2 if world.size == 1 else max(1, (os.cpu_count() or 1) // world.local_size)))
+    device = distributed.device_for(world, opts.device)
+    seed_everything(opts.seed)
+    if opts.stage == "fusion" and not (opts.init or opts.resume):
+        raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
+    distributed.start(world, device)
+    try:
+        code = _train(opts, args, world, device)
+        distributed.finish(world)
+        return code
+    finally:
+        distributed.stop(world)
+
+
+def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.World, device: torch.device) -> int:
+    say = print if world.main else (lambda *a, **k: None)
+
+    start, state = 0, None
+    if opts.resume:
+        state = read_checkpoint(opts.out / "state.pt")
+        model, _ = load_model(opts.out / "state.pt")
+        start = state["step"]
+    elif opts.init:
+        model, _ = load_model(opts.init)
+    else:
+        overrides = {"range": opts.range} if opts.range else {}
+        model = build_model(preset(opts.preset, **overrides))
+    model.to(device)  # before the optimizer exists: a resumed optimizer state follows its parameters' device
+    cfg = model.cfg
+    say(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
+        f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""), flush=True)
+    dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+    batch = opts.batch * world.size  # the global batch: every process's share of each step together
+    say(f"train: {len(dataset)} samples from {len(dataset.frames)} frames; global batch {batch} per step"
+        + (f" ({opts.batch} in each of {world.size} processes)" if world.size > 1 else ""), flush=True)
+    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device, world)
+    if state is not None:
+        trainer.optimizer.load_state_dict(state["optimizer"])
+    if world.main:
+        opts.out.mkdir(parents=True, exist_ok=True)
+    # how the weights were made: the commands before this one (the run's own when resumed, else the --init's), then this
+    command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
+    history = previous_history(opts.out, state, opts.init) + [
+        {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
+         "splits": opts.splits, "batch": batch, "processes": world.size}]
+    log_path = opts.out / "log.csv"
+    if world.main:
+        keep_log_until(log_path, start)
+    fields = None
+    # one sample per step in one process: the voxels of the loss drawn from one stream (as every earlier run);
+    # otherwise each sample's from its place in the order, whichever process takes it
+    rng = np.random.default_rng(opts.seed + start)
+    share = opts.batch  # this process's samples of each step
+    order = sample_order(len(dataset), opts.seed, opts.steps * batch)
+    bar = progress(opts.steps, f"train {opts.stage}", "step", disable=not world.main)
+    bar.update(start)
+    t0 = time.time()
+    with open(log_path, "a", newline="") if world.main else contextlib.nullcontext() as log:
+        for step in range(start, opts.steps):
+            lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
+            for group in trainer.optimizer.param_groups:
+                group["lr"] = lr
+            places = range(step * batch + world.rank * share, step * batch + (world.rank + 1) * share)
+            rngs = [rng] if batch == 1 else [np.random.default_rng([opts.seed, p]) for p in places]
+            parts = trainer.step([int(order[p]) for p in places], rngs)
+            if not world.main:
+                continue
+            row = {"step": step + 1, "stage": opts.stage, **parts, "lr": lr, "seconds": round(time.time() - t0, 2)}
+            if fields is None:
+                fields = list(row)
+                writer = csv.DictWriter(log, fieldnames=fields, extrasaction="ignore")
+                if log.tell() == 0:
+                    writer.writeheader()
+            writer.writerow(row)
+            bar.set_postfix(loss=f"{parts['loss']:.3f}")
+            bar.update(1)
+            if (step + 1) % opts.save_every == 0 or step + 1 == opts.steps:
+                log.flush()
+                save_training_state(opts.out / "state.pt", model, trainer.optimizer, step + 1, opts.stage,
+                                    {"seed": opts.seed, "history": history})
+    bar.close()
+    if world.main:
+        export_model(opts.out / "model.pt", model, {"history": history})
+        plot_losses(log_path, opts.out / "loss.png")
+        print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
+    return 0
+
+
+entry = run(main)

@@ -1,0 +1,259 @@
+"""An emulated V2X channel on one machine (ROS-free): network namespaces joined through a bridge.
+
+Each CAV (the ego with its own encoder and recorder, each neighbour's vehicle
+node) runs in its own network namespace, linked by a veth pair to a bridge in a
+hub namespace; the machine's own namespace (the simulator: player, launcher)
+joins the bridge unshaped. A CAV's radio is its namespace's transmit side:
+rate-limited by a token bucket (tc `tbf`) and, where a loss rate is given,
+thinned by an nftables rule on its device's egress dropping that share of its
+packets at random (`numgen random`). Every byte between CAVs then crosses a shaped link, over UDP:
+the processes use a Fast DDS profile without shared memory (which would bypass
+the link, /dev/shm being shared by all namespaces).
+
+Latency: this kernel has no `netem`, so no fixed propagation delay is added
+(at V2X distances it is about 1 us per 300 m); the delay that matters, the time
+a burst of feature fragments waits for the link, comes from the token bucket
+itself (a queue of at most `queue_ms` at the link rate, then tail drop).
+
+Clean-up: namespaces carry the launcher's pid in their names. `Channel` removes
+them on exit (including exceptions and the SIGINT/SIGTERM the launcher turns
+into exceptions), a detached reaper process removes them if the launcher dies
+without unwinding (SIGKILL), and `remove_stale` removes those of any launcher
+that is no longer alive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ipaddress
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+from co3sop_nodes.common.errors import Co3sopError
+
+PREFIX = "co3sop-"  # every namespace this module makes: co3sop-<launcher pid>-<member>
+_NAME = re.compile(rf"^{PREFIX}(\d+)-")
+
+
+class ChannelError(Co3sopError):
+    pass
+
+
+@dataclass(frozen=True)
+class Link:
+    """A CAV's radio: what it can transmit."""
+
+    rate_mbit: float  # link rate, Mbit/s
+    loss: float = 0.0  # share of transmitted packets dropped, 0..1
+    queue_ms: float = 200.0  # the longest a packet waits in the token bucket's queue before it is dropped
+
+    def __post_init__(self):
+        if not self.rate_mbit > 0:
+            raise ChannelError(f"link rate must be positive, got {self.rate_mbit} Mbit/s")
+        if not 0 <= self.loss < 1:
+            raise ChannelError(f"loss must be in [0, 1), got {self.loss}")
+
+
+def missing_tools() -> list[str]:
+    """What this machine lacks to build a channel (empty when it can): root, iproute2, tc, nftables."""
+    missing = [] if os.geteuid() == 0 else ["root (network namespaces need CAP_NET_ADMIN)"]
+    for tool, package in (("ip", "iproute2"), ("tc", "iproute2"), ("nft", "nftables")):
+        if shutil.which(tool) is None:
+            missing.append(f"{tool} (Debian package {package})")
+    return missing
+
+
+def _run(*argv: str, ns: str | None = None, check: bool = True) -> subprocess.CompletedProcess:
+    cmd = ["ip", "netns", "exec", ns, *argv] if ns else list(argv)
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if check and done.returncode != 0:
+        raise ChannelError(f"`{' '.join(cmd)}` failed: {done.stderr.strip() or done.stdout.strip()}")
+    return done
+
+
+def namespaces() -> list[str]:
+    """Every network namespace of this machine, by name."""
+    out = _run("ip", "netns", "list", check=False).stdout
+    return [line.split()[0] for line in out.splitlines() if line.strip()]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _pids(ns: str) -> list[int]:
+    return [int(p) for p in _run("ip", "netns", "pids", ns, check=False).stdout.split()]
+
+
+def remove(names: list[str], grace: float = 3.0) -> None:
+    """Stop what still runs inside the namespaces (SIGTERM, then SIGKILL after `grace` s), then delete them (their
+    veth ends, the bridge and the machine's end of the link go with them)."""
+    running = [pid for name in names for pid in _pids(name)]
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in running:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+        deadline = time.monotonic() + grace
+        while (running := [pid for pid in running if _alive(pid)]) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if not running:
+            break
+    for name in names:
+        _run("ip", "netns", "delete", name, check=False)
+
+
+def host_link(pid: int) -> str:
+    """The machine's end of launcher `pid`'s channel (a veth whose peer sits on the hub's bridge)."""
+    return f"c3s{pid}"[:15]
+
+
+def remove_launcher(pid: int) -> None:
+    """Everything launcher `pid`'s channel made: its namespaces (and what runs in them), its link on the machine
+    (deleted at once: a namespace's devices otherwise go only when the kernel gets round to it)."""
+    _run("ip", "link", "delete", host_link(pid), check=False)
+    remove([n for n in namespaces() if n.startswith(f"{PREFIX}{pid}-")])
+
+
+def remove_stale() -> list[int]:
+    """Remove the channels of launchers that are no longer running; their pids."""
+    stale = sorted({int(m.group(1)) for n in namespaces() if (m := _NAME.match(n)) and not _alive(int(m.group(1)))})
+    for pid in stale:
+        remove_launcher(pid)
+    return stale
+
+
+class Channel:
+    """Namespaces for `links` (member name -> its Link) joined through a bridge; the machine's namespace joins
+    unshaped. Use as a context manager; `wrap(member, argv)` runs a command inside a member."""
+
+    def __init__(self, links: dict[str, Link], subnet: str | None = None):
+        if not links:
+            raise ChannelError("a channel needs at least one member")
+        if missing := missing_tools():
+            raise ChannelError("the emulated V2X channel needs " + ", ".join(missing) +
+                               ("; install with: apt-get install nftables iproute2" if os.geteuid() == 0 else ""))
+        for name in links:
+            if not re.fullmatch(r"[a-z0-9]{1,12}", name):
+                raise ChannelError(f"member name {name!r}: 1-12 lower-case letters or digits")
+        self.links = dict(links)
+        self.pid = os.getpid()
+        self.hub = f"{PREFIX}{self.pid}-hub"
+        # a /24 per launcher, so that channels of concurrent launchers never share addresses
+        self.subnet = ipaddress.ip_network(subnet or f"10.{200 + self.pid % 50}.{(self.pid // 50) % 256}.0/24")
+        hosts = self.subnet.hosts()
+        self.host_address = next(hosts)  # the machine's end
+        self.addresses = {name: next(hosts) for name in self.links}
+        self._made: list[str] = []
+        self._reaper: subprocess.Popen | None = None
+
+    def namespace(self, member: str) -> str:
+        return f"{PREFIX}{self.pid}-{member}"
+
+    def wrap(self, member: str, argv: list[str]) -> list[str]:
+        """argv run inside `member`'s namespace."""
+        return ["ip", "netns", "exec", self.namespace(member), *argv]
+
+    def __enter__(self) -> Channel:
+        remove_stale()
+        try:
+            self._build()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _build(self) -> None:
+        self._add_namespace(self.hub)
+        # the reaper: removes this launcher's namespaces if it dies without unwinding (SIGKILL)
+        self._reaper = subprocess.Popen([sys.executable, "-m", "co3sop_nodes.v2x.channel", "--reap", str(self.pid)],
+                                        start_new_session=True, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL)
+        prefix = self.subnet.prefixlen
+        _run("ip", "link", "add", "br0", "type", "bridge", ns=self.hub)
+        _run("ip", "link", "set", "br0", "up", ns=self.hub)
+        # the machine's end: a veth whose name carries the pid (root names are shared by every launcher)
+        host_if = host_link(self.pid)
+        _run("ip", "link", "add", host_if, "type", "veth", "peer", "name", "host", "netns", self.hub)
+        self._plug(self.hub, "host")
+        _run("ip", "addr", "add", f"{self.host_address}/{prefix}", "dev", host_if)
+        _run("ip", "link", "set", host_if, "up")
+        for member, link in self.links.items():
+            ns = self.namespace(member)
+            self._add_namespace(ns)
+            _run("ip", "link", "add", "eth0", "netns", ns, "type", "veth", "peer", "name", member, "netns", self.hub, ns=self.hub)
+            self._plug(self.hub, member)
+            _run("ip", "link", "set", "lo", "up", ns=ns)
+            _run("ip", "addr", "add", f"{self.addresses[member]}/{prefix}", "dev", "eth0", ns=ns)
+            _run("ip", "link", "set", "eth0", "up", ns=ns)
+            _run("ip", "route", "add", "default", "dev", "eth0", ns=ns)  # multicast discovery needs a route
+            self._shape(ns, link)
+
+    def _add_namespace(self, ns: str) -> None:
+        _run("ip", "netns", "add", ns)
+        self._made.append(ns)
+
+    @staticmethod
+    def _plug(hub: str, port: str) -> None:
+        _run("ip", "link", "set", port, "master", "br0", ns=hub)
+        _run("ip", "link", "set", port, "up", ns=hub)
+
+    @staticmethod
+    def _shape(ns: str, link: Link) -> None:
+        rate = f"{link.rate_mbit * 1000:.0f}kbit"
+        # bucket: 10 ms of the rate (the kernel refills it per timer tick), at least a few full-size packets
+        burst = max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
+        _run("tc", "qdisc", "add", "dev", "eth0", "root", "tbf", "rate", rate, "burst", str(burst),
+             "latency", f"{link.queue_ms:.0f}ms", ns=ns)
+        if link.loss > 0:
+            per_million = round(link.loss * 1_000_000)
+            # on the device's egress, as a radio loses frames: the sender is not told (an output-hook drop would
+            # fail its sendto with EPERM)
+            rules = ("table netdev v2x {\n chain out {\n  type filter hook egress device \"eth0\" priority 0; policy accept;\n"
+                     f"  numgen random mod 1000000 < {per_million} counter drop\n }}\n}}\n")
+            done = subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise ChannelError(f"nftables rule in {ns} failed: {done.stderr.strip()}")
+
+    def dropped(self, member: str) -> int:
+        """Packets the loss rule dropped on `member`'s transmit side so far."""
+        done = _run("nft", "list", "chain", "netdev", "v2x", "out", ns=self.namespace(member), check=False)
+        m = re.search(r"counter packets (\d+)", done.stdout)
+        return int(m.group(1)) if m else 0
+
+    def close(self) -> None:
+        """Remove every namespace and link this channel made (idempotent)."""
+        if self._made:
+            _run("ip", "link", "delete", host_link(self.pid), check=False)
+        remove(list(reversed(self._made)))
+        self._made.clear()
+        if self._reaper is not None and self._reaper.poll() is None:
+            self._reaper.terminate()
+            self._reaper.wait(5)
+        self._reaper = None
+
+
+def _reap(pid: int) -> None:
+    """Wait for launcher `pid` to end, then remove its namespaces."""
+    while _alive(pid):
+        time.sleep(0.5)
+    remove_launcher(pid)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--reap":
+        _reap(int(sys.argv[2]))

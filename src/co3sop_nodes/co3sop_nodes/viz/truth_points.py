@@ -1,0 +1,74 @@
+"""The ego's ground truth as a viewer draws it: the coloured PointCloud2 the ego publishes for its prediction,
+made from the ground truth the recorder stores, so a recording shows prediction and truth side by side in
+Foxglove or RViz2 (ROS-free: raw CDR in, raw CDR out, through rosbags).
+
+Only an ego's own ground truth at its prediction's range is drawn (every CAV's three ranges would multiply a
+recording's size): a ground-truth message waits (at most `keep` per CAV and range) until a prediction says
+which CAV is an ego at which range, and from then on is converted as it comes.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from co3sop_nodes.common import topics
+from co3sop_nodes.data.bags import occupancy_labels, typestore
+from co3sop_nodes.viz.cloud import CLOUD_FIELDS, occupancy_cloud
+from co3sop_nodes.common.errors import DatasetError, exception_line
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+
+OCCUPANCY = "co3sop_msgs/msg/SemanticOccupancy"
+POINTS = "sensor_msgs/msg/PointCloud2"
+
+
+def truth_key(topic: str) -> tuple[int, str] | None:
+    """(CAV, range) of a ground-truth topic (/cav_3/ground_truth/occupancy_50m -> (3, "51.2m")), None for another."""
+    cav = topics.split_cav_topic(topic)
+    if cav is None:
+        return None
+    return next(((cav[0], r) for r in BENCHMARK_RANGES if topic == topics.ground_truth(cav[0], r)), None)
+
+
+class TruthPoints:
+    def __init__(self, keep: int = 50):
+        self._store = typestore()
+        self._egos: set[tuple[int, str]] = set()
+        self._waiting: dict[tuple[int, str], deque[bytes]] = {}
+        self._keep = keep
+
+    def _decode(self, raw: bytes, what: str):
+        try:
+            return self._store.deserialize_cdr(bytes(raw), OCCUPANCY)
+        except Exception as exc:  # noqa: BLE001 - any failure is the sender's: the raw message is still recorded
+            raise DatasetError(f"{what}: not a valid SemanticOccupancy ({exception_line(exc)})") from None
+
+    def prediction(self, raw: bytes) -> list[bytes]:
+        """A /ego/occupancy message: the PointCloud2s (CDR) of the ground truth that waited for it."""
+        msg = self._decode(raw, topics.EGO_OCCUPANCY)
+        grid = msg.grid
+        key = next(((msg.agent_id, r) for r, g in BENCHMARK_RANGES.items()
+                    if (g.voxel_size, g.dims) == (grid.voxel_size, (grid.nx, grid.ny, grid.nz))), None)
+        if key is None or key in self._egos:
+            return []
+        self._egos.add(key)
+        return [self._points(r, "waiting ground truth") for r in self._waiting.pop(key, [])]
+
+    def truth(self, topic: str, raw: bytes) -> list[bytes]:
+        """A ground-truth message: its PointCloud2 (CDR) when its CAV is an ego at its range, else nothing (yet)."""
+        key = truth_key(topic)
+        if key is None:
+            return []
+        if key in self._egos:
+            return [self._points(raw, topic)]
+        self._waiting.setdefault(key, deque(maxlen=self._keep)).append(bytes(raw))
+        return []
+
+    def _points(self, raw: bytes, what: str) -> bytes:
+        msg = self._decode(raw, what)
+        labels, grid = occupancy_labels(msg)
+        cloud = occupancy_cloud(labels, grid)
+        t = self._store.types
+        fields = [t["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=d, count=1) for n, o, d in CLOUD_FIELDS]
+        points = t[POINTS](header=msg.header, height=1, width=len(cloud), fields=fields, is_bigendian=False,
+                           point_step=cloud.itemsize, row_step=cloud.itemsize * len(cloud), data=cloud.view("u1"), is_dense=True)
+        return bytes(self._store.serialize_cdr(points, POINTS))
