@@ -29,7 +29,8 @@ import rclpy  # noqa: E402
 from co3sop_msgs.msg import VoxelFeatures  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from co3sop_nodes.ros.convert import ns_to_stamp, stamp_to_ns  # noqa: E402
+from co3sop_nodes.messages import stamp_ns, time_msg  # noqa: E402
+from co3sop_nodes.ros.message_types import RCLPY  # noqa: E402
 from co3sop_nodes.ros.dds import FEATURES_QOS  # noqa: E402
 
 TOPIC = "/bench/latency"
@@ -43,7 +44,7 @@ def send(node: Node, size: int, count: int, rate: float) -> None:
     msg = VoxelFeatures(codec="none", dtype="float32", values_raw_size=size)
     msg.values = os.urandom(size)
     for _ in range(count + 5):  # a few extra in case the first ones are slow to match
-        msg.header.stamp = ns_to_stamp(time.time_ns())
+        msg.header.stamp = time_msg(RCLPY, time.time_ns())
         pub.publish(msg)
         time.sleep(1.0 / rate)
     time.sleep(1.0)
@@ -53,7 +54,7 @@ def receive(node: Node, count: int, out: str) -> None:
     latencies: list[float] = []
 
     def on_msg(msg: VoxelFeatures) -> None:
-        latencies.append((time.time_ns() - stamp_to_ns(msg.header.stamp)) / 1e6)
+        latencies.append((time.time_ns() - stamp_ns(msg.header.stamp)) / 1e6)
 
     node.create_subscription(VoxelFeatures, TOPIC, on_msg, FEATURES_QOS)
     deadline = time.monotonic() + 120

@@ -30,7 +30,7 @@ setup(
             f"vehicle = {PACKAGE}.ros.vehicle:main",
             f"ego = {PACKAGE}.ros.ego:main",
             f"recorder = {PACKAGE}.ros.recorder:main",
-            f"demo = {PACKAGE}.ros.demo:entry",
+            f"demo = {PACKAGE}.cli.demo:entry",
             f"score = {PACKAGE}.cli.score:entry",
             f"recover = {PACKAGE}.cli.recover:entry",
             f"generate = {PACKAGE}.cli.generate:entry",

@@ -14,6 +14,7 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
 from co3sop_nodes.data import bags
 from co3sop_nodes.data import opv2v
 from conftest import executable
@@ -291,10 +292,9 @@ def _recording(path: Path, malformed_at: int | None) -> Path:
     with McapRecorder(path) as rec:
         for i in range(3):
             stamp = (i + 1) * 10**8
-            header = store.types["std_msgs/msg/Header"](store.types["builtin_interfaces/msg/Time"](0, stamp), "cav_1/lidar")
             labels = np.zeros(grid.dims, np.uint8)
             labels[:50] = 7
-            msg = bags.occupancy_message(store.types, header, 1, encode_labels(labels, grid, 24))
+            msg = occupancy_msg(RosbagsTypes(store), encode_labels(labels, grid, 24), stamp_ns=stamp, frame_id="cav_1/lidar", agent_id=1)
             raw = store.serialize_cdr(msg, "co3sop_msgs/msg/SemanticOccupancy")
             rec.write("/cav_1/ground_truth/occupancy_50m", "co3sop_msgs/msg/SemanticOccupancy", raw, stamp)
             rec.write("/ego/occupancy", "co3sop_msgs/msg/SemanticOccupancy", raw[: len(raw) // 2] if i == malformed_at else raw, stamp)
@@ -321,7 +321,7 @@ def test_score_explains_a_malformed_message_and_damaged_recordings(tmp_path):
 
 def test_generate_shards_are_disjoint_parts_of_one_dataset(tmp_path):
     """`generate --shard I/N` on N machines: each writes its share, the shares are disjoint and together the dataset."""
-    from co3sop_nodes.cli.generate import scenario_name
+    from co3sop_nodes.data.generation import scenario_name
 
     common = ["--splits", "train=2", "test=1", "--frames", "1", "--cavs", "1", "--image-size", "32x24", "--lidar-steps", "64",
               "--vehicles", "2", "--workers", "1", "--seed", "5"]

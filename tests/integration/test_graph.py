@@ -31,7 +31,7 @@ from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.inference.outputs import encode_output
 from co3sop_nodes.v2x.request_map import request_for_neighbour
-from co3sop_nodes.ros.convert import features_from_msg, pose_from_msg, request_from_msg, stamp_to_ns
+from co3sop_nodes.messages import features_of, pose_of, request_of, stamp_ns
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.eval.scoring import read_recording
 
@@ -202,7 +202,7 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
 
     mcap = run_graph(graph, bag, cavs, params, recorded=("/cav_.*/voxel_features", topics.EGO_REQUEST, topics.DIAGNOSTICS,
                                                          topics.EGO_OCCUPANCY), before_play=ask)
-    requests = {stamp_to_ns(m.header.stamp): m for _, m in recorded_messages(mcap, re.escape(topics.EGO_REQUEST), RequestMap)}
+    requests = {stamp_ns(m.header.stamp): m for _, m in recorded_messages(mcap, re.escape(topics.EGO_REQUEST), RequestMap)}
     assert 1 in requests and len(requests) >= FRAMES  # the stand-in's, and the ego's after each of its frames
     assert all(m.agent_id == cavs[0] for m in requests.values())
     features = recorded_messages(mcap, r"/cav_\d+/voxel_features", VoxelFeatures)
@@ -216,16 +216,16 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
                     used[int(name.split("_")[1]), int(status["stamp"])] = int(item.split(":")[1])
     assert len(addressed) >= FRAMES * (len(cavs) - 1)  # every neighbour frame (the ego's own encoder is not asked)
     carried, budgets, spent = 0, {}, {}
-    for _, msg in sorted(addressed, key=lambda tm: (tm[1].agent_id, stamp_to_ns(tm[1].header.stamp))):  # each sender's in order
-        enc = features_from_msg(msg)
+    for _, msg in sorted(addressed, key=lambda tm: (tm[1].agent_id, stamp_ns(tm[1].header.stamp))):  # each sender's in order
+        enc = features_of(msg)
         assert enc.budget_bytes <= (burst or budget)
         sender = budgets.setdefault(msg.agent_id, SenderBudgets(codec))
         spent[msg.agent_id] = spent.get(msg.agent_id, []) + [enc.budget_bytes]
         assert sum(spent[msg.agent_id]) <= (burst or budget) + (len(spent[msg.agent_id]) - 1) * budget  # a token bucket's bound
-        request = requests[used[msg.agent_id, stamp_to_ns(msg.header.stamp)]]
-        need = decode_request(request_from_msg(request))
-        out, world_from_vehicle = outputs[stamp_to_ns(msg.header.stamp)][msg.agent_id]
-        wanted = request_for_neighbour(need, pose_from_msg(request.lidar_pose).matrix(), world_from_vehicle, fg)
+        request = requests[used[msg.agent_id, stamp_ns(msg.header.stamp)]]
+        need = decode_request(request_of(request))
+        out, world_from_vehicle = outputs[stamp_ns(msg.header.stamp)][msg.agent_id]
+        wanted = request_for_neighbour(need, pose_of(request.lidar_pose).matrix(), world_from_vehicle, fg)
         expected = encode_output(out, fg, sender.config(cavs[0]), wanted)
         sender.spend(cavs[0], expected.budget_bytes)
         assert (enc.dtype, enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale, enc.basis_rank, enc.basis, enc.basis_mean) == (

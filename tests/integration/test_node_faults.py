@@ -31,7 +31,8 @@ from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_l
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.ros.convert import cloud_to_msg, features_to_msg, labels_to_msg, ns_to_stamp, request_to_msg
+from co3sop_nodes.messages import features_msg, occupancy_msg, point_cloud_msg, request_msg, time_msg
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import REQUEST_QOS
 from co3sop_nodes.ros.supervisor import Supervisor
 
@@ -84,7 +85,7 @@ def features(agent: int, stamp: int, pose=Pose((10.0, 5.0, 1.8)), grid=None, cha
     grid = grid or preset("tiny").feature_grid
     volume = np.random.default_rng(agent).normal(size=(channels, *grid.dims)).astype(np.float32)
     enc = encode_features(volume, np.full(grid.dims, 0.5, np.float32), grid, FeatureCodecConfig("float16"))
-    return features_to_msg(enc, stamp_ns=stamp, frame_id=f"cav_{agent}/lidar", agent_id=agent, pose=pose)
+    return features_msg(RCLPY, enc, stamp_ns=stamp, frame_id=f"cav_{agent}/lidar", agent_id=agent, pose=pose)
 
 
 def acked(pub) -> None:
@@ -181,7 +182,7 @@ def occupancy(stamp: int) -> SemanticOccupancy:
     grid = BENCHMARK_RANGES["51.2m"]
     labels = np.zeros(grid.dims, np.uint8)
     labels[: stamp % 200] = 7
-    return labels_to_msg(encode_labels(labels, grid, 24), stamp_ns=stamp, frame_id="cav_1/lidar", agent_id=1)
+    return occupancy_msg(RCLPY, encode_labels(labels, grid, 24), stamp_ns=stamp, frame_id="cav_1/lidar", agent_id=1)
 
 
 def record(tmp_path, peer, n: int, *extra: str) -> tuple[subprocess.Popen, Path, Path]:
@@ -332,10 +333,10 @@ def lidar_frame(stamp: int) -> tuple[PoseStamped, PointCloud2]:
     labels = np.zeros(grid.dims, np.uint8)
     labels[100:140, 100:140, 4:8] = 11  # a wall in front of the sensor
     pose = PoseStamped()
-    pose.header.stamp = ns_to_stamp(stamp)
+    pose.header.stamp = time_msg(RCLPY, stamp)
     pose.header.frame_id = "map"
     pose.pose.orientation.w = 1.0
-    return pose, cloud_to_msg(occupancy_cloud(labels, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(LIDAR_CAV))
+    return pose, point_cloud_msg(RCLPY, occupancy_cloud(labels, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(LIDAR_CAV))
 
 
 def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, peer, sup):
@@ -419,7 +420,7 @@ def spoiled(field: str, stamp: int) -> VoxelFeatures:
     grid = preset("tiny").feature_grid
     volume = np.random.default_rng(OTHER).normal(size=(32, *grid.dims)).astype(np.float32)
     enc = encode_features(volume, np.full(grid.dims, 0.5, np.float32), grid, FeatureCodecConfig(dtype))
-    msg = features_to_msg(enc, stamp_ns=stamp, frame_id=f"cav_{OTHER}/lidar", agent_id=OTHER, pose=Pose((10.0, 5.0, 1.8)))
+    msg = features_msg(RCLPY, enc, stamp_ns=stamp, frame_id=f"cav_{OTHER}/lidar", agent_id=OTHER, pose=Pose((10.0, 5.0, 1.8)))
     spoil(msg)
     return msg
 
@@ -712,7 +713,8 @@ def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer
 
 def request_map(ego: int, stamp: int, x: float, fill: float) -> RequestMap:
     grid = preset("tiny-lidar").feature_grid
-    return request_to_msg(
+    return request_msg(
+        RCLPY,
         encode_request(np.full(grid.dims, fill, np.float32), grid),
         stamp_ns=stamp,
         frame_id=f"cav_{ego}/lidar",

@@ -56,7 +56,7 @@ def test_core_imports_with_ros_unimportable():
 
 def test_blocker_really_blocks_the_glue():
     # The same harness must fail on a module that does need ROS.
-    result = _import_with_ros_blocked(["co3sop_nodes.ros.convert"])
+    result = _import_with_ros_blocked(["co3sop_nodes.ros.dds"])
     assert result.returncode != 0 and "blocked" in result.stderr
 
 

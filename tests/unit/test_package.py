@@ -14,7 +14,7 @@ import yaml
 from ament_index_python.packages import get_package_share_directory
 
 from co3sop_nodes.ros import ego, vehicle
-from co3sop_nodes.ros.demo import LOSSLESS
+from co3sop_nodes.ros.graph import LOSSLESS, describe
 from co3sop_nodes.ros.lifecycle import AUTOSTART
 
 REPO = Path(__file__).resolve().parents[2]
@@ -53,9 +53,16 @@ def imported_modules() -> set[str]:
     return names
 
 
+def built_message_packages() -> set[str]:
+    """Message packages the nodes build by type name ("pkg/msg/Type", through co3sop_nodes.messages)."""
+    text = "\n".join(p.read_text() for p in (PACKAGE / "co3sop_nodes").rglob("*.py"))
+    return set(re.findall(r'"(\w+)/msg/\w+"', text)) & ROS_PACKAGES
+
+
 def required_keys() -> set[str]:
     modules = imported_modules()
     tops = {m.split(".")[0] for m in modules} | {INDIRECT[m] for m in modules if m in INDIRECT}
+    tops |= built_message_packages()
     tops -= set(sys.stdlib_module_names) | {"co3sop_nodes", "__future__"}
     unknown = tops - ROS_PACKAGES - PYTHON_KEYS.keys()
     assert not unknown, f"imports without a rosdep key here: {sorted(unknown)}: add them to PYTHON_KEYS and package.xml"
@@ -131,13 +138,16 @@ def test_launch_file_references_exist(path):
     assert nodes
     for node in nodes:
         assert ast.literal_eval(keyword(node, "package")) == "co3sop_nodes"
+        if not isinstance(keyword(node, "executable"), ast.Constant):  # graph.launch.py: from the graph's description
+            assert path.name == "graph.launch.py"
+            continue
         executable = ast.literal_eval(keyword(node, "executable"))
         assert executable in scripts, f"{path.name}: no executable {executable}"
         params = keyword(node, "parameters")
         for d in (e for e in (params.elts if params is not None else []) if isinstance(e, ast.Dict)):
             names = {ast.literal_eval(k) for k in d.keys if k is not None}
             if any(k is None for k in d.keys):  # **LOSSLESS settings of the ego's own vehicle
-                names |= {p.split(":=")[0] for p in LOSSLESS}
+                names |= set(LOSSLESS)
             declared = {p.name for p in NODE_PARAMS[executable]}
             assert names <= declared, f"{path.name}: {executable} has no parameters {names - declared}"
     declared = {ast.literal_eval(c.args[0]) for c in calls(tree, "DeclareLaunchArgument")}
@@ -150,13 +160,32 @@ def test_launch_file_references_exist(path):
                 assert (PACKAGE / "config" / part.value).is_file(), f"{path.name}: no config/{part.value}"
 
 
-def test_graph_launch_runs_what_demo_runs():
-    """Same nodes and arguments: recorder, ego, vehicles, player (the CAVs from the bag, the ego's codec lossless)."""
-    tree = ast.parse((PACKAGE / "launch" / "graph.launch.py").read_text())
-    assert sorted(ast.literal_eval(keyword(n, "executable")) for n in calls(tree, "Node")) == ["ego", "player", "recorder", "vehicle"]
-    text = (PACKAGE / "launch" / "graph.launch.py").read_text()
-    for name in ("bag_contents", "played_topics", "LOSSLESS", "resolve_checkpoint", "--wait-subscribers"):
-        assert name in text
+def test_graph_launch_and_demo_start_the_one_described_graph():
+    """Both read the graph from ros/graph.py's `describe`; neither lists nodes of its own."""
+    launch = (PACKAGE / "launch" / "graph.launch.py").read_text()
+    demo = (PACKAGE / "co3sop_nodes" / "ros" / "demo.py").read_text()
+    for text in (launch, demo):
+        assert "from co3sop_nodes.ros.graph import" in text and "describe(" in text
+    for name in ("recorder", "ego", "vehicle", "player"):
+        assert f'executable("{name}")' not in demo and f'executable="{name}"' not in launch
+
+
+def test_the_described_graph_runs_existing_executables_with_declared_parameters(tmp_path):
+    graph = describe(tmp_path / "bag", [3, 5, 8], "lidar", tmp_path / "g.mcap", 0.5, common={"checkpoint": "tiny-lidar"},
+                     vehicle_params={"codec.dtype": "int8"})
+    scripts = console_scripts()
+    assert [s.executable for s in (*graph.nodes, graph.player)] == ["recorder", "ego", "vehicle", "vehicle", "vehicle",
+                                                                    "player"]
+    for spec in (*graph.nodes, graph.player):
+        assert spec.executable in scripts
+        assert set(spec.parameters) <= {p.name for p in NODE_PARAMS.get(spec.executable, ())}, spec
+    own, *others = graph.vehicles
+    assert own.parameters == {"id": 3, "checkpoint": "tiny-lidar", **LOSSLESS} and own.car == "ego"
+    assert [(o.car, o.namespace, o.parameters["codec.dtype"]) for o in others] == [("cav5", "/cav_5", "int8"),
+                                                                                   ("cav8", "/cav_8", "int8")]
+    assert own.ros_arguments()[:3] == ["--ros-args", "-r", "__ns:=/cav_3"] and "id:=3" in own.ros_arguments()
+    assert graph.player.arguments[:3] == (str(tmp_path / "bag"), "--rate", "0.5")
+    assert "/cav_8/lidar/points" in graph.player.arguments and "/cav_8/camera0/image_raw" not in graph.player.arguments
 
 
 def test_the_license_and_the_citation_are_where_users_look():

@@ -6,22 +6,24 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from co3sop_nodes.data.bags import occupancy_message, typestore
-from co3sop_nodes.cli.info import main as info
+from co3sop_nodes.data.bags import typestore
+from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
+from co3sop_nodes.data.inventory import describe
 from co3sop_nodes.v2x.codec import encode_labels
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.data.recording import McapRecorder, recover
-from co3sop_nodes.eval.scoring import read_recording, score
+from co3sop_nodes.eval.scoring import read_recording, score, score_recording
+from co3sop_nodes.viz.bev import save_comparison
 
 GRID = BENCHMARK_RANGES["51.2m"]
 TYPE = "co3sop_msgs/msg/SemanticOccupancy"
 
 
 def message(store, agent: int, stamp: int, labels: np.ndarray) -> bytes:
-    t = store.types
-    header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=f"cav_{agent}/lidar")
-    return store.serialize_cdr(occupancy_message(t, header, agent, encode_labels(labels, GRID, 24)), TYPE)
+    enc = encode_labels(labels, GRID, 24)
+    msg = occupancy_msg(RosbagsTypes(store), enc, stamp_ns=stamp, frame_id=f"cav_{agent}/lidar", agent_id=agent)
+    return store.serialize_cdr(msg, TYPE)
 
 
 def read(path) -> list[tuple[str, int]]:
@@ -75,7 +77,7 @@ def recording(path):
     return path
 
 
-def test_info_reads_a_recording_with_ground_truth_point_clouds(tmp_path, capsys):
+def test_info_reads_a_recording_with_ground_truth_point_clouds(tmp_path):
     """The recorder also keeps the ground truth as points (/ego/ground_truth/points, PointCloud2): not a grid."""
     store, t = typestore(), typestore().types
     path = tmp_path / "demo.mcap"
@@ -100,8 +102,7 @@ def test_info_reads_a_recording_with_ground_truth_point_clouds(tmp_path, capsys)
             store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2"),
             1,
         )
-    assert info([str(path)]) == 0
-    assert "| /ego/ground_truth/points | sensor_msgs/msg/PointCloud2 | 1 |" in capsys.readouterr().out
+    assert "| /ego/ground_truth/points | sensor_msgs/msg/PointCloud2 | 1 |" in describe(path)
 
 
 def test_score_pairs_by_stamp_and_agent_and_counts_missed_frames(tmp_path):
@@ -119,35 +120,29 @@ def test_score_at_another_range_than_the_predictions_is_explained(tmp_path):
         read_recording(path, "25.6m")
 
 
-def test_info_summarises_a_recording(tmp_path, capsys):
+def test_info_summarises_a_recording(tmp_path):
     path = recording(tmp_path / "run.mcap")
-    assert info([str(path)]) == 0
-    text = capsys.readouterr().out
+    text = describe(path)
     assert "MCAP file: 9 messages" in text and "CAVs [1, 2]" in text and "frames" not in text
     assert f"| /ego/occupancy | {TYPE} | 3 |" in text and f"| /cav_2/ground_truth/occupancy_50m | {TYPE} | 3 |" in text
     road = 6 * 10 * GRID.dims[1] * GRID.dims[2]  # two agents' ground truth at three stamps (predictions are not truth)
     assert f"| 7 road | {road} (" in text
     (tmp_path / "bad.mcap").write_bytes(b"hello")
     with pytest.raises(DatasetError, match="bad.mcap: damaged or not a MCAP recording"):
-        info([str(tmp_path / "bad.mcap")])
+        describe(tmp_path / "bad.mcap")
 
 
 def test_score_prints_every_class_and_explains_its_conventions(tmp_path, capsys):
-    from co3sop_nodes.cli.score import main as score_main
-
     path = recording(tmp_path / "run.mcap")
-    assert score_main([str(path), "--pictures", "0"]) == 0
+    assert score_recording(path, pictures=0) == 0
     text = capsys.readouterr().out
     assert "| 13 sky | - |" in text  # absent from truth and prediction: shown, counted as 0 by the Co3SOP means
     assert "co3sop-readme, the mean over all 24 classes" in text and "co3sop-code, the mean over classes 1..23" in text
 
 
 def test_score_draws_titled_panels_with_a_legend(tmp_path):
-    from co3sop_nodes.viz.bev import save_comparison
-    from co3sop_nodes.cli.score import main as score_main
-
     path = recording(tmp_path / "run.mcap")
-    assert score_main([str(path), "--pictures", "1", "--out", str(tmp_path)]) == 0
+    assert score_recording(path, tmp_path, pictures=1) == 0
     assert len(list(tmp_path.glob("bev_cav1_*.png"))) == 1
     truth = np.zeros(GRID.dims, np.uint8)
     truth[:10, :, 0] = 7

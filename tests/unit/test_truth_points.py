@@ -9,14 +9,17 @@ import numpy as np
 import pytest
 
 from co3sop_nodes.common import topics
-from co3sop_nodes.data.bags import occupancy_message, typestore
+from co3sop_nodes.data.bags import typestore
+from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
 from co3sop_nodes.common.classes import NUM_CLASSES
 from co3sop_nodes.viz.cloud import occupancy_cloud
 from co3sop_nodes.v2x.codec import encode_labels
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.viz.foxglove import CAMERAS, layout
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.viz.truth_points import OCCUPANCY, POINTS, TruthPoints, truth_key
+from co3sop_nodes.messages import OCCUPANCY
+from co3sop_nodes.messages.sensors import POINT_CLOUD as POINTS
+from co3sop_nodes.viz.truth_points import TruthPoints, truth_key
 
 STORE = typestore()
 EGO, OTHER = 3, 8
@@ -25,9 +28,8 @@ EGO, OTHER = 3, 8
 def occupancy(agent: int, range_name: str, stamp: int, seed: int = 0) -> tuple[bytes, np.ndarray]:
     grid = BENCHMARK_RANGES[range_name]
     labels = np.random.default_rng(seed).choice([0, 0, 0, 4, 7, 10, 255], size=grid.dims).astype(np.uint8)
-    t = STORE.types
-    header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=stamp, nanosec=0), frame_id=topics.lidar_frame(agent))
-    msg = occupancy_message(t, header, agent, encode_labels(labels, grid, NUM_CLASSES))
+    enc = encode_labels(labels, grid, NUM_CLASSES)
+    msg = occupancy_msg(RosbagsTypes(STORE), enc, stamp_ns=stamp * 10**9, frame_id=topics.lidar_frame(agent), agent_id=agent)
     return bytes(STORE.serialize_cdr(msg, OCCUPANCY)), labels
 
 

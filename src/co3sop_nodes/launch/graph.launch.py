@@ -17,9 +17,8 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
-from co3sop_nodes.common import topics
 from co3sop_nodes.inference.checkpoint import read_checkpoint, resolve_checkpoint
-from co3sop_nodes.ros.demo import DEFAULT_MODEL, LOSSLESS, bag_contents, played_topics
+from co3sop_nodes.ros.graph import DEFAULT_MODEL, NodeSpec, bag_contents, describe
 
 CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
 
@@ -29,20 +28,17 @@ def nodes(context) -> list[Node]:
     bag = Path(arg("bag"))
     checkpoint = str(resolve_checkpoint(arg("model"), "model"))
     cavs = bag_contents(bag)[0][: int(arg("vehicles"))]
-    ego = cavs[0]
     sensors = read_checkpoint(checkpoint)["config"]["modality"]
-    lossless = {k: v for k, v in (p.split(":=") for p in LOSSLESS)}
-    out = Path(arg("out"))
-    return [
-        Node(package="co3sop_nodes", executable="recorder", name="recorder", output="screen", arguments=["--out", str(out / "graph.mcap")]),
-        Node(package="co3sop_nodes", executable="ego", name="ego", output="screen",
-             parameters=[arg("ego_params_file"), {"ego_id": ego, "checkpoint": checkpoint}]),
-        *(Node(package="co3sop_nodes", executable="vehicle", namespace=topics.namespace(c), name="vehicle", output="screen",
-               parameters=[arg("vehicle_params_file"), {"id": c, "checkpoint": checkpoint, **(lossless if c == ego else {})}])
-          for c in cavs),
-        Node(package="co3sop_nodes", executable="player", name="player", output="screen",
-             arguments=[str(bag), "--rate", arg("rate"), "--wait-subscribers", "30", "--topics", *played_topics(cavs, sensors)]),
-    ]
+    graph = describe(bag, cavs, sensors, Path(arg("out")) / "graph.mcap", float(arg("rate")),
+                     common={"checkpoint": checkpoint})
+    files = {"ego": [arg("ego_params_file")], "vehicle": [arg("vehicle_params_file")]}
+
+    def node(spec: NodeSpec) -> Node:
+        return Node(package="co3sop_nodes", executable=spec.executable, name=spec.name, namespace=spec.namespace or None,
+                    output="screen", arguments=list(spec.arguments),
+                    parameters=[*files.get(spec.executable, []), spec.parameters] if spec.parameters else None)
+
+    return [node(spec) for spec in (*graph.nodes, graph.player)]
 
 
 def generate_launch_description() -> LaunchDescription:

@@ -12,7 +12,8 @@ from rclpy.node import Node
 
 from cases import encoded
 from co3sop_nodes.common.geometry import Pose
-from co3sop_nodes.ros.convert import features_to_msg
+from co3sop_nodes.messages import features_msg
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import FEATURES_QOS, configure_environment
 
 TOPIC = "/test_corrupt/voxel_features"
@@ -31,7 +32,7 @@ def main() -> None:
             time.sleep(0.05)
         enc = encoded(2)  # zstd-compressed float16 top-k features
         for values in (enc.values[: len(enc.values) // 2], enc.values):
-            msg = features_to_msg(enc, stamp_ns=1, frame_id="cav_9/lidar", agent_id=9, pose=Pose())
+            msg = features_msg(RCLPY, enc, stamp_ns=1, frame_id="cav_9/lidar", agent_id=9, pose=Pose())
             msg.values = bytes(values)
             pub.publish(msg)
             pub.wait_for_all_acked(Duration(seconds=30))

@@ -19,7 +19,8 @@ from cases import CASES, encoded
 from digest import decoded_digest
 from co3sop_nodes.v2x.codec import EncodedFeatures
 from co3sop_nodes.common.geometry import Pose
-from co3sop_nodes.ros.convert import features_from_msg, features_to_msg, labels_from_msg, labels_to_msg
+from co3sop_nodes.messages import features_msg, features_of, occupancy_msg, occupancy_of
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import FEATURES_QOS, OCCUPANCY_QOS, configure_environment
 
 FEATURES_TOPIC, LABELS_TOPIC = "/test/voxel_features", "/test/occupancy"
@@ -39,9 +40,9 @@ def publish(node: Node) -> None:
         enc = encoded(index)
         # header.stamp carries the case index; frame_id names it for humans
         if isinstance(enc, EncodedFeatures):
-            msg = features_to_msg(enc, stamp_ns=index, frame_id=f"case_{index}", agent_id=index, pose=Pose())
+            msg = features_msg(RCLPY, enc, stamp_ns=index, frame_id=f"case_{index}", agent_id=index, pose=Pose())
         else:
-            msg = labels_to_msg(enc, stamp_ns=index, frame_id=f"case_{index}", agent_id=index)
+            msg = occupancy_msg(RCLPY, enc, stamp_ns=index, frame_id=f"case_{index}", agent_id=index)
         pub = pubs[type(msg)]
         pub.publish(msg)
         if not pub.wait_for_all_acked(Duration(seconds=30)):
@@ -56,8 +57,8 @@ def receive(node: Node, out_path: str) -> None:
         enc = from_msg(msg)
         results[msg.header.stamp.nanosec] = {"digest": decoded_digest(enc), "payload_bytes": enc.payload_bytes}
 
-    node.create_subscription(VoxelFeatures, FEATURES_TOPIC, lambda m: on_msg(m, features_from_msg), FEATURES_QOS)
-    node.create_subscription(SemanticOccupancy, LABELS_TOPIC, lambda m: on_msg(m, labels_from_msg), OCCUPANCY_QOS)
+    node.create_subscription(VoxelFeatures, FEATURES_TOPIC, lambda m: on_msg(m, features_of), FEATURES_QOS)
+    node.create_subscription(SemanticOccupancy, LABELS_TOPIC, lambda m: on_msg(m, occupancy_of), OCCUPANCY_QOS)
     deadline = time.monotonic() + 90
     while len(results) < len(CASES) and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)

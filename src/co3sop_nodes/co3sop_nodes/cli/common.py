@@ -1,11 +1,9 @@
-"""What every command-line tool shares: clear errors instead of tracebacks, progress bars."""
+"""What every command-line tool shares: clear errors instead of tracebacks."""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-
-from tqdm import tqdm
 
 from co3sop_nodes.common.errors import Co3sopError
 
@@ -27,6 +25,3 @@ def run(main: Callable[[list[str] | None], int]) -> Callable[[], None]:
 
     return entry
 
-
-def progress(total: int, desc: str, unit: str, disable: bool = False) -> tqdm:
-    return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, file=sys.stderr, disable=disable)

@@ -18,7 +18,8 @@ from co3sop_nodes.data import opv2v
 from co3sop_nodes.data.bags import BagWriter
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.cli.common import progress, run
+from co3sop_nodes.cli.common import run
+from co3sop_nodes.common.progress import progress
 
 
 def convert_scenario(root: Path, split: str, scenario: str, bag: Path, on_error: str, ranges) -> list[str]:

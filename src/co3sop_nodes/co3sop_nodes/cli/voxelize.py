@@ -25,7 +25,8 @@ from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.sim import rig
 from co3sop_nodes.sim.scenario import config_from_dict, world_states
 from co3sop_nodes.sim.voxel_sensor import annotate
-from co3sop_nodes.cli.common import progress, run
+from co3sop_nodes.cli.common import run
+from co3sop_nodes.common.progress import progress
 
 
 def main(args: list[str] | None = None) -> int:

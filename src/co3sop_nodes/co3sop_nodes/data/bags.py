@@ -25,14 +25,34 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.classes import NUM_CLASSES
-from co3sop_nodes.v2x.codec import decode_labels, encode_labels, EncodedLabels
+from co3sop_nodes.messages import (
+    OCCUPANCY,
+    RosbagsTypes,
+    camera_info_msg,
+    header_stamp_ns,
+    image_msg,
+    intrinsics_of,
+    occupancy_msg,
+    occupancy_of,
+    point_cloud_msg,
+    points_of,
+    pose_of,
+    pose_stamped_msg,
+    rgb_of,
+    tf_msg,
+    transform_msg,
+    transforms_of,
+)
+from co3sop_nodes.messages.co3sop import TYPES as CO3SOP_TYPES
+from co3sop_nodes.messages.sensors import CAMERA_INFO, IMAGE, LIDAR_POINTS, POINT_CLOUD
+from co3sop_nodes.v2x.codec import decode_labels, encode_labels
 from co3sop_nodes.common.errors import Co3sopError, DatasetError, exception_line
-from co3sop_nodes.common.frames import CameraFrame, CavFrame
+from co3sop_nodes.common.frames import CavFrame
 from co3sop_nodes.common.geometry import OPTICAL_FROM_BODY, Pose
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.common.transforms import StaticTransforms
 
-CO3SOP_MSGS = ("GridSpec", "VoxelFeatures", "SemanticOccupancy", "RequestMap")
+TF = "tf2_msgs/msg/TFMessage"
 _RANGE_OF_SUFFIX = {suffix: name for name, suffix in topics.RANGE_SUFFIX.items()}
 _NEVER = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)
 _LATCHED = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _NEVER, _NEVER,
@@ -51,9 +71,9 @@ def msg_dir() -> Path:
 def typestore():
     """Jazzy's standard types plus co3sop_msgs, parsed from the installed .msg files."""
     store = get_typestore(Stores.ROS2_JAZZY)
-    for name in CO3SOP_MSGS:
-        text = (msg_dir() / f"{name}.msg").read_text()
-        store.register(get_types_from_msg(text, f"co3sop_msgs/msg/{name}"))
+    for msgtype in CO3SOP_TYPES:
+        text = (msg_dir() / f"{msgtype.rsplit('/', 1)[1]}.msg").read_text()
+        store.register(get_types_from_msg(text, msgtype))
     return store
 
 
@@ -68,7 +88,7 @@ class BagWriter:
             shutil.rmtree(self._partial)
         self._partial.mkdir(parents=True)
         self.ts = typestore()
-        self.t = self.ts.types
+        self.types = RosbagsTypes(self.ts)
         self._writer = Writer(self._partial / self.path.name, version=9, storage_plugin=StoragePlugin.MCAP)
         if compress:
             self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
@@ -89,74 +109,18 @@ class BagWriter:
         # nothing half-written is left looking complete
         shutil.rmtree(self._partial, ignore_errors=True)
 
-    # --- message builders -------------------------------------------------------------------------
-
-    def _header(self, stamp_ns: int, frame_id: str):
-        t = self.t
-        return t["std_msgs/msg/Header"](
-            stamp=t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=frame_id
-        )
-
-    def _transform(self, stamp_ns: int, parent: str, child: str, m: np.ndarray):
-        t, pose = self.t, Pose.from_matrix(m)
-        return t["geometry_msgs/msg/TransformStamped"](
-            header=self._header(stamp_ns, parent),
-            child_frame_id=child,
-            transform=t["geometry_msgs/msg/Transform"](
-                translation=t["geometry_msgs/msg/Vector3"](*pose.position),
-                rotation=t["geometry_msgs/msg/Quaternion"](*pose.orientation),
-            ),
-        )
-
-    def _pose(self, m: np.ndarray):
-        t, pose = self.t, Pose.from_matrix(m)
-        return t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](*pose.position), orientation=t["geometry_msgs/msg/Quaternion"](*pose.orientation)
-        )
-
-    def _image(self, stamp_ns: int, frame_id: str, array: np.ndarray, encoding: str):
-        h, w = array.shape[:2]
-        data = np.ascontiguousarray(array).view(np.uint8).reshape(-1)
-        return self.t["sensor_msgs/msg/Image"](
-            header=self._header(stamp_ns, frame_id), height=h, width=w, encoding=encoding, is_bigendian=0,
-            step=len(data) // h, data=data,
-        )
-
-    def _camera_info(self, stamp_ns: int, frame_id: str, cam: CameraFrame):
-        t = self.t
-        k = cam.intrinsics
-        p = np.zeros((3, 4))
-        p[:, :3] = k
-        h, w = cam.rgb.shape[:2]
-        return t["sensor_msgs/msg/CameraInfo"](
-            header=self._header(stamp_ns, frame_id), height=h, width=w, distortion_model="plumb_bob",
-            d=np.zeros(5), k=k.reshape(-1).astype(float), r=np.eye(3).reshape(-1), p=p.reshape(-1), binning_x=0, binning_y=0,
-            roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-        )
-
     def _points(self, stamp_ns: int, frame: CavFrame):
-        t = self.t
-        n = len(frame.points)
-        dtype = np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
-                          "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
-        cloud = np.zeros(n, dtype)
+        cloud = np.zeros(len(frame.points), LIDAR_POINTS)
         cloud["x"], cloud["y"], cloud["z"] = frame.points.T
         cloud["intensity"] = frame.intensity
         if frame.point_labels is not None:
             cloud["label"] = frame.point_labels
-        field = t["sensor_msgs/msg/PointField"]
-        fields = [field(name=nm, offset=o, datatype=7, count=1) for nm, o in zip("xyz", (0, 4, 8))]
-        fields.append(field(name="intensity", offset=12, datatype=7, count=1))
-        fields.append(field(name="label", offset=16, datatype=2, count=1))
-        return t["sensor_msgs/msg/PointCloud2"](
-            header=self._header(stamp_ns, topics.lidar_frame(frame.cav_id)), height=1, width=n, fields=fields,
-            is_bigendian=False, point_step=20, row_step=20 * n, data=cloud.view(np.uint8), is_dense=True,
-        )
+        return point_cloud_msg(self.types, cloud, stamp_ns=stamp_ns, frame_id=topics.lidar_frame(frame.cav_id))
 
     def _occupancy(self, stamp_ns: int, frame: CavFrame, range_name: str):
-        grid = BENCHMARK_RANGES[range_name]
-        enc = encode_labels(frame.labels[range_name], grid, NUM_CLASSES)
-        return occupancy_message(self.t, self._header(stamp_ns, topics.lidar_frame(frame.cav_id)), frame.cav_id, enc)
+        enc = encode_labels(frame.labels[range_name], BENCHMARK_RANGES[range_name], NUM_CLASSES)
+        return occupancy_msg(self.types, enc, stamp_ns=stamp_ns, frame_id=topics.lidar_frame(frame.cav_id),
+                             agent_id=frame.cav_id)
 
     # --- writing -----------------------------------------------------------------------------------
 
@@ -170,59 +134,52 @@ class BagWriter:
 
     def write(self, frames: Sequence[CavFrame]) -> None:
         """One timestamp: every CAV's frame."""
-        tfs = []
+        types, tfs = self.types, []
         for frame in frames:
             stamp, cav = frame.stamp_ns, frame.cav_id
             if cav not in self._static_sent:
-                self._write(topics.TF_STATIC, "tf2_msgs/msg/TFMessage", stamp, self.t["tf2_msgs/msg/TFMessage"](transforms=self._mounts(frame)), latched=True)
+                self._write(topics.TF_STATIC, TF, stamp, tf_msg(types, self._mounts(frame)), latched=True)
                 self._static_sent.add(cav)
-            tfs.append(self._transform(stamp, topics.WORLD_FRAME, topics.base_frame(cav), frame.world_from_vehicle))
-            pose = self.t["geometry_msgs/msg/PoseStamped"](header=self._header(stamp, topics.WORLD_FRAME), pose=self._pose(frame.world_from_lidar))
+            tfs.append(transform_msg(types, stamp, topics.WORLD_FRAME, topics.base_frame(cav), frame.world_from_vehicle))
+            pose = pose_stamped_msg(types, stamp, topics.WORLD_FRAME, Pose.from_matrix(frame.world_from_lidar))
             self._write(topics.lidar_pose(cav), "geometry_msgs/msg/PoseStamped", stamp, pose)
-            self._write(topics.lidar_points(cav), "sensor_msgs/msg/PointCloud2", stamp, self._points(stamp, frame))
+            self._write(topics.lidar_points(cav), POINT_CLOUD, stamp, self._points(stamp, frame))
             for cam in frame.cameras:
                 optical = topics.camera_optical_frame(cav, cam.name)
-                self._write(topics.camera_image(cav, cam.name), "sensor_msgs/msg/Image", stamp, self._image(stamp, optical, cam.rgb, "rgb8"))
-                self._write(topics.camera_info(cav, cam.name), "sensor_msgs/msg/CameraInfo", stamp, self._camera_info(stamp, optical, cam))
+                at = {"stamp_ns": stamp, "frame_id": optical}
+                h, w = cam.rgb.shape[:2]
+                self._write(topics.camera_image(cav, cam.name), IMAGE, stamp, image_msg(types, cam.rgb, "rgb8", **at))
+                self._write(topics.camera_info(cav, cam.name), CAMERA_INFO, stamp,
+                            camera_info_msg(types, cam.intrinsics, w, h, **at))
                 if cam.depth is not None:
-                    self._write(topics.camera_depth(cav, cam.name), "sensor_msgs/msg/Image", stamp, self._image(stamp, optical, cam.depth.astype("<f4"), "32FC1"))
+                    self._write(topics.camera_depth(cav, cam.name), IMAGE, stamp,
+                                image_msg(types, cam.depth, "32FC1", **at))
                 if cam.semantic is not None:
-                    self._write(topics.camera_semantic(cav, cam.name), "sensor_msgs/msg/Image", stamp, self._image(stamp, optical, cam.semantic, "mono8"))
+                    self._write(topics.camera_semantic(cav, cam.name), IMAGE, stamp,
+                                image_msg(types, cam.semantic, "mono8", **at))
             for range_name in frame.labels:
-                self._write(topics.ground_truth(cav, range_name), "co3sop_msgs/msg/SemanticOccupancy", stamp, self._occupancy(stamp, frame, range_name))
+                self._write(topics.ground_truth(cav, range_name), OCCUPANCY, stamp,
+                            self._occupancy(stamp, frame, range_name))
         if tfs:
-            self._write(topics.TF, "tf2_msgs/msg/TFMessage", frames[0].stamp_ns, self.t["tf2_msgs/msg/TFMessage"](transforms=tfs))
+            self._write(topics.TF, TF, frames[0].stamp_ns, tf_msg(types, tfs))
 
     def _mounts(self, frame: CavFrame) -> list:
         """Static transforms of one CAV: base_link -> lidar -> camera body -> camera optical."""
-        cav, stamp = frame.cav_id, frame.stamp_ns
+        cav, stamp, types = frame.cav_id, frame.stamp_ns, self.types
         lidar_from_world = np.linalg.inv(frame.world_from_lidar)
-        out = [self._transform(stamp, topics.base_frame(cav), topics.lidar_frame(cav), np.linalg.inv(frame.world_from_vehicle) @ frame.world_from_lidar)]
+        base_from_lidar = np.linalg.inv(frame.world_from_vehicle) @ frame.world_from_lidar
+        out = [transform_msg(types, stamp, topics.base_frame(cav), topics.lidar_frame(cav), base_from_lidar)]
         for cam in frame.cameras:
-            out.append(self._transform(stamp, topics.lidar_frame(cav), topics.camera_frame(cav, cam.name), lidar_from_world @ cam.world_from_camera))
-            out.append(self._transform(stamp, topics.camera_frame(cav, cam.name), topics.camera_optical_frame(cav, cam.name), np.linalg.inv(OPTICAL_FROM_BODY)))
+            body, optical = topics.camera_frame(cav, cam.name), topics.camera_optical_frame(cav, cam.name)
+            out.append(transform_msg(types, stamp, topics.lidar_frame(cav), body, lidar_from_world @ cam.world_from_camera))
+            out.append(transform_msg(types, stamp, body, optical, np.linalg.inv(OPTICAL_FROM_BODY)))
         return out
 
 
-def occupancy_message(types, header, agent_id: int, enc: EncodedLabels):
-    """A co3sop_msgs/SemanticOccupancy (rosbags types) from encoded labels."""
-    g = enc.grid
-    grid = types["co3sop_msgs/msg/GridSpec"](
-        origin=types["geometry_msgs/msg/Point"](*g.origin), voxel_size=g.voxel_size, nx=g.dims[0], ny=g.dims[1], nz=g.dims[2]
-    )
-    return types["co3sop_msgs/msg/SemanticOccupancy"](
-        header=header, agent_id=agent_id, grid=grid, num_classes=enc.num_classes, codec=enc.codec,
-        labels=np.frombuffer(enc.labels, np.uint8), labels_raw_size=enc.labels_raw_size,
-        confidence=np.frombuffer(enc.confidence, np.uint8), confidence_raw_size=enc.confidence_raw_size,
-    )
-
-
 def occupancy_labels(msg) -> tuple[np.ndarray, GridSpec]:
-    """Decoded (nx, ny, nz) labels and grid of a SemanticOccupancy read by rosbags."""
-    g = msg.grid
-    grid = GridSpec((g.origin.x, g.origin.y, g.origin.z), g.voxel_size, (g.nx, g.ny, g.nz))
-    enc = EncodedLabels(grid, msg.num_classes, msg.codec, msg.labels.tobytes(), msg.labels_raw_size, msg.confidence.tobytes(), msg.confidence_raw_size)
-    return decode_labels(enc).labels, grid
+    """Decoded (nx, ny, nz) labels and grid of a SemanticOccupancy."""
+    enc = occupancy_of(msg)
+    return decode_labels(enc).labels, enc.grid
 
 
 # --- reading ---------------------------------------------------------------------------------------
@@ -329,19 +286,13 @@ def open_recording(path: Path) -> BagReader:
     return BagReader(path, "MCAP recording", f"; if the recorder crashed, run `recover {path}` first", typestore())
 
 
-def header_stamp_ns(header) -> int:
-    """A deserialized std_msgs/Header's stamp in ns."""
-    return header.stamp.sec * 10**9 + header.stamp.nanosec
-
-
 def read_static_transforms(path: Path) -> StaticTransforms:
     """Every /tf_static transform of a bag (the sensor mounts)."""
     tree = StaticTransforms()
     with open_reader(path) as reader:
         for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topics.TF_STATIC]):
-            for t in reader.deserialize(raw, conn, stamp).transforms:
-                tr, q = t.transform.translation, t.transform.rotation
-                tree.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
+            for parent, child, parent_from_child in transforms_of(reader.deserialize(raw, conn, stamp)):
+                tree.add(parent, child, parent_from_child)
     return tree
 
 
@@ -358,7 +309,7 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
                 continue
             msg = reader.deserialize(raw, conn, log_stamp)
             with reader.about(conn, log_stamp):
-                _read_part(by_stamp[header_stamp_ns(msg.header)][cav[0]], cav[1].split("/"), msg)
+                _read_part(by_stamp[header_stamp_ns(msg)][cav[0]], cav[1].split("/"), msg)
     for stamp in sorted(by_stamp):
         yield stamp, {cav: dict(v) for cav, v in by_stamp[stamp].items()}
 
@@ -366,17 +317,15 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
 def _read_part(entry: dict, parts: list[str], msg) -> None:
     """One CAV message into its frame's entry (read_frames); parts: its topic relative to the CAV's namespace."""
     if parts == ["lidar", "pose"]:
-        p, o = msg.pose.position, msg.pose.orientation
-        entry["pose"] = Pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w)).matrix()
+        entry["pose"] = pose_of(msg.pose).matrix()
     elif parts == ["lidar", "points"]:
-        cloud = msg.data.view(np.dtype({"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4"] * 4 + ["u1"],
-                                        "offsets": [0, 4, 8, 12, 16], "itemsize": msg.point_step}))
+        cloud = points_of(msg, ("x", "y", "z", "intensity"))
         entry["points"] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
         entry["intensity"] = cloud["intensity"].copy()
     elif parts[0] == "ground_truth":
         entry["labels"][_RANGE_OF_SUFFIX[parts[1].removeprefix("occupancy_")]] = occupancy_labels(msg)[0]
     elif parts[-1] == "image_raw":
-        entry["cameras"][parts[0]] = msg.data.reshape(msg.height, msg.width, 3)
+        entry["cameras"][parts[0]] = rgb_of(msg, parts[0])
         entry.setdefault("optical_frames", {})[parts[0]] = msg.header.frame_id
     elif parts[-1] == "camera_info":
-        entry.setdefault("intrinsics", {})[parts[0]] = msg.k.reshape(3, 3)
+        entry.setdefault("intrinsics", {})[parts[0]] = intrinsics_of(msg)

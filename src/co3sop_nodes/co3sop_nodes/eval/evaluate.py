@@ -36,7 +36,8 @@ import numpy as np
 import torch
 
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
-from co3sop_nodes.cli.common import progress, run
+from co3sop_nodes.cli.common import run
+from co3sop_nodes.common.progress import progress
 from co3sop_nodes.v2x.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS, FeatureCodecConfig
 from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative
 from co3sop_nodes.common.errors import Co3sopError

@@ -8,16 +8,19 @@ ground truth are listed and not scored.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from co3sop_nodes.common import topics
-from co3sop_nodes.data.bags import BagReader, header_stamp_ns, occupancy_labels, open_recording
+from co3sop_nodes.data.bags import BagReader, occupancy_labels, open_recording
+from co3sop_nodes.messages import header_stamp_ns
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
-from co3sop_nodes.eval.metrics import Confusion
+from co3sop_nodes.eval.metrics import CONVENTIONS_NOTE, Confusion, markdown_table
+from co3sop_nodes.viz.bev import save_comparison
 
 
 def range_of(grid: GridSpec) -> str:
@@ -67,7 +70,7 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
             with reader.about(conn, stamp):
                 labels, grid = occupancy_labels(msg)
             ranges.add(range_of(grid))
-            preds[(msg.agent_id, header_stamp_ns(msg.header))] = labels
+            preds[(msg.agent_id, header_stamp_ns(msg))] = labels
         if not preds and range_name is None:
             raise DatasetError(f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames")
         if len(ranges) > 1:
@@ -86,7 +89,7 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         truths = {}
         for conn, stamp, msg in _messages(reader, gt_conns):
             with reader.about(conn, stamp):
-                truths[(msg.agent_id, header_stamp_ns(msg.header))] = occupancy_labels(msg)[0]
+                truths[(msg.agent_id, header_stamp_ns(msg))] = occupancy_labels(msg)[0]
         diagnostics: dict[str, list[dict[str, str]]] = {}
         for _, _, msg in _messages(reader, [c for c in reader.connections if c.topic == topics.DIAGNOSTICS]):
             for status in msg.status:
@@ -117,3 +120,62 @@ def score(rec: Recording) -> Score:
         confusion.add(prediction, truth)
     unmatched = sorted(k for k in rec.predictions if k not in rec.truths)
     return Score(confusion.summary(), rec.range_name, len(rec.truths), missed, unmatched)
+def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:
+    grid = BENCHMARK_RANGES[rec.range_name]
+    paths = []
+    for agent, stamp in keys:
+        truth = rec.truths[(agent, stamp)]
+        missing = (agent, stamp) not in rec.predictions
+        pred = rec.predictions.get((agent, stamp), np.zeros_like(truth))
+        path = out / f"bev_cav{agent}_{stamp}.png"
+        save_comparison(
+            truth,
+            pred,
+            path,
+            f"cav {agent}, stamp {stamp} ns, {rec.range_name}" + (" (no prediction)" if missing else ""),
+            grid.voxel_size,
+        )
+        paths.append(path)
+    return paths
+
+
+def _diagnostics_summary(diagnostics: list[dict[str, str]]) -> str:
+    if not diagnostics:
+        return "no ego diagnostics recorded"
+    neighbours = [int(d.get("neighbours_used", 0)) for d in diagnostics]
+    total_ms = [float(d.get("total_ms", 0.0)) for d in diagnostics]
+    return (f"ego diagnostics: {len(diagnostics)} frames, neighbours used per frame min {min(neighbours)} / "
+            f"mean {np.mean(neighbours):.2f} / max {max(neighbours)}, ego time per frame p50 {np.median(total_ms):.0f} ms")
+
+
+def score_recording(recording: Path, out: Path | None = None, range_name: str | None = None, pictures: int = 3,
+                    frames: list[int] = ()) -> int:
+    """The table of a recording printed and written to OUT/score.md and score.json, with BEV pictures of
+    `pictures` frames spread over the run (or of the stamps in `frames`); OUT defaults to the recording's folder."""
+    out = out or recording.parent
+    out.mkdir(parents=True, exist_ok=True)
+    rec = read_recording(recording, range_name)
+    result = score(rec)
+    name = f"{recording.stem} {result.range_name}"
+    lines = [f"### Per-class IoU (%) and mIoU: {recording.name}, {result.range_name}, {result.scored} frames", "",
+             markdown_table({name: result.summary}, every_class=True), "", CONVENTIONS_NOTE, "",
+             f"frames: {result.scored} with ground truth, {result.scored - len(result.missed)} predicted, "
+             f"{len(result.missed)} missed (scored as empty), {len(result.unmatched)} predictions without ground truth"]
+    lines += [f"- missed: cav {a} at stamp {s}" for a, s in result.missed]
+    lines += [f"- no ground truth: cav {a} at stamp {s}" for a, s in result.unmatched]
+    lines.append(_diagnostics_summary(rec.diagnostics.get("ego", [])))
+    keys = sorted(rec.truths)
+    if frames:
+        chosen = [k for k in keys if k[1] in set(frames)]
+    else:
+        chosen = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, pictures).round().astype(int))] if keys and pictures else []
+    for path in _pictures(rec, out, chosen):
+        lines.append(f"picture (ground truth | prediction): {path}")
+    text = "\n".join(lines)
+    print(text)
+    (out / "score.md").write_text(text + "\n")
+    data = {"recording": str(recording), "range": result.range_name, "frames": result.scored,
+            "missed": [list(k) for k in result.missed], "unmatched": [list(k) for k in result.unmatched], **result.summary}
+    (out / "score.json").write_text(json.dumps(data, indent=2) + "\n")
+    return 0
+

@@ -1,77 +1,42 @@
-"""`demo`: the whole graph on a small scenario, scored: player + vehicles + ego + recorder, then `score`.
-
-    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny-lidar|tiny|small|CKPT] [--out results/demo] [--rate R]
-
-Without --bag it generates one scenario with three CAVs (once; kept in
-data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
-(at most --vehicles) as separate processes, drives the ego and vehicles
-through their lifecycle as a lifecycle manager does (configure, then
-activate), waits until the ego subscribes to every vehicle and the recorder
-to the ego's outputs (graph events), plays the bag once at --rate
-(default: the rate this machine keeps up with, from the model's CPU time per
-frame measured before the nodes start, model.pace), waits until the ego has
-reported every frame fused on /diagnostics, stops everything with SIGINT,
-scores the MCAP (table printed, pictures beside it, and a Foxglove layout
-for the recording: prediction | ground truth in 3D, the ego's cameras) and checks the recording
-holds every /ego/occupancy message the ego published. Nothing is decided from
-the nodes' logs.
-
-With --channel-rate the graph runs over an emulated V2X channel (v2x/channel.py,
-root and nftables needed): the ego (with its own encoder and the recorder) and
-each neighbour in its own network namespace, their transmit limited to
---channel-rate Mbit/s of real time (times --rate, so that the link keeps its
-real-time meaning at a slower playback) with --channel-loss percent of their
-packets dropped at random; the player and this launcher stay on the machine's
-side, unshaped. A neighbour's DDS runs over UDP only (config/fastdds_udp.xml);
-the ego's processes and the player share memory among themselves, as one car's
-computers and sensors would (config/fastdds_onboard.xml), and reach the
-neighbours over UDP.
-Namespaces are removed on exit, SIGINT and SIGTERM included.
-"""
+"""The demo: the node graph on a small scenario as processes, its lifecycle driven, the bag played, the
+recording scored (`demo` on the command line explains each step; co3sop_nodes.cli.demo)."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import math
 import os
-import re
 import signal
 import subprocess
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ament_index_python.packages import get_package_prefix
 
 from co3sop_nodes.common import topics
-from co3sop_nodes.data.bags import open_reader
-from co3sop_nodes.v2x.channel import Channel, Link
-from co3sop_nodes.cli import generate, score
-from co3sop_nodes.cli.common import run
 from co3sop_nodes.common.errors import Co3sopError
-from co3sop_nodes.viz.foxglove import CAMERAS, write_layout
-from co3sop_nodes.inference import PRECISIONS, inference_path
-from co3sop_nodes.inference import pace
+from co3sop_nodes.data.bags import open_reader
+from co3sop_nodes.data.generation import GenerateOptions, generate, scenario_name
+from co3sop_nodes.eval.scoring import message_counts, score_recording
+from co3sop_nodes.inference import inference_path, pace
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
-from co3sop_nodes.eval.scoring import message_counts
 from co3sop_nodes.ros.dds import channel_environment
-from co3sop_nodes.ros.recorder import DEFAULT_TOPICS
+from co3sop_nodes.ros.graph import DEFAULT_MODEL, NodeSpec, bag_contents, describe
 from co3sop_nodes.ros.supervisor import Supervisor
+from co3sop_nodes.v2x.channel import Channel, Link
+from co3sop_nodes.viz.foxglove import write_layout
 
-# A scene whose CAVs can help each other: seed 11 is the first base seed (counting from 1) whose three CAVs all
-# stay within 30 m of the ego over the 10 frames (most seeds spread them 50-100 m apart, where a 51.2 m grid
-# shares little or nothing; the seed-7 scene used before had its neighbours 57 and 73 m away). Chosen by that
-# rule alone, before scoring; no training or validation split uses seed 11.
+# a scene whose three CAVs all stay within 30 m of the ego over its 10 frames (most seeds spread them 50-100 m
+# apart, where a 51.2 m grid shares little); chosen by that rule alone, before scoring, and in no split
 DEMO_SEED = 11
 DEMO_FRAMES = 10
-DEMO_SCENARIO = ["--splits", "test=1", "--cavs", "3", "--seed", str(DEMO_SEED), "--image-size", "320x240",
-                 "--lidar-steps", "512", "--workers", "1"]
+DEMO_SCENARIO = {"splits": ["test=1"], "cavs": "3", "seed": DEMO_SEED, "image_size": "320x240", "lidar_steps": 512,
+                 "workers": 1}
 
 
-LOSSLESS = ["codec.dtype:=float32", "codec.selection:=dense", "codec.compression:=none"]
-DEFAULT_MODEL = "tiny-lidar"  # the best collaborative model shipped (checkpoints/tiny-lidar.md); "tiny": the camera model
 
 
 def say(text: str) -> None:
@@ -111,17 +76,6 @@ class Process:
         return self.proc.returncode
 
 
-def bag_contents(bag: Path) -> tuple[list[int], int]:
-    """(CAV ids, frames) of a bag."""
-    reader = open_reader(bag)
-    with reader:
-        poses = {cav[0]: c.msgcount for c in reader.connections if (cav := topics.split_cav_topic(c.topic)) is not None
-                 and c.topic == topics.lidar_pose(cav[0])}
-    if not poses:
-        raise Co3sopError(f"{bag}: no /cav_N/lidar/pose topic: not a CAV bag")
-    return sorted(poses), max(poses.values())
-
-
 def bag_period(bag: Path, frames: int) -> float:
     """Seconds between a bag's frames (0.1 for a 10 Hz bag)."""
     reader = open_reader(bag)
@@ -139,20 +93,6 @@ def measured_rate(model, vehicles: int, period: float) -> float:
     return max(rate, 0.01)
 
 
-def played_topics(cavs: list[int], sensors: str) -> list[str]:
-    """What the graph listens to (so the player waits for exactly those subscribers): sensors, mounts, ground truth,
-    and the ego's camera images (recorded for the Foxglove layout, whatever the model's sensors)."""
-    played = [topics.TF_STATIC]
-    for c in cavs:
-        played.append(topics.lidar_pose(c))
-        if sensors == "lidar":
-            played.append(topics.lidar_points(c))
-        else:
-            played += [f(c, cam) for cam in CAMERAS for f in (topics.camera_image, topics.camera_info)]
-        played += [topics.ground_truth(c, r) for r in topics.RANGE_SUFFIX]
-    return played + [t for cam in CAMERAS if (t := topics.camera_image(cavs[0], cam)) not in played]
-
-
 def ensure_scenario(opts) -> Path:
     if opts.bag:
         return opts.bag
@@ -161,58 +101,38 @@ def ensure_scenario(opts) -> Path:
         if opts.frames == DEMO_FRAMES
         else (opts.data / f"{opts.frames}f", opts.bags / f"{opts.frames}f")
     )
-    bag = bags / "test" / generate.scenario_name("test", 0, DEMO_SEED)
+    bag = bags / "test" / scenario_name("test", 0, DEMO_SEED)
     if not (bag / "metadata.yaml").exists():
         say(f"no demo scenario of {opts.frames} frames yet: generating one (3 CAVs) into {data} and {bags} "
             f"(about {max(1, round(opts.frames / 10))} minute(s))")
-        generate.main(["--out", str(data), "--bags", str(bags), *DEMO_SCENARIO, "--frames", str(opts.frames)])
+        generate(GenerateOptions(out=data, bags=bags, frames=opts.frames, **DEMO_SCENARIO))
     return bag
 
 
-def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--bag", type=Path, help="a CAV bag to play (default: the generated demo scenario)")
-    parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
-    parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
-    parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
-    parser.add_argument(
-        "--frames",
-        type=int,
-        default=DEMO_FRAMES,
-        help="10 Hz frames of the generated demo scenario (the same "
-        "town and traffic, longer; generated once per length)",
-    )
-    parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
-    parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
-    parser.add_argument("--model", default=DEFAULT_MODEL,
-                        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera; small: the larger, GPU-trained camera model) or a path "
-                             f"(default: {DEFAULT_MODEL})")
-    parser.add_argument("--params", nargs="*", default=[],
-                        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
-    parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
-    parser.add_argument(
-        "--precision",
-        default="auto",
-        choices=PRECISIONS,
-        help="inference precision of every node (auto: what the "
-        "machine computes fast; float32 on CPUs without AMX or AVX-512 BF16)",
-    )
-    parser.add_argument("--device", default="cpu", help="where every node's model runs: cpu, cuda, cuda:N, auto")
-    parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
-    parser.add_argument("--channel-rate", type=float, metavar="MBIT",
-                        help="run over an emulated V2X channel: each CAV in its own network namespace, transmitting at most MBIT "
-                             "Mbit/s of real time (the link runs at MBIT x --rate); needs root, iproute2 and nftables")
-    parser.add_argument("--channel-loss", type=float, default=0.0, metavar="PERCENT",
-                        help="with --channel-rate: share of each CAV's packets dropped at random (default 0)")
-    opts = parser.parse_args(args)
-    if opts.channel_rate is None and opts.channel_loss:
-        parser.error("--channel-loss needs --channel-rate")
-    if opts.rate is not None and not opts.rate > 0:
-        parser.error(f"--rate {opts.rate}: must be above 0")
-    if opts.frames < 1:
-        parser.error(f"--frames {opts.frames}: at least 1")
-    if opts.vehicles < 1:
-        parser.error(f"--vehicles {opts.vehicles}: at least 1 (the ego's)")
+@dataclass
+class DemoOptions:
+    """What `demo` runs; its options, as the command line names them."""
+
+    bag: Path | None = None
+    data: Path = Path("data/demo")
+    bags: Path = Path("bags/demo")
+    out: Path = Path("results/demo")
+    frames: int = DEMO_FRAMES
+    rate: float | None = None
+    vehicles: int = 3
+    model: str = DEFAULT_MODEL
+    params: dict = field(default_factory=dict)
+    ego_params: dict = field(default_factory=dict)
+    precision: str = "auto"
+    device: str = "cpu"
+    quiet: bool = False
+    channel_rate: float | None = None
+    channel_loss: float = 0.0
+
+
+def run_demo(opts: DemoOptions) -> int:
+    """The graph on the demo scenario (generated once) or `opts.bag`, recorded and scored; 0 when the recording
+    holds every prediction the ego published."""
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = resolve_checkpoint(opts.model, "--model")
@@ -264,22 +184,22 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
 
     echo = not opts.quiet
 
-    def on(member: str, label: str, argv: list[str]) -> Process:
-        """argv started in `member`'s car: on a channel, in its namespace with its DDS profile."""
-        return Process(label, channel.wrap(member, argv), echo, channel_environment(member)) if channel else Process(label, argv, echo)
+    common = {"checkpoint": checkpoint, "autostart": False,  # the demo drives the lifecycle
+              "device": opts.device, "precision": opts.precision}
+    graph = describe(bag, cavs, sensors, mcap, opts.rate, common=common, ego_params=opts.ego_params,
+                     vehicle_params=opts.params)
 
-    model = ["-p", f"checkpoint:={checkpoint}", "-p", "autostart:=false",  # the demo drives the lifecycle
-             "-p", f"device:={opts.device}", "-p", f"precision:={opts.precision}"]
-    ros_params = [x for p in opts.params for x in ("-p", p)]
-    ego_params = [x for p in opts.ego_params for x in ("-p", p)]
-    shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]  # the layout's camera panels
-    recorder = on("ego", "recorder", [executable("recorder"), "--out", str(mcap), "--topics", *DEFAULT_TOPICS, *shown])
-    nodes = {"/ego": on("ego", "ego", [executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *model, *ego_params])}
-    # the ego's own encoder runs on the ego: its features reach the fusion losslessly; --params is the V2X codec of the others
-    lossless = [x for p in LOSSLESS for x in ("-p", p)]
-    for c in cavs:
-        nodes[topics.vehicle_node(c)] = on("ego" if c == ego else f"cav{c}", f"vehicle {c}", [
-            executable("vehicle"), "--id", str(c), "--ros-args", *model, *(lossless if c == ego else ros_params)])
+    def start(spec: NodeSpec, label: str) -> Process:
+        """A node started in its car: on a channel, in that car's namespace with its DDS profile."""
+        argv = [executable(spec.executable), *spec.ros_arguments()]
+        if channel:
+            return Process(label, channel.wrap(spec.car, argv), echo, channel_environment(spec.car))
+        return Process(label, argv, echo)
+
+    recorder = start(graph.recorder, "recorder")
+    nodes = {"/ego": start(graph.ego, "ego")}
+    for spec in graph.vehicles:
+        nodes[f"{spec.namespace}/{spec.name}"] = start(spec, f"vehicle {spec.parameters['id']}")
     player = None
     supervisor = Supervisor("demo", alive=lambda: next((f"{p.label} exited with code {p.proc.returncode}" for p in [recorder, *nodes.values()]
                                                         if p.proc.poll() is not None), None))
@@ -291,8 +211,7 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS):  # the nodes' outputs are recorded from their first frame on
             supervisor.wait_subscribed("/recorder", topic)
         say(f"playing the bag at rate {opts.rate}")
-        player = Process("player", [executable("player"), str(bag), "--rate", str(opts.rate), "--wait-subscribers", "30",
-                                    "--topics", *played_topics(cavs, sensors)], echo)
+        player = Process("player", [executable(graph.player.executable), *graph.player.ros_arguments()], echo)
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say("bag played; waiting for the ego to fuse the last frames")
@@ -323,7 +242,7 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
             " ".join(r["neighbours_silent"] or "-" for r in reports))
     if channel and opts.channel_loss:
         say("packets dropped by the channel: " + ", ".join(f"{m} {channel.dropped(m)}" for m in channel.links))
-    code = score.main([str(mcap), "--out", str(opts.out)])
+    code = score_recording(mcap, opts.out)
     layout = write_layout(opts.out / "foxglove_layout.json", ego)
     say(f"to see it in 3D: open {mcap} in Foxglove and import the layout {layout} (prediction | ground truth, cameras)")
     recorded = message_counts(mcap).get(topics.EGO_OCCUPANCY, 0)
@@ -333,5 +252,3 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
     say(f"the recording holds all {published} /ego/occupancy messages; done in {time.monotonic() - t0:.0f} s")
     return code
 
-
-entry = run(main)

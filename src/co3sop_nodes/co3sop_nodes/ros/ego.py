@@ -52,7 +52,16 @@ from co3sop_nodes.inference.outputs import decoded_output
 from co3sop_nodes.inference.predict import compile_kernels, predict_frame
 from co3sop_nodes.v2x.request_map import request_of
 from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
-from co3sop_nodes.ros.convert import cloud_to_msg, diagnostics_msg, features_from_msg, labels_to_msg, pose_from_msg, request_to_msg, stamp_to_ns
+from co3sop_nodes.messages import (
+    diagnostics_msg,
+    features_of,
+    occupancy_msg,
+    point_cloud_msg,
+    pose_of,
+    request_msg,
+    stamp_ns,
+)
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.params import Param, parameters_help
 from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
 from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
@@ -401,13 +410,13 @@ class Ego(ManagedNode):
 
     def _on_features(self, topic: str, msg: VoxelFeatures, raw: bytes) -> None:
         wall = time.time_ns()
-        stamp = stamp_to_ns(msg.header.stamp)
+        stamp = stamp_ns(msg.header.stamp)
         if msg.addressed and msg.recipient_id != self.ego_id:  # selected for another ego's request: not ours to fuse
             self.for_other_egos += 1
             return
         try:
             agent = self._agent_of(topic, msg)
-            pose = pose_from_msg(msg.lidar_pose)
+            pose = pose_of(msg.lidar_pose)
             pose.check("lidar_pose")
         except Co3sopError as exc:
             return self.drops(topic, "header", str(exc))
@@ -431,7 +440,7 @@ class Ego(ManagedNode):
                                               f"more than max_age / tolerance ({reach_ms:.0f} ms)")
         t0 = time.perf_counter()
         try:
-            enc = features_from_msg(msg)
+            enc = features_of(msg)
             if enc.grid != self.cfg.feature_grid or enc.channels != self.cfg.embed_dims:
                 raise Co3sopError(f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
                                   f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
@@ -495,14 +504,14 @@ class Ego(ManagedNode):
         t2 = time.perf_counter()
         frame = topics.lidar_frame(self.ego_id)
         enc = encode_labels(pred.labels, self.cfg.grid, self.cfg.num_classes, confidence=pred.confidence)
-        self._occupancy.publish(labels_to_msg(enc, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id))
+        self._occupancy.publish(occupancy_msg(RCLPY, enc, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id))
         published_wall = time.time_ns()
         if self.publish_points:
             cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
-            self._points.publish(cloud_to_msg(cloud, stamp_ns=stamp, frame_id=frame))
+            self._points.publish(point_cloud_msg(RCLPY, cloud, stamp_ns=stamp, frame_id=frame))
         if self.request_maps:  # for the vehicles' next frame: where this one was unsure (v2x/request_map.py)
             need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid)
-            self._request.publish(request_to_msg(need, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id,
+            self._request.publish(request_msg(RCLPY, need, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id,
                                                  pose=Pose.from_matrix(ego.world_from_lidar)))
         t3 = time.perf_counter()
         self.published += 1
@@ -524,7 +533,7 @@ class Ego(ManagedNode):
         level = DiagnosticStatus.WARN if missing or silent else DiagnosticStatus.OK
         text = (f"{len(others)} neighbours used" + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
                 + (f"; nothing received yet on {', '.join(silent)}" if silent else ""))
-        self._diag.publish(diagnostics_msg(stamp, "ego", frame, level, text, values))
+        self._diag.publish(diagnostics_msg(RCLPY, stamp, "ego", frame, level, text, values))
         self.get_logger().info(f"frame {stamp}: published #{self.published}, {text}, {1e3 * (t3 - t0):.0f} ms")
 
 

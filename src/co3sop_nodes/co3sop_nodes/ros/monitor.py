@@ -27,7 +27,7 @@ from rclpy.utilities import remove_ros_args
 from co3sop_nodes.common.classes import CLASS_NAMES
 from co3sop_nodes.v2x.codec import decode_features, decode_labels
 from co3sop_nodes.common.errors import Co3sopError, exception_line
-from co3sop_nodes.ros.convert import features_from_msg, labels_from_msg, stamp_to_ns
+from co3sop_nodes.messages import features_of, occupancy_of, stamp_ns
 from co3sop_nodes.ros.dds import OCCUPANCY_QOS, spin_node
 
 MONITORED = {
@@ -72,12 +72,12 @@ def _grid_text(grid) -> str:
 
 
 def _header_text(header, agent_id: int) -> str:
-    return f"stamp {stamp_to_ns(header.stamp) / 1e9:.3f} frame {header.frame_id} agent {agent_id}"
+    return f"stamp {stamp_ns(header.stamp) / 1e9:.3f} frame {header.frame_id} agent {agent_id}"
 
 
 def summarize_features(msg: VoxelFeatures) -> tuple[str, int, int]:
     """Decodes one message; returns (summary, raw payload bytes, compressed payload bytes)."""
-    enc = features_from_msg(msg)
+    enc = features_of(msg)
     dec = decode_features(enc)
     layout = f"sparse N={enc.num_voxels}" if enc.sparse else "dense"
     conf = "" if dec.confidence is None else f" conf mean {dec.confidence.mean():.3f}"
@@ -89,7 +89,7 @@ def summarize_features(msg: VoxelFeatures) -> tuple[str, int, int]:
 
 
 def summarize_occupancy(msg: SemanticOccupancy) -> tuple[str, int, int]:
-    enc = labels_from_msg(msg)
+    enc = occupancy_of(msg)
     dec = decode_labels(enc)
     counts = np.bincount(dec.labels.reshape(-1), minlength=256)
     top = [int(c) for c in np.argsort(-counts)[:3] if counts[c]]

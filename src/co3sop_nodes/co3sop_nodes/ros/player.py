@@ -24,7 +24,8 @@ from rosgraph_msgs.msg import Clock
 
 from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.common.errors import DatasetError
-from co3sop_nodes.ros.convert import message_class, ns_to_stamp
+from co3sop_nodes.messages import time_msg
+from co3sop_nodes.ros.message_types import RCLPY, message_class
 from co3sop_nodes.ros.dds import flush_publishers, spin_node
 
 
@@ -90,7 +91,7 @@ class Player(Node):
                 if delay > 0:
                     time.sleep(delay)
                 offset = self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
-                self._clock.publish(Clock(clock=ns_to_stamp(stamp + offset)))
+                self._clock.publish(Clock(clock=time_msg(RCLPY, stamp + offset)))
                 self._pubs[conn.id].publish(bytes(raw))
                 self.published += 1
             if not self._opts.loop:

@@ -28,8 +28,9 @@ from rclpy.utilities import remove_ros_args
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.data.recording import McapRecorder
-from co3sop_nodes.viz.truth_points import POINTS, TruthPoints
-from co3sop_nodes.ros.convert import message_class
+from co3sop_nodes.messages.sensors import POINT_CLOUD
+from co3sop_nodes.viz.truth_points import TruthPoints
+from co3sop_nodes.ros.message_types import message_class
 from co3sop_nodes.ros.dds import DropLog, matching_qos, spin_node
 
 DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), re.escape(topics.EGO_POINTS), r"/cav_\d+/ground_truth/occupancy_\w+",
@@ -76,7 +77,7 @@ class Recorder(Node):
         except Co3sopError as exc:  # recorded as it came; only its picture is missing
             return self.drops(topic, "not drawn", str(exc))
         for cloud in clouds:
-            self.mcap.write(topics.EGO_TRUTH_POINTS, POINTS, cloud, now)
+            self.mcap.write(topics.EGO_TRUTH_POINTS, POINT_CLOUD, cloud, now)
 
     def close(self) -> None:
         self.mcap.close()

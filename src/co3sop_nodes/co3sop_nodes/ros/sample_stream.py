@@ -23,7 +23,8 @@ from co3sop_nodes.common.classes import NUM_CLASSES
 from co3sop_nodes.v2x.codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, encode_features, encode_labels
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
-from co3sop_nodes.ros.convert import features_to_msg, labels_to_msg
+from co3sop_nodes.messages import features_msg, occupancy_msg
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import FEATURES_QOS, OCCUPANCY_QOS, flush_publishers, spin_node
 from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 
@@ -68,11 +69,11 @@ class SampleStream(Node):
             enc = encode_features(features, confidence, self._feature_grid, self._cfg)
             pose = Pose((10.0 * agent, 0.0, 1.9))
             self._features[agent].publish(
-                features_to_msg(enc, stamp_ns=stamp_ns, frame_id=f"cav_{agent}/lidar", agent_id=agent, pose=pose)
+                features_msg(RCLPY, enc, stamp_ns=stamp_ns, frame_id=f"cav_{agent}/lidar", agent_id=agent, pose=pose)
             )
         ego = self._opts.agents[0]
         enc = encode_labels(labels, self._label_grid, NUM_CLASSES, codec=self._opts.codec)
-        self._occupancy.publish(labels_to_msg(enc, stamp_ns=stamp_ns, frame_id=f"cav_{ego}/lidar", agent_id=ego))
+        self._occupancy.publish(occupancy_msg(RCLPY, enc, stamp_ns=stamp_ns, frame_id=f"cav_{ego}/lidar", agent_id=ego))
         self._sent += 1
 
 

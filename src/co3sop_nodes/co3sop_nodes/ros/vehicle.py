@@ -38,7 +38,6 @@ from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, check_codec_for, decode_request
 from co3sop_nodes.common.errors import CodecError, Co3sopError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.inference import PRECISIONS, inference_path
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
 from co3sop_nodes.inference.predict import compile_kernels
@@ -47,7 +46,18 @@ from co3sop_nodes.inference.outputs import encode_output
 from co3sop_nodes.v2x.request_map import request_for_neighbour
 from co3sop_nodes.v2x.sender_requests import Request, RequestBook
 from co3sop_nodes.common.transforms import StaticTransforms
-from co3sop_nodes.ros.convert import cloud_points, diagnostics_msg, features_to_msg, image_rgb, pose_from_msg, request_from_msg, stamp_to_ns
+from co3sop_nodes.messages import (
+    diagnostics_msg,
+    features_msg,
+    intrinsics_of,
+    pose_of,
+    request_of,
+    rgb_of,
+    stamp_ns,
+    transforms_of,
+    xyz_of,
+)
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.params import Param, parameters_help
 from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
 from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
@@ -282,17 +292,17 @@ class Vehicle(ManagedNode):
 
     def _on_request(self, topic: str, msg: RequestMap) -> None:
         try:
-            enc = request_from_msg(msg)
+            enc = request_of(msg)
             if enc.grid != self.cfg.feature_grid:
                 raise Co3sopError(f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m is not this model's feature grid")
-            pose = pose_from_msg(msg.lidar_pose)
+            pose = pose_of(msg.lidar_pose)
             pose.check("lidar_pose")
             need = decode_request(enc)
         except Co3sopError as exc:
             return self.drops(topic, "request", str(exc))
         if msg.agent_id == self.agent_id:  # a vehicle that is also an ego does not serve itself
             return
-        request = Request(need, pose.matrix(), stamp_to_ns(msg.header.stamp), time.time_ns())
+        request = Request(need, pose.matrix(), stamp_ns(msg.header.stamp), time.time_ns())
         with self._worker.lock:
             refused = self._requests.offer(
                 topic, msg.agent_id, request, self._pose, lambda t: self.count_publishers(t) > 0
@@ -321,9 +331,8 @@ class Vehicle(ManagedNode):
         super().destroy_node()
 
     def _on_static(self, msg: TFMessage) -> None:
-        for t in msg.transforms:
-            tr, q = t.transform.translation, t.transform.rotation
-            self._tf.add(t.header.frame_id, t.child_frame_id, Pose((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w)).matrix())
+        for parent, child, parent_from_child in transforms_of(msg):
+            self._tf.add(parent, child, parent_from_child)
         self._encode_ready()
 
     def _apply(self, values: dict) -> None:
@@ -390,24 +399,24 @@ class Vehicle(ManagedNode):
 
     def _part(self, key: str):
         def callback(msg) -> None:
-            self._handle(*self._frames.add(key, stamp_to_ns(msg.header.stamp), msg, time.time_ns()))
+            self._handle(*self._frames.add(key, stamp_ns(msg.header.stamp), msg, time.time_ns()))
         return callback
 
     def _encode(self, frame: Frame) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
         stamp, entry = frame.stamp, frame.parts
         try:
-            pose = pose_from_msg(entry["pose"].pose)
+            pose = pose_of(entry["pose"].pose)
             pose.check(self._parts["pose"])
             world_from_lidar = pose.matrix()
             cameras, points = [], None
             if self.cfg.modality == "camera":
                 for cam in self.cameras:
                     image, info = entry[f"image:{cam}"], entry[f"info:{cam}"]
-                    k = np.array(info.k, np.float64).reshape(3, 3)
-                    cameras.append((cam, image_rgb(image, self._parts[f"image:{cam}"]), k, self._tf.lookup(self.lidar_frame, image.header.frame_id)))
+                    k = intrinsics_of(info)
+                    cameras.append((cam, rgb_of(image, self._parts[f"image:{cam}"]), k, self._tf.lookup(self.lidar_frame, image.header.frame_id)))
             else:
-                points = cloud_points(entry["points"])
+                points = xyz_of(entry["points"])
             inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
         except Co3sopError as exc:
             return self.drops(self.get_namespace(), "input", f"frame {stamp}: {exc}")
@@ -422,7 +431,7 @@ class Vehicle(ManagedNode):
                         for ego, r in recipients.items()] or [(None, self._encode_for(out, None, None))]
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
             return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
-        msgs = [features_to_msg(enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose, recipient_id=ego)
+        msgs = [features_msg(RCLPY, enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose, recipient_id=ego)
                 for ego, enc in messages]
         t3 = time.perf_counter()
         for msg in msgs:
@@ -436,7 +445,7 @@ class Vehicle(ManagedNode):
                   "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),
                   "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
                   "skipped": sum(self.skips.counts.values()), **self.drops.values()}
-        self._diag.publish(diagnostics_msg(stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
+        self._diag.publish(diagnostics_msg(RCLPY, stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
                                            f"frame {self.published} encoded", values))
 
 

@@ -42,7 +42,8 @@ from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupa
 from co3sop_nodes.model.mask_loss import mask_classification_loss
 from co3sop_nodes.model.occformer import class_scores, log_scores
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
-from co3sop_nodes.cli.common import progress, run
+from co3sop_nodes.cli.common import run
+from co3sop_nodes.common.progress import progress
 from co3sop_nodes.train.dataset import OccupancyDataset, early_fused
 from co3sop_nodes.train import distributed
 from co3sop_nodes.cli.device import add_device_argument

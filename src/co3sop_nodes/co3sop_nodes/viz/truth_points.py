@@ -13,12 +13,12 @@ from collections import deque
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.data.bags import occupancy_labels, typestore
-from co3sop_nodes.viz.cloud import CLOUD_FIELDS, occupancy_cloud
+from co3sop_nodes.messages import OCCUPANCY, RosbagsTypes, point_cloud_msg, stamp_ns
+from co3sop_nodes.messages.sensors import POINT_CLOUD
+from co3sop_nodes.viz.cloud import occupancy_cloud
 from co3sop_nodes.common.errors import DatasetError, exception_line
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 
-OCCUPANCY = "co3sop_msgs/msg/SemanticOccupancy"
-POINTS = "sensor_msgs/msg/PointCloud2"
 
 
 def truth_key(topic: str) -> tuple[int, str] | None:
@@ -32,6 +32,7 @@ def truth_key(topic: str) -> tuple[int, str] | None:
 class TruthPoints:
     def __init__(self, keep: int = 50):
         self._store = typestore()
+        self._types = RosbagsTypes(self._store)
         self._egos: set[tuple[int, str]] = set()
         self._waiting: dict[tuple[int, str], deque[bytes]] = {}
         self._keep = keep
@@ -67,8 +68,5 @@ class TruthPoints:
         msg = self._decode(raw, what)
         labels, grid = occupancy_labels(msg)
         cloud = occupancy_cloud(labels, grid)
-        t = self._store.types
-        fields = [t["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=d, count=1) for n, o, d in CLOUD_FIELDS]
-        points = t[POINTS](header=msg.header, height=1, width=len(cloud), fields=fields, is_bigendian=False,
-                           point_step=cloud.itemsize, row_step=cloud.itemsize * len(cloud), data=cloud.view("u1"), is_dense=True)
-        return bytes(self._store.serialize_cdr(points, POINTS))
+        points = point_cloud_msg(self._types, cloud, stamp_ns=stamp_ns(msg.header.stamp), frame_id=msg.header.frame_id)
+        return bytes(self._store.serialize_cdr(points, POINT_CLOUD))

@@ -1,0 +1,101 @@
+"""`demo`: the whole graph on a small scenario, scored: player + vehicles + ego + recorder, then `score`.
+
+    ros2 run co3sop_nodes demo [--bag BAG] [--model tiny-lidar|tiny|small|CKPT] [--out results/demo] [--rate R]
+
+Without --bag it generates one scenario with three CAVs (once; kept in
+data/demo and bags/demo). It starts a recorder, the ego, one vehicle per CAV
+(at most --vehicles) as separate processes, drives the ego and vehicles
+through their lifecycle as a lifecycle manager does (configure, then
+activate), waits until the ego subscribes to every vehicle and the recorder
+to the ego's outputs (graph events), plays the bag once at --rate
+(default: the rate this machine keeps up with, from the model's CPU time per
+frame measured before the nodes start, model.pace), waits until the ego has
+reported every frame fused on /diagnostics, stops everything with SIGINT,
+scores the MCAP (table printed, pictures beside it, and a Foxglove layout
+for the recording: prediction | ground truth in 3D, the ego's cameras) and checks the recording
+holds every /ego/occupancy message the ego published. Nothing is decided from
+the nodes' logs.
+
+With --channel-rate the graph runs over an emulated V2X channel (v2x/channel.py,
+root and nftables needed): the ego (with its own encoder and the recorder) and
+each neighbour in its own network namespace, their transmit limited to
+--channel-rate Mbit/s of real time (times --rate, so that the link keeps its
+real-time meaning at a slower playback) with --channel-loss percent of their
+packets dropped at random; the player and this launcher stay on the machine's
+side, unshaped. A neighbour's DDS runs over UDP only (config/fastdds_udp.xml);
+the ego's processes and the player share memory among themselves, as one car's
+computers and sensors would (config/fastdds_onboard.xml), and reach the
+neighbours over UDP.
+Namespaces are removed on exit, SIGINT and SIGTERM included.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from co3sop_nodes.cli.common import run
+from co3sop_nodes.inference import PRECISIONS
+from co3sop_nodes.ros.demo import DEMO_FRAMES, DemoOptions, run_demo
+from co3sop_nodes.ros.graph import DEFAULT_MODEL
+
+
+def _parameters(items: list[str], option: str, parser: argparse.ArgumentParser) -> dict[str, str]:
+    """NAME:=VALUE items, as `ros2 run ... -p` takes them."""
+    pairs = [item.partition(":=") for item in items]
+    bad = [item for item, (name, sep, _) in zip(items, pairs) if not (name and sep)]
+    if bad:
+        parser.error(f"{option} {bad[0]!r}: expected NAME:=VALUE")
+    return {name: value for name, _, value in pairs}
+
+
+def main(args: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bag", type=Path, help="a CAV bag to play (default: the generated demo scenario)")
+    parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
+    parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
+    parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=DEMO_FRAMES,
+        help="10 Hz frames of the generated demo scenario (the same "
+        "town and traffic, longer; generated once per length)",
+    )
+    parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
+    parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
+    parser.add_argument("--model", default=DEFAULT_MODEL,
+                        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera; small: the larger, GPU-trained camera model) or a path "
+                             f"(default: {DEFAULT_MODEL})")
+    parser.add_argument("--params", nargs="*", default=[],
+                        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
+    parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
+    parser.add_argument(
+        "--precision",
+        default="auto",
+        choices=PRECISIONS,
+        help="inference precision of every node (auto: what the "
+        "machine computes fast; float32 on CPUs without AMX or AVX-512 BF16)",
+    )
+    parser.add_argument("--device", default="cpu", help="where every node's model runs: cpu, cuda, cuda:N, auto")
+    parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
+    parser.add_argument("--channel-rate", type=float, metavar="MBIT",
+                        help="run over an emulated V2X channel: each CAV in its own network namespace, transmitting at most MBIT "
+                             "Mbit/s of real time (the link runs at MBIT x --rate); needs root, iproute2 and nftables")
+    parser.add_argument("--channel-loss", type=float, default=0.0, metavar="PERCENT",
+                        help="with --channel-rate: share of each CAV's packets dropped at random (default 0)")
+    opts = parser.parse_args(args)
+    if opts.channel_rate is None and opts.channel_loss:
+        parser.error("--channel-loss needs --channel-rate")
+    if opts.rate is not None and not opts.rate > 0:
+        parser.error(f"--rate {opts.rate}: must be above 0")
+    if opts.frames < 1:
+        parser.error(f"--frames {opts.frames}: at least 1")
+    if opts.vehicles < 1:
+        parser.error(f"--vehicles {opts.vehicles}: at least 1 (the ego's)")
+    params = _parameters(opts.params, "--params", parser)
+    ego_params = _parameters(opts.ego_params, "--ego-params", parser)
+    return run_demo(DemoOptions(**{**vars(opts), "params": params, "ego_params": ego_params}))
+
+
+entry = run(main)
