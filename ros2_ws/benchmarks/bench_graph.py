@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from ament_index_python.packages import get_package_prefix
 
-from co3sop_nodes.v2x.codec import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
+from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.eval.evaluate import plot_codecs
 from co3sop_nodes.ros.graph import DEFAULT_MODEL
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS

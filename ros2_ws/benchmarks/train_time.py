@@ -5,44 +5,28 @@
 A run resumed with `--resume` (after an interruption, or on another machine)
 starts its `seconds` column again, so each piece is timed on its own: its
 first and last step, its seconds (data loading included) and seconds per step.
-Needs only the standard library.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
-
-def pieces(log: Path) -> list[list[dict]]:
-    """The rows of a run's log.csv split where `seconds` starts again (a resume)."""
-    out: list[list[dict]] = []
-    with log.open(newline="") as f:
-        for row in csv.DictReader(f):
-            if not out or float(row["seconds"]) < float(out[-1][-1]["seconds"]):
-                out.append([])
-            out[-1].append(row)
-    return out
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.train.log import timing
 
 
-def describe(run: Path) -> str:
-    log = run / "log.csv"
-    try:
-        parts = pieces(log)
-    except (OSError, KeyError, ValueError) as exc:
-        raise SystemExit(f"train_time: {log}: not a log.csv of train ({exc})") from None
-    return f"{run}: " + "; ".join(
-        f"steps {p[0]['step']}-{p[-1]['step']} in {float(p[-1]['seconds']):.0f} s ({float(p[-1]['seconds']) / len(p):.3f} s/step)"
-        for p in parts)
-
-
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", type=Path, help="run folders (each with train's log.csv)")
-    for run in parser.parse_args().runs:
-        print(describe(run))
+    try:
+        for run in parser.parse_args().runs:
+            print(timing(run))
+    except Co3sopError as exc:
+        print(f"train_time: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
 
 
 if __name__ == "__main__":

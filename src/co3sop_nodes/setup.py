@@ -37,9 +37,9 @@ setup(
             f"convert = {PACKAGE}.cli.convert:entry",
             f"info = {PACKAGE}.cli.info:entry",
             f"voxelize = {PACKAGE}.cli.voxelize:entry",
-            f"train = {PACKAGE}.train.trainer:entry",
-            f"evaluate = {PACKAGE}.eval.evaluate:entry",
-            f"report = {PACKAGE}.eval.report:entry",
+            f"train = {PACKAGE}.cli.train:entry",
+            f"evaluate = {PACKAGE}.cli.evaluate:entry",
+            f"report = {PACKAGE}.cli.report:entry",
         ],
     },
 )

@@ -10,8 +10,19 @@ from pathlib import Path
 import pytest
 
 from co3sop_nodes.common.errors import Co3sopError
-from co3sop_nodes.eval.report import (PAPER_POSE_NOISE, across_ranges, collect, goals, levers_section, main, method, render,
-                                       table2_section, training, why_short)
+from co3sop_nodes.eval.report import (
+    PAPER_POSE_NOISE,
+    across_ranges,
+    collect,
+    goals,
+    levers_section,
+    method,
+    render,
+    table2_section,
+    training,
+    why_short,
+    write_report,
+)
 from co3sop_nodes.eval.metrics import point
 from co3sop_nodes.model.config import PRESETS
 
@@ -46,7 +57,7 @@ def test_a_damaged_evaluation_is_named_not_a_traceback(tmp_path, name, text, say
     results = tmp_path / "evaluation"
     shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", results / "tiny-lidar-76.8m-s1")
     page = tmp_path / "results.md"
-    assert main([str(results), "--out", str(page)]) == 0  # the shipped evidence makes a page
+    assert write_report(results, page) == 0  # the shipped evidence makes a page
     before = page.read_text()
     damaged = results / "tiny-lidar-76.8m-s1" / name
     if text is None:  # drop one field the page reads
@@ -58,7 +69,7 @@ def test_a_damaged_evaluation_is_named_not_a_traceback(tmp_path, name, text, say
         text = json.dumps(data)
     damaged.write_text(text)
     with pytest.raises(Co3sopError, match=re.escape(str(damaged))) as caught:
-        main([str(results), "--out", str(page)])
+        write_report(results, page)
     assert says in str(caught.value)
     assert page.read_text() == before  # the previous page is kept
 

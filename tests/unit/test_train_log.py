@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import csv
 
-from co3sop_nodes.train.trainer import keep_log_until
+from co3sop_nodes.train.log import keep_log_until
 
 
 def write_log(path, steps):

@@ -1,24 +1,8 @@
-"""`report`: the benchmark page (markdown) from `evaluate`'s JSON, so no figure is ever typed by hand.
-
-    ros2 run co3sop_nodes report src/co3sop_nodes/doc/evaluation --out src/co3sop_nodes/doc/results.md
-
-RESULTS holds one folder per trained run, named <preset>-<range>-s<seed> (as
-ros2_ws/run_protocol.sh writes them), each with the ablation JSON files of
-`evaluate` on the test split. The page gives, per preset and range: the
-commands that trained each seed, the collaboration gain of every seed with
-its 95 % paired bootstrap interval over test scenarios, the mean and spread
-over seeds, the input controls, and for the first seed the per-class table,
-the number of collaborators, pose noise and the gain by the nearest
-collaborator's distance; the number of collaborators and pose noise are also
-set out across the three ranges, as the paper's figure and table do. Choices
-made on `validate` (RESULTS/validate/<choice>/) close the page: fusion
-recipes by their collaboration gain, and single-agent checkpoints scored alone
-(one `evaluate` call with several --model), paired row by row.
-"""
+"""The benchmark page (markdown) from `evaluate`'s JSON, so no figure is ever typed by hand (the `report`
+command, co3sop_nodes.cli.report, explains its sections)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 from collections import Counter
@@ -27,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from co3sop_nodes.cli.common import run
 from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
@@ -548,19 +531,15 @@ def render(results: Path, command: str) -> str:
     return "\n".join(out)
 
 
-def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="report", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", type=Path, help="folder of <preset>-<range>-s<seed> evaluation folders")
-    parser.add_argument("--out", type=Path, required=True, help="markdown page to write")
-    opts = parser.parse_args(args)
-    if not opts.results.is_dir():
-        raise Co3sopError(f"{opts.results}: not a folder")
-    text = render(opts.results, f"report {opts.results} --out {opts.out}")
-    tmp = opts.out.with_name(f".{opts.out.name}.tmp")
+def write_report(results: Path, out: Path) -> int:
+    """The page for the evaluation folders under `results`, written atomically to `out`."""
+    if not results.is_dir():
+        raise Co3sopError(f"{results}: not a folder")
+    text = render(results, f"report {results} --out {out}")
+    tmp = out.with_name(f".{out.name}.tmp")
     tmp.write_text(text + "\n")
-    tmp.replace(opts.out)  # atomic: a failed run leaves the previous page
-    print(f"report: {opts.out}")
+    tmp.replace(out)  # atomic: a failed run leaves the previous page
+    print(f"report: {out}")
     return 0
 
 
-entry = run(main)

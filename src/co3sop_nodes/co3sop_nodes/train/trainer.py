@@ -1,33 +1,13 @@
-"""`train`: train Co3SOP-Base or a baseline on a generated (or converted) split.
-
-    ros2 run co3sop_nodes train --data data/ --preset tiny --stage ego --steps 1500 --out runs/tiny-ego
-    ros2 run co3sop_nodes train --data data/ --stage fusion --init runs/tiny-ego/model.pt --steps 800 --out runs/tiny
-
-Stages as in Co3SOP: `ego` trains the vehicle half and the head on single
-agents; `fusion` starts from an ego checkpoint, freezes the vehicle half and
-trains the fusion and the head with collaborators; `joint` trains everything
-at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
-(log.csv), loss plot (loss.png), resumable training state (state.pt, written
-atomically every --save-every steps; --resume continues it) and the exported
-model (model.pt, float16 weights + config + the command that made it).
-`--device` picks CPU (the default without a GPU) or a CUDA GPU. `--batch B`
-is the samples each process takes per step, as DistributedDataParallel users
-expect: under `torchrun --nproc-per-node N` the same command trains
-data-parallel on a global batch of N x B (printed at the start;
-DistributedDataParallel averages the gradients, only rank 0 writes), and
-gives the weights one process gets with `--batch` N x B.
-"""
+"""Training of Co3SOP-Base and the baselines: the ego, fusion and joint stages, data-parallel steps under
+torchrun, a resumable state and the exported model (the `train` command, co3sop_nodes.cli.train, explains each)."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import csv
 import math
 import os
 import random
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -36,17 +16,16 @@ import torch
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.inference.checkpoint import export_model, load_model, read_checkpoint, save_training_state
-from co3sop_nodes.model.config import PRESETS, preset
+from co3sop_nodes.model.config import preset
 from co3sop_nodes.inference.inputs import to_batch
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupancy_loss
 from co3sop_nodes.model.mask_loss import mask_classification_loss
 from co3sop_nodes.model.occformer import class_scores, log_scores
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
-from co3sop_nodes.cli.common import run
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.train.dataset import OccupancyDataset, early_fused
 from co3sop_nodes.train import distributed
-from co3sop_nodes.cli.device import add_device_argument
+from co3sop_nodes.train.log import keep_log_until, plot_losses
 
 
 def learning_rate(lr: float, schedule: str, step: int, steps: int) -> float:
@@ -180,74 +159,8 @@ class Trainer:
         return distributed.mean_over_world(self.world, logged, self.device)
 
 
-def keep_log_until(csv_path: Path, step: int) -> None:
-    """Drop the rows after `step` from a run's log: an interrupted run logged steps past its last saved state,
-    which its resume trains again (the log then shows each step once, as the weights saw it)."""
-    if not csv_path.is_file():
-        return
-    with open(csv_path, newline="") as f:
-        lines = f.read().splitlines(keepends=True)
-    kept = lines[:1] + [line for row, line in zip(csv.DictReader(lines), lines[1:]) if int(row["step"]) <= step]
-    if len(kept) < len(lines):
-        tmp = csv_path.with_name(f".{csv_path.name}.tmp")
-        tmp.write_text("".join(kept))
-        tmp.replace(csv_path)  # atomic: an interruption leaves the whole log
-
-
-def plot_losses(csv_path: Path, png_path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with open(csv_path) as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        return
-    steps = np.array([int(r["step"]) for r in rows])
-    loss = np.array([float(r["loss"]) for r in rows])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(steps, loss, lw=0.6, alpha=0.4, label="loss")
-    window = max(1, len(loss) // 30)
-    ax.plot(steps[window - 1 :], np.convolve(loss, np.ones(window) / window, mode="valid"), lw=2, label=f"mean of {window}")
-    for stage in sorted({r["stage"] for r in rows}):
-        first = next(int(r["step"]) for r in rows if r["stage"] == stage)
-        ax.axvline(first, color="grey", ls=":")
-        ax.text(first, ax.get_ylim()[1], f" {stage}", va="top", fontsize=8)
-    ax.set_xlabel("step")
-    ax.set_ylabel("total loss")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(png_path, dpi=110)
-    plt.close(fig)
-
-
-def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="train", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True, help="dataset root written by `generate` (or an OPV2V root)")
-    parser.add_argument("--splits", nargs="+", default=["train"], help="splits to train on")
-    parser.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="model preset (ignored with --init or --resume)")
-    parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
-    parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
-    parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
-    parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one global batch each)")
-    parser.add_argument(
-        "--batch",
-        type=int,
-        default=1,
-        help="samples per step in each process; under torchrun the global batch is this times the processes",
-    )
-    parser.add_argument("--lr", type=float, default=2e-3)
-    parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
-                        help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")
-    parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, help="CPU threads for torch (default 2; under torchrun the cores shared by its processes)")
-    add_device_argument(parser)
-    parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
-    parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")
-    parser.add_argument("--save-every", type=int, default=200)
-    opts = parser.parse_args(args)
+def train(opts, command: str) -> int:
+    """Trains as `opts` (train's options) says, data-parallel under torchrun; `command` is recorded with the weights."""
     world = distributed.world_from_env()
     for option, value, ok, needs in (("--steps", opts.steps, opts.steps >= 1, "at least 1"),
                                      ("--batch", opts.batch, opts.batch >= 1, "at least 1"),
@@ -264,14 +177,14 @@ def main(args: list[str] | None = None) -> int:
         raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
     distributed.start(world, device)
     try:
-        code = _train(opts, args, world, device)
+        code = _train(opts, command, world, device)
         distributed.finish(world)
         return code
     finally:
         distributed.stop(world)
 
 
-def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.World, device: torch.device) -> int:
+def _train(opts, command: str, world: distributed.World, device: torch.device) -> int:
     say = print if world.main else (lambda *a, **k: None)
 
     start, state = 0, None
@@ -298,7 +211,6 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
     if world.main:
         opts.out.mkdir(parents=True, exist_ok=True)
     # how the weights were made: the commands before this one (the run's own when resumed, else the --init's), then this
-    command = "train " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if args is None else args))
     history = previous_history(opts.out, state, opts.init) + [
         {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
          "splits": opts.splits, "batch": batch, "processes": world.size}]
@@ -345,4 +257,3 @@ def _train(opts: argparse.Namespace, args: list[str] | None, world: distributed.
     return 0
 
 
-entry = run(main)
