@@ -5,13 +5,21 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig
 from co3sop_nodes.model.head import OccupancyHead
-from co3sop_nodes.inference.outputs import labels_from_logits
 
 # a model small enough to train for a few steps or time a frame in seconds on CPU, of any preset's structure
-MICRO = dict(custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)), image_size=(64, 48), backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=16,
-             embed_dims=16, image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(16, 8, 8))
+MICRO = dict(
+    custom_grid=((-12.8, -12.8, -2.4), 0.4, (64, 64, 12)),
+    image_size=(64, 48),
+    backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8),
+    fpn_channels=16,
+    embed_dims=16,
+    image_attention=AttentionConfig(1, 2, 2),
+    fusion_attention=AttentionConfig(1, 2, 2),
+    head_channels=(16, 8, 8),
+)
 
 
 def assert_labels_equal(labels: np.ndarray, want: np.ndarray, head: OccupancyHead, x: torch.Tensor) -> None:
@@ -23,10 +31,14 @@ def assert_labels_equal(labels: np.ndarray, want: np.ndarray, head: OccupancyHea
     assert len(bad) <= max(1, want.size // 100_000), f"{len(bad)} of {want.size} labels differ"
     flat = torch.from_numpy(bad // want[0].size), torch.from_numpy(bad % want[0].size)
     with torch.no_grad():  # the exact logits of the differing voxels, in float64
-        logits = torch.stack([head.double().forward_at(x[i : i + 1].double(), v.reshape(1, 1))[-1][0, :, 0] for i, v in zip(*flat)])
+        logits = torch.stack(
+            [head.double().forward_at(x[i : i + 1].double(), v.reshape(1, 1))[-1][0, :, 0] for i, v in zip(*flat)]
+        )
     head.float()
     top2 = logits.topk(2, dim=1).values  # (N, 2)
-    assert ((top2[:, 0] - top2[:, 1]) <= 1e-5 * top2[:, 0].abs().clamp(min=1)).all(), f"labels differ at {bad} beyond a float32 tie"
+    assert ((top2[:, 0] - top2[:, 1]) <= 1e-5 * top2[:, 0].abs().clamp(min=1)).all(), (
+        f"labels differ at {bad} beyond a float32 tie"
+    )
 
 
 def reference(head: OccupancyHead, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -35,17 +35,47 @@ from co3sop_nodes.ros.graph import DEFAULT_MODEL
 CODECS = {  # the neighbours' vehicle parameters
     "int8 dense": ["codec.dtype:=int8", "codec.selection:=dense"],
     "request map, 64 KB": ["codec.dtype:=int8", "codec.selection:=request", "codec.max_bytes:=65536"],
-    "request map, 64 KB, rank 8": ["codec.dtype:=int8", "codec.selection:=request", "codec.max_bytes:=65536", "codec.rank:=8"],
-    "request map, 64 KB with 256 KB bursts, rank 8, int4": ["codec.dtype:=int4", "codec.selection:=request", "codec.max_bytes:=65536",
-                                                            "codec.burst_bytes:=262144", "codec.rank:=8"],
+    "request map, 64 KB, rank 8": [
+        "codec.dtype:=int8",
+        "codec.selection:=request",
+        "codec.max_bytes:=65536",
+        "codec.rank:=8",
+    ],
+    "request map, 64 KB with 256 KB bursts, rank 8, int4": [
+        "codec.dtype:=int4",
+        "codec.selection:=request",
+        "codec.max_bytes:=65536",
+        "codec.burst_bytes:=262144",
+        "codec.rank:=8",
+    ],
 }
 
 
 def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str, run: int = 0) -> dict:
-    out = opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}{f'-run{run}' if run else ''}"
+    out = (
+        opts.out
+        / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}{f'-run{run}' if run else ''}"
+    )
     qos = f"features_reliability:={reliability}"
-    argv = [demo, "--out", str(out), "--quiet", "--model", opts.model, "--rate", f"{opts.play_rate:g}", "--channel-rate", f"{link:g}",
-            "--channel-loss", f"{loss:g}", "--params", *CODECS[codec], qos, "--ego-params", qos] + (["--bag", str(opts.bag)] if opts.bag else [])
+    argv = [
+        demo,
+        "--out",
+        str(out),
+        "--quiet",
+        "--model",
+        opts.model,
+        "--rate",
+        f"{opts.play_rate:g}",
+        "--channel-rate",
+        f"{link:g}",
+        "--channel-loss",
+        f"{loss:g}",
+        "--params",
+        *CODECS[codec],
+        qos,
+        "--ego-params",
+        qos,
+    ] + (["--bag", str(opts.bag)] if opts.bag else [])
     print(f"[bench_channel] {link:g} Mbit/s, {loss:g} % loss, {codec}, {reliability}", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
     if done.returncode != 0:
@@ -58,10 +88,20 @@ def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str
     measured = measure_diagnostics(diagnostics)
     score = json.loads((out / "score.json").read_text())
     lost = re.search(r"packets dropped by the channel: (.*)", done.stdout)
-    return {"link": link, "loss": loss, "codec": codec, "reliability": reliability, "fused": fused, "bytes": measured["bytes_per_agent_frame"],
-            "latency_p50": measured["latency_ms_p50"], "latency_p95": measured["latency_ms_p95"],
-            "miou24": score["co3sop-readme"]["miou"], "miou23": score["co3sop-code"]["miou"],
-            "lost": lost.group(1) if lost else "-", "frames": len(ego)}
+    return {
+        "link": link,
+        "loss": loss,
+        "codec": codec,
+        "reliability": reliability,
+        "fused": fused,
+        "bytes": measured["bytes_per_agent_frame"],
+        "latency_p50": measured["latency_ms_p50"],
+        "latency_p95": measured["latency_ms_p95"],
+        "miou24": score["co3sop-readme"]["miou"],
+        "miou23": score["co3sop-code"]["miou"],
+        "lost": lost.group(1) if lost else "-",
+        "frames": len(ego),
+    }
 
 
 def main() -> int:
@@ -70,32 +110,46 @@ def main() -> int:
     parser.add_argument("--link", type=float, nargs="+", default=[6, 27, 100], help="link rates, Mbit/s of real time")
     parser.add_argument("--loss", type=float, nargs="+", default=[0, 5], help="packet loss, percent")
     parser.add_argument("--codecs", nargs="+", default=list(CODECS), choices=list(CODECS))
-    parser.add_argument("--reliability", nargs="+", default=list(RELIABILITIES), choices=list(RELIABILITIES),
-                        help="the features' QoS")
+    parser.add_argument(
+        "--reliability", nargs="+", default=list(RELIABILITIES), choices=list(RELIABILITIES), help="the features' QoS"
+    )
     parser.add_argument("--play-rate", type=float, default=0.25, help="the bag's play rate (the link is scaled by it)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each cell (a row each, then their median)")
     parser.add_argument("--out", type=Path, default=Path("results/bench_channel"))
-    parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)")
+    parser.add_argument(
+        "--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)"
+    )
     opts = parser.parse_args()
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
-    rows = [f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); 3 vehicles + ego.", "",
-            "| link (Mbit/s, real time) | loss (%) | neighbours' codec | features QoS | neighbour-frames fused (%) | bytes per neighbour-frame | "
-            "latency p50 / p95 (ms) | mIoU 24 classes | mIoU 1..23 | packets lost by the channel |",
-            "|---:|---:|---|---|---:|---:|---:|---:|---:|---|"]
+    rows = [
+        f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); 3 vehicles + ego.",
+        "",
+        "| link (Mbit/s, real time) | loss (%) | neighbours' codec | features QoS | neighbour-frames fused (%) | bytes per neighbour-frame | "
+        "latency p50 / p95 (ms) | mIoU 24 classes | mIoU 1..23 | packets lost by the channel |",
+        "|---:|---:|---|---|---:|---:|---:|---:|---:|---|",
+    ]
     results = []
     for link in opts.link:
         for loss in opts.loss:
             for codec in opts.codecs:
                 for reliability in opts.reliability:
-                    runs = [cell(demo, opts, link, loss, codec, reliability, run) for run in (range(1, opts.repeats + 1) if opts.repeats > 1 else [0])]
+                    runs = [
+                        cell(demo, opts, link, loss, codec, reliability, run)
+                        for run in (range(1, opts.repeats + 1) if opts.repeats > 1 else [0])
+                    ]
                     results.extend(runs)
                     labelled = [(f"{codec} (run {i})" if opts.repeats > 1 else codec, r) for i, r in enumerate(runs, 1)]
                     if opts.repeats > 1:
-                        median = {k: float(np.median([r[k] for r in runs])) for k in ("fused", "bytes", "latency_p50", "latency_p95", "miou24", "miou23")}
+                        median = {
+                            k: float(np.median([r[k] for r in runs]))
+                            for k in ("fused", "bytes", "latency_p50", "latency_p95", "miou24", "miou23")
+                        }
                         labelled.append((f"{codec} (median of {opts.repeats})", {**median, "lost": "-"}))
-                    rows += [f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
-                             f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |"
-                             for label, r in labelled]
+                    rows += [
+                        f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
+                        f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |"
+                        for label, r in labelled
+                    ]
     text = "\n".join(rows)
     print(text)
     opts.out.mkdir(parents=True, exist_ok=True)

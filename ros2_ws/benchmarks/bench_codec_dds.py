@@ -25,12 +25,18 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-
-from co3sop_nodes.data import synthetic
-from co3sop_nodes.common.classes import NUM_CLASSES
-from co3sop_nodes.v2x.codec import STANDARD_FEATURE_SETTINGS, decode_features, decode_labels, encode_features, encode_labels
-from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from timing import timed
+
+from co3sop_nodes.common.classes import NUM_CLASSES
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.data import synthetic
+from co3sop_nodes.v2x.codec import (
+    STANDARD_FEATURE_SETTINGS,
+    decode_features,
+    decode_labels,
+    encode_features,
+    encode_labels,
+)
 
 HERE = Path(__file__).resolve().parent
 FEATURE_GRID = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))
@@ -104,7 +110,9 @@ def dds_table(count: int) -> str:
         for profile in ("default", "shipped"):
             lat = dds_latency(size, count, profile)
             stats[profile] = (np.percentile(lat, 50), np.percentile(lat, 95), len(lat))
-            print(f"  {label} {profile}: p50 {stats[profile][0]:.2f} ms p95 {stats[profile][1]:.2f} ms", file=sys.stderr)
+            print(
+                f"  {label} {profile}: p50 {stats[profile][0]:.2f} ms p95 {stats[profile][1]:.2f} ms", file=sys.stderr
+            )
         d, s = stats["default"], stats["shipped"]
         rows.append(
             f"| {label} | {d[0]:.2f} | {d[1]:.2f} | {s[0]:.2f} | {s[1]:.2f} | {d[0] / s[0]:.1f}x | {d[1] / s[1]:.1f}x | {d[2]}/{s[2]} |"
@@ -119,9 +127,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="also write the tables to this markdown file")
     opts = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
-    text = "\n\n".join(
-        ["### Codecs", codec_tables(opts.repeats), "### DDS one-way latency", dds_table(opts.messages)]
-    )
+    text = "\n\n".join(["### Codecs", codec_tables(opts.repeats), "### DDS one-way latency", dds_table(opts.messages)])
     print(text)
     if opts.out:
         opts.out.write_text(text + "\n")

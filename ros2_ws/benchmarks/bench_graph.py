@@ -40,22 +40,42 @@ from ament_index_python.packages import get_package_prefix
 
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.eval.evaluate import plot_codecs
+from co3sop_nodes.eval.scoring import read_recording
 from co3sop_nodes.ros.graph import DEFAULT_MODEL
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
-from co3sop_nodes.eval.scoring import read_recording
 
 # The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps
 # (the ego's previous frame's) at several budgets, among those `evaluate --ablation codec` compares offline
 OFFLINE = {cfg.name: cfg for cfg in (*STANDARD_FEATURE_SETTINGS, *BUDGET_FEATURE_SETTINGS, *RANK_FEATURE_SETTINGS)}
-CODECS = [OFFLINE[name] for name in (
-    "float32-dense-none", "float16-dense-zstd", "int8-dense-zstd", "int8-topk4096-zstd", "int8-topk1024-zstd", "int8-topk64KB-zstd",
-    "int8-request64KB-zstd", "int4-request64KB-burst256KB-pca8-zstd", "int4-request32KB-pca8-zstd", "int4-request16KB-pca8-zstd")]
+CODECS = [
+    OFFLINE[name]
+    for name in (
+        "float32-dense-none",
+        "float16-dense-zstd",
+        "int8-dense-zstd",
+        "int8-topk4096-zstd",
+        "int8-topk1024-zstd",
+        "int8-topk64KB-zstd",
+        "int8-request64KB-zstd",
+        "int4-request64KB-burst256KB-pca8-zstd",
+        "int4-request32KB-pca8-zstd",
+        "int4-request16KB-pca8-zstd",
+    )
+]
 ALONE = "ego-alone-no-v2x"  # what collaboration adds: only the ego's own vehicle runs
-SETTINGS = {**{cfg.name: ["--params", *(f"{param}:={getattr(cfg, field)}" for param, field in CODEC_FIELDS.items())] for cfg in CODECS},
-            ALONE: ["--vehicles", "1"]}  # name -> `demo` arguments (--params: the neighbours' vehicle parameters)
+SETTINGS = {
+    **{
+        cfg.name: ["--params", *(f"{param}:={getattr(cfg, field)}" for param, field in CODEC_FIELDS.items())]
+        for cfg in CODECS
+    },
+    ALONE: ["--vehicles", "1"],
+}  # name -> `demo` arguments (--params: the neighbours' vehicle parameters)
 # the ego's fast paths against its reference paths (PyTorch warp and sampling, dense head, reference cloud), same codec,
 # same slow rate: stage ratios
-PATHS = {"ego-fast-paths": ["--rate", "0.04"], "ego-reference-paths": ["--rate", "0.04", "--ego-params", "reference_paths:=true"]}
+PATHS = {
+    "ego-fast-paths": ["--rate", "0.04"],
+    "ego-reference-paths": ["--rate", "0.04", "--ego-params", "reference_paths:=true"],
+}
 CPU_SETTING = "int8-topk1024-zstd"  # per-node CPU is reported for the setting that meets the size goal
 
 
@@ -71,28 +91,49 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]]) -> dict:
     """Bytes, latency, transport share, CPU and stage times from the nodes' /diagnostics (status name -> reports)."""
     ego = diagnostics["ego"]
     own = diagnostics.get(f"vehicle cav_{ego[-1]['received_wall_ns'].split(':')[0]}", [{}]) if ego else [{}]
-    vehicles = {int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds} for name, ds in diagnostics.items() if name.startswith("vehicle")}
+    vehicles = {
+        int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds}
+        for name, ds in diagnostics.items()
+        if name.startswith("vehicle")
+    }
     sizes, latency, dds_share = [], [], []
     for d in ego:
         stamp = int(d["stamp"])
-        sizes += list(pairs(d["bytes_per_agent"]).values())[1:]  # V2X only: the first is the ego's own, sent losslessly on board
+        sizes += list(pairs(d["bytes_per_agent"]).values())[
+            1:
+        ]  # V2X only: the first is the ego's own, sent losslessly on board
         marks = {a: v[stamp] for a, v in vehicles.items() if stamp in v}
         first_input = min(int(m["first_input_wall_ns"]) for m in marks.values())
         total = int(d["published_wall_ns"]) - first_input
         latency.append(total / 1e6)
-        transport = [r - int(marks[a]["published_wall_ns"]) for a, r in pairs(d["received_wall_ns"]).items() if a in marks]
+        transport = [
+            r - int(marks[a]["published_wall_ns"]) for a, r in pairs(d["received_wall_ns"]).items() if a in marks
+        ]
         if transport:  # none where the only features received are from a vehicle whose report of that frame was lost
             dds_share.append(max(transport) / total)
     cpu = {"ego": np.median([float(d["cpu_ms"]) for d in ego])}
-    cpu.update({f"vehicle {a}": np.median([float(d["cpu_ms"]) for d in v.values()]) for a, v in sorted(vehicles.items())})
-    stages = {k: float(np.median([float(d[k]) for d in ego])) for k in ("decode_ms", "fuse_ms", "head_ms", "publish_ms")}
-    return {"bytes_per_agent_frame": float(np.mean(sizes)) if sizes else 0.0, "latency_ms_p50": float(np.percentile(latency, 50)),
-            "latency_ms_p95": float(np.percentile(latency, 95)), "dds_share_p50": float(np.median(dds_share)) if dds_share else float("nan"),
-            "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()}, "ego_stage_ms": stages, "frames": len(ego),
-            "skipped_ego": int(ego[-1].get("skipped", 0)), "skipped_encoder": int(own[-1].get("skipped", 0))}
+    cpu.update(
+        {f"vehicle {a}": np.median([float(d["cpu_ms"]) for d in v.values()]) for a, v in sorted(vehicles.items())}
+    )
+    stages = {
+        k: float(np.median([float(d[k]) for d in ego])) for k in ("decode_ms", "fuse_ms", "head_ms", "publish_ms")
+    }
+    return {
+        "bytes_per_agent_frame": float(np.mean(sizes)) if sizes else 0.0,
+        "latency_ms_p50": float(np.percentile(latency, 50)),
+        "latency_ms_p95": float(np.percentile(latency, 95)),
+        "dds_share_p50": float(np.median(dds_share)) if dds_share else float("nan"),
+        "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()},
+        "ego_stage_ms": stages,
+        "frames": len(ego),
+        "skipped_ego": int(ego[-1].get("skipped", 0)),
+        "skipped_encoder": int(own[-1].get("skipped", 0)),
+    }
 
 
-def run_demo(demo: Path, opts, name: str, args: list[str], complete: bool = True) -> tuple[subprocess.CompletedProcess, Path]:
+def run_demo(
+    demo: Path, opts, name: str, args: list[str], complete: bool = True
+) -> tuple[subprocess.CompletedProcess, Path]:
     """The demo graph with `args` into opts.out/name; its completed process and output folder. complete: the demo must
     succeed (every frame fused and recorded); else a recording is enough (a rate sweep counts what was fused)."""
     out = opts.out / name
@@ -129,7 +170,11 @@ def sweep(demo: Path, opts) -> int:
             f"{', '.join(f'{v:.0f}' for v in cpu.values())} |"
         )
     print("\n".join(rows))
-    print(f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}" if kept_up else "\nNo rate kept up with every frame.")
+    print(
+        f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}"
+        if kept_up
+        else "\nNo rate kept up with every frame."
+    )
     return 0
 
 
@@ -139,8 +184,10 @@ def paths(demo: Path, opts) -> int:
     ref, fast = results["ego-reference-paths"], results["ego-fast-paths"]
     rows = ["| ego (ms per frame, p50) | reference paths | fast paths | reference / fast |", "|---|---:|---:|---:|"]
     pairs_ = [(k.removesuffix("_ms"), ref["ego_stage_ms"][k], fast["ego_stage_ms"][k]) for k in ref["ego_stage_ms"]]
-    pairs_ += [("CPU", ref["cpu_ms_per_frame"]["ego"], fast["cpu_ms_per_frame"]["ego"]),
-               ("latency (first sensor message -> /ego/occupancy)", ref["latency_ms_p50"], fast["latency_ms_p50"])]
+    pairs_ += [
+        ("CPU", ref["cpu_ms_per_frame"]["ego"], fast["cpu_ms_per_frame"]["ego"]),
+        ("latency (first sensor message -> /ego/occupancy)", ref["latency_ms_p50"], fast["latency_ms_p50"]),
+    ]
     rows += [f"| {k} | {a:.1f} | {b:.1f} | {a / b:.1f}x |" for k, a, b in pairs_]
     print("\n".join(rows))
     opts.out.mkdir(parents=True, exist_ok=True)
@@ -156,10 +203,16 @@ def main() -> int:
         "--precision", default="auto", help="every node's inference precision, as `demo --precision` takes it"
     )
     parser.add_argument("--out", type=Path, default=Path("results/bench_graph"))
-    parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)")
+    parser.add_argument(
+        "--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)"
+    )
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
-    parser.add_argument("--rates", nargs="*", type=float, help="sweep these playback rates (default codec) instead of the settings")
-    parser.add_argument("--paths", action="store_true", help="the ego's reference paths against its fast paths instead of the settings")
+    parser.add_argument(
+        "--rates", nargs="*", type=float, help="sweep these playback rates (default codec) instead of the settings"
+    )
+    parser.add_argument(
+        "--paths", action="store_true", help="the ego's reference paths against its fast paths instead of the settings"
+    )
     opts = parser.parse_args()
     demo = Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo")
     if opts.rates:
@@ -170,7 +223,11 @@ def main() -> int:
     for name in opts.settings:
         out = run_demo(demo, opts, name, SETTINGS[name])[1]
         score = json.loads((out / "score.json").read_text())
-        results[name] = {**measure(out / "demo.mcap"), "miou": score["co3sop-readme"]["miou"], "miou_code": score["co3sop-code"]["miou"]}
+        results[name] = {
+            **measure(out / "demo.mcap"),
+            "miou": score["co3sop-readme"]["miou"],
+            "miou_code": score["co3sop-code"]["miou"],
+        }
     ref = results[opts.settings[0]]
     alone = results.get(ALONE)
     # gain kept: (codec - alone) / (lossless - alone) in mIoU 1..23, as `evaluate --ablation codec` computes it, on this
@@ -178,24 +235,43 @@ def main() -> int:
     gain = ref["miou_code"] - alone["miou_code"] if alone else float("nan")
     for r in results.values():
         r["gain_kept"] = (r["miou_code"] - alone["miou_code"]) / gain if alone and gain > 0 else float("nan")
-    print(f"\n| V2X feature codec (neighbours) | bytes per neighbour-frame | vs {opts.settings[0]} | mIoU co3sop-readme | change (points) | "
-          "mIoU co3sop-code | gain kept (%) | latency p50 / p95 (ms) | DDS share p50 |")
+    print(
+        f"\n| V2X feature codec (neighbours) | bytes per neighbour-frame | vs {opts.settings[0]} | mIoU co3sop-readme | change (points) | "
+        "mIoU co3sop-code | gain kept (%) | latency p50 / p95 (ms) | DDS share p50 |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, r in results.items():
-        print(f"| {name} | {r['bytes_per_agent_frame']:,.0f} | {r['bytes_per_agent_frame'] / ref['bytes_per_agent_frame'] if ref['bytes_per_agent_frame'] else 0:.3f} | "
-              f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {100 * r['miou_code']:.2f} | {100 * r['gain_kept']:.0f} | "
-              f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {100 * r['dds_share_p50']:.1f} % |")
+        print(
+            f"| {name} | {r['bytes_per_agent_frame']:,.0f} | {r['bytes_per_agent_frame'] / ref['bytes_per_agent_frame'] if ref['bytes_per_agent_frame'] else 0:.3f} | "
+            f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {100 * r['miou_code']:.2f} | {100 * r['gain_kept']:.0f} | "
+            f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {100 * r['dds_share_p50']:.1f} % |"
+        )
     opts.out.mkdir(parents=True, exist_ok=True)
     if alone and gain > 0:
-        curve = {name: {"bytes": r["bytes_per_agent_frame"], "gain_kept": {"ratio": r["gain_kept"], "ci95": (r["gain_kept"], r["gain_kept"])}}
-                 for name, r in results.items() if name != ALONE}
-        plot_codecs(opts.out / "bench_graph_codecs.png", curve, "the node graph on the demo scene: gain kept per neighbours' codec "
-                    "(one scene, no interval)")
+        curve = {
+            name: {
+                "bytes": r["bytes_per_agent_frame"],
+                "gain_kept": {"ratio": r["gain_kept"], "ci95": (r["gain_kept"], r["gain_kept"])},
+            }
+            for name, r in results.items()
+            if name != ALONE
+        }
+        plot_codecs(
+            opts.out / "bench_graph_codecs.png",
+            curve,
+            "the node graph on the demo scene: gain kept per neighbours' codec (one scene, no interval)",
+        )
         print(f"\nThe curve: {opts.out / 'bench_graph_codecs.png'}")
     cpu_setting = CPU_SETTING if CPU_SETTING in results else opts.settings[-1]
     r = results[cpu_setting]
-    print(f"\nCPU time per frame (ms, median) with {cpu_setting}: " + ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_ms_per_frame"].items()))
-    print("ego stages (ms, median): " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f}" for k, v in r["ego_stage_ms"].items()))
+    print(
+        f"\nCPU time per frame (ms, median) with {cpu_setting}: "
+        + ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_ms_per_frame"].items())
+    )
+    print(
+        "ego stages (ms, median): "
+        + ", ".join(f"{k.removesuffix('_ms')} {v:.0f}" for k, v in r["ego_stage_ms"].items())
+    )
     (opts.out / "bench_graph.json").write_text(json.dumps(results, indent=2) + "\n")
     return 0
 

@@ -25,18 +25,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from timing import timed
 from torch.utils.flop_counter import FlopCounterMode
 
-from co3sop_nodes.inference import PRECISIONS, InferencePath, cpu_bfloat16_unit
 from co3sop_nodes.cli.device import add_device_argument, select_device
-from co3sop_nodes.inference import pace
+from co3sop_nodes.inference import PRECISIONS, InferencePath, cpu_bfloat16_unit, pace
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
-from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
-from timing import timed
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model
+from co3sop_nodes.model.config import preset
 
 
 def on(device: torch.device):
@@ -49,15 +48,19 @@ def on(device: torch.device):
             result = fn()
             torch.cuda.synchronize(device)
             return result
+
         call()  # warm-up: cuDNN's algorithm choice, the caching allocator
         return timed(call, repeats)
+
     return timed_synchronised
 
 
 @torch.no_grad()
 def stage_table(name: str, repeats: int, device: torch.device) -> str:
-    rows = ["| range | feature grid | vehicle half s/agent | warp s/neighbour | fusion s | head s | total s (ego + 2 collaborators) |",
-            "|---|---|---:|---:|---:|---:|---:|"]
+    rows = [
+        "| range | feature grid | vehicle half s/agent | warp s/neighbour | fusion s | head s | total s (ego + 2 collaborators) |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
         model = build_model(cfg).eval().to(device)
@@ -70,13 +73,17 @@ def stage_table(name: str, repeats: int, device: torch.device) -> str:
         rel = rel.to(device)
         both = torch.cat([others[0].features, others[0].confidence], 1)
         if device.type == "cpu":
-            t_warp, _ = timed(lambda: warp_compiled(both, rel[:, 0], cfg.feature_grid, torch.get_num_threads()), repeats)
+            t_warp, _ = timed(
+                lambda: warp_compiled(both, rel[:, 0], cfg.feature_grid, torch.get_num_threads()), repeats
+            )
         else:
             t_warp, _ = timed_on(lambda: warp_with_mask(both, rel[:, 0], cfg.feature_grid), repeats)
         t_fuse, fused = timed_on(lambda: model.ego.fuse(ego, others, rel), repeats)
         t_head, _ = timed_on(lambda: model.ego.head.labels(fused), repeats)
         total = 3 * t_vehicle + 2 * t_warp + t_fuse + t_head
-        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.feature_grid.dims))} | {t_vehicle:.3f} | {t_warp:.4f} | {t_fuse:.3f} | {t_head:.3f} | {total:.2f} |")
+        rows.append(
+            f"| {range_name} | {'x'.join(map(str, cfg.feature_grid.dims))} | {t_vehicle:.3f} | {t_warp:.4f} | {t_fuse:.3f} | {t_head:.3f} | {total:.2f} |"
+        )
         print(f"  {range_name}: vehicle {t_vehicle:.3f} s, fusion {t_fuse:.3f} s, head {t_head:.3f} s", flush=True)
     return "\n".join(rows)
 
@@ -87,8 +94,11 @@ def head_table(name: str, repeats: int, device: torch.device) -> str:
     CPU), same run."""
     if device.type == "cuda":
         return gpu_head_table(name, repeats, device)
-    rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | PyTorch loop s | compiled s | reference / compiled "
-            "| loop / compiled | labels differing (loop, compiled) |", "|---|---|---:|---:|---:|---:|---:|---|"]
+    rows = [
+        "| range | label grid | reference s (dense logits, softmax, argmax) | PyTorch loop s | compiled s | reference / compiled "
+        "| loop / compiled | labels differing (loop, compiled) |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
+    ]
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
         head = build_model(cfg).ego.head.eval()
@@ -97,8 +107,10 @@ def head_table(name: str, repeats: int, device: torch.device) -> str:
         t_loop, (loop, _) = timed(lambda: head.labels(fused, compiled=False), repeats)
         t_fast, (fast, _) = timed(lambda: head.labels(fused, compiled=True), repeats)
         differ = [int((t[0].numpy() != ref_labels).sum()) for t in (loop, fast)]
-        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_loop:.3f} | {t_fast:.3f} | {t_ref / t_fast:.1f}x "
-                    f"| {t_loop / t_fast:.1f}x | {differ[0]}, {differ[1]} of {ref_labels.size:,} |")
+        rows.append(
+            f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_loop:.3f} | {t_fast:.3f} | {t_ref / t_fast:.1f}x "
+            f"| {t_loop / t_fast:.1f}x | {differ[0]}, {differ[1]} of {ref_labels.size:,} |"
+        )
         print(f"  head {range_name}: reference {t_ref:.3f} s, loop {t_loop:.3f} s, compiled {t_fast:.3f} s", flush=True)
     return "\n".join(rows)
 
@@ -107,22 +119,34 @@ def frame_table(repeats: int) -> str:
     """Each shipped model's work per frame on one thread, as the nodes do it, at each range's grid (untrained beyond
     51.2 m: timing depends on shapes only), on the PyTorch paths and with the compiled kernels, same run; and the
     playback rate 2 cores keep up with for 3 vehicles + ego."""
-    rows = ["| model | range | vehicle ms (model + codec): PyTorch / compiled | ratio | ego ms (2 neighbours, labels, encoding, cloud): "
-            "PyTorch / compiled | ratio | rate kept up with (3 vehicles, 2 cores): PyTorch / compiled |", "|---|---|---:|---:|---:|---:|---:|"]
+    rows = [
+        "| model | range | vehicle ms (model + codec): PyTorch / compiled | ratio | ego ms (2 neighbours, labels, encoding, cloud): "
+        "PyTorch / compiled | ratio | rate kept up with (3 vehicles, 2 cores): PyTorch / compiled |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
     for name in ("tiny-lidar", "tiny"):
         trained, _ = load_model(shipped_checkpoint(f"{name}.pt"))
         for range_name in ("25.6m", "51.2m", "76.8m"):
-            model = trained if range_name == trained.cfg.range else build_model(replace(trained.cfg, range=range_name)).eval()
+            model = (
+                trained
+                if range_name == trained.cfg.range
+                else build_model(replace(trained.cfg, range=range_name)).eval()
+            )
             costs = []
             for compiled in (False, True):
                 model.use(InferencePath(compiled=compiled))
                 costs.append(pace.frame_cost(model, repeats))
             ref, fast = costs
             rates = [pace.sustainable_rate(c, 3, 0.1, 2) for c in costs]
-            rows.append(f"| {name} | {range_name} | {1e3 * ref.vehicle_s:.0f} / {1e3 * fast.vehicle_s:.0f} | {ref.vehicle_s / fast.vehicle_s:.1f}x | "
-                        f"{1e3 * ref.ego_s:.0f} / {1e3 * fast.ego_s:.0f} | {ref.ego_s / fast.ego_s:.1f}x | {rates[0]:.2f} / {rates[1]:.2f} |")
-            print(f"  frame {name} {range_name}: vehicle {1e3 * ref.vehicle_s:.0f} -> {1e3 * fast.vehicle_s:.0f} ms, "
-                  f"ego {1e3 * ref.ego_s:.0f} -> {1e3 * fast.ego_s:.0f} ms", flush=True)
+            rows.append(
+                f"| {name} | {range_name} | {1e3 * ref.vehicle_s:.0f} / {1e3 * fast.vehicle_s:.0f} | {ref.vehicle_s / fast.vehicle_s:.1f}x | "
+                f"{1e3 * ref.ego_s:.0f} / {1e3 * fast.ego_s:.0f} | {ref.ego_s / fast.ego_s:.1f}x | {rates[0]:.2f} / {rates[1]:.2f} |"
+            )
+            print(
+                f"  frame {name} {range_name}: vehicle {1e3 * ref.vehicle_s:.0f} -> {1e3 * fast.vehicle_s:.0f} ms, "
+                f"ego {1e3 * ref.ego_s:.0f} -> {1e3 * fast.ego_s:.0f} ms",
+                flush=True,
+            )
     return "\n".join(rows)
 
 
@@ -196,10 +220,10 @@ def peak_table(repeats: int) -> tuple[str, float]:
                 xin = x.to(dtype).contiguous(
                     memory_format=torch.channels_last_3d if dtype == torch.bfloat16 else torch.contiguous_format
                 )
-                call = lambda layer=layer, xin=xin: layer(xin)  # noqa: E731
+                call = lambda layer=layer, xin=xin: layer(xin)
             else:
                 targs = tuple(t.to(dtype) for t in args)
-                call = lambda targs=targs: fn(targs)  # noqa: E731
+                call = lambda targs=targs: fn(targs)
             call()
             t, _ = timed(call, repeats)
             rates.append(flops / t / 1e9)
@@ -256,17 +280,23 @@ def roofline_table(repeats: int, peak: float) -> str:
 @torch.no_grad()
 def gpu_head_table(name: str, repeats: int, device: torch.device) -> str:
     """The dense reference against the per-parent PyTorch loop, both on the GPU, same run."""
-    rows = ["| range | label grid | reference s (dense logits, softmax, argmax) | per-parent loop s | reference / loop | labels differing |",
-            "|---|---|---:|---:|---:|---|"]
+    rows = [
+        "| range | label grid | reference s (dense logits, softmax, argmax) | per-parent loop s | reference / loop | labels differing |",
+        "|---|---|---:|---:|---:|---|",
+    ]
     timed_on = on(device)
     for range_name in ("25.6m", "51.2m", "76.8m"):
         cfg = preset(name, range=range_name)
         head = build_model(cfg).ego.head.eval().to(device)
-        fused = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims, generator=torch.Generator().manual_seed(0)).to(device)
+        fused = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims, generator=torch.Generator().manual_seed(0)).to(
+            device
+        )
         t_ref, (ref_labels, _) = timed_on(lambda: labels_from_logits(head(fused)[-1]), repeats)
         t_loop, (loop, _) = timed_on(lambda: head.labels(fused), repeats)
         differ = int((loop[0].cpu().numpy() != ref_labels).sum())
-        rows.append(f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.4f} | {t_loop:.4f} | {t_ref / t_loop:.1f}x | {differ:,} of {ref_labels.size:,} |")
+        rows.append(
+            f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.4f} | {t_loop:.4f} | {t_ref / t_loop:.1f}x | {differ:,} of {ref_labels.size:,} |"
+        )
         print(f"  head {range_name}: reference {t_ref:.4f} s, loop {t_loop:.4f} s", flush=True)
     return "\n".join(rows)
 
@@ -277,17 +307,26 @@ def masked_table(name: str, repeats: int, device: torch.device) -> str:
     model = build_model(cfg).eval().to(device)
     fusion = model.ego.fusion
     c, dims = cfg.embed_dims, cfg.feature_grid.dims
-    rows = ["| selected voxels | masked s | dense s | dense / masked | max abs difference on selected |", "|---:|---:|---:|---:|---:|"]
+    rows = [
+        "| selected voxels | masked s | dense s | dense / masked | max abs difference on selected |",
+        "|---:|---:|---:|---:|---:|",
+    ]
     for share in (0.05, 0.2, 0.5, 1.0):
         gen = torch.Generator().manual_seed(0)
         ego = torch.randn(1, c, *dims, generator=gen).to(device)
         values = torch.randn(1, 2, c, *dims, generator=gen).to(device)
-        mask = (torch.rand(1, 2, *dims, generator=gen) < share / 2 if share < 1 else torch.ones(1, 2, *dims, dtype=torch.bool)).to(device)
+        mask = (
+            torch.rand(1, 2, *dims, generator=gen) < share / 2
+            if share < 1
+            else torch.ones(1, 2, *dims, dtype=torch.bool)
+        ).to(device)
         t_masked, masked = on(device)(lambda: fusion(ego, values, mask), repeats)
         t_dense, dense = on(device)(lambda: fusion(ego, values, mask, dense=True), repeats)
         selected = mask.any(1)[:, None].expand_as(masked)
         diff = float((masked - dense)[selected].abs().max())
-        rows.append(f"| {float(mask.any(1).float().mean()):.1%} | {t_masked:.3f} | {t_dense:.3f} | {t_dense / t_masked:.1f}x | {diff:.1e} |")
+        rows.append(
+            f"| {float(mask.any(1).float().mean()):.1%} | {t_masked:.3f} | {t_dense:.3f} | {t_dense / t_masked:.1f}x | {diff:.1e} |"
+        )
     return "\n".join(rows)
 
 
@@ -338,17 +377,30 @@ def main() -> None:
         parts = precision
     elif device.type == "cuda":
         where = f"{torch.cuda.get_device_name(device)}, median of {opts.repeats}"
-        parts = [f"### GPU time per stage, preset `{opts.preset}` ({where})", stage_table(opts.preset, opts.repeats, device),
-                 f"### Head to labels on the GPU: dense reference vs the per-parent loop (`{opts.preset}`)", head_table(opts.preset, opts.repeats, device),
-                 f"### Masked vs dense fusion attention on the GPU (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats, device),
-                 f"Peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB."]
+        parts = [
+            f"### GPU time per stage, preset `{opts.preset}` ({where})",
+            stage_table(opts.preset, opts.repeats, device),
+            f"### Head to labels on the GPU: dense reference vs the per-parent loop (`{opts.preset}`)",
+            head_table(opts.preset, opts.repeats, device),
+            f"### Masked vs dense fusion attention on the GPU (`{opts.preset}`, 51.2 m, 2 collaborators)",
+            masked_table(opts.preset, opts.repeats, device),
+            f"Peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB.",
+        ]
     else:
-        parts = [f"### CPU time per stage, preset `{opts.preset}` ({opts.threads} threads, median of {opts.repeats})", stage_table(opts.preset, opts.repeats, device),
-                 f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads)", head_table(opts.preset, opts.repeats, device),
-                 "### CPU per frame as the nodes compute it (shipped models, one thread, median)", frame_table(opts.repeats),
-                 f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)", masked_table(opts.preset, opts.repeats, device)]
+        parts = [
+            f"### CPU time per stage, preset `{opts.preset}` ({opts.threads} threads, median of {opts.repeats})",
+            stage_table(opts.preset, opts.repeats, device),
+            f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads)",
+            head_table(opts.preset, opts.repeats, device),
+            "### CPU per frame as the nodes compute it (shipped models, one thread, median)",
+            frame_table(opts.repeats),
+            f"### Masked vs dense fusion attention (`{opts.preset}`, 51.2 m, 2 collaborators)",
+            masked_table(opts.preset, opts.repeats, device),
+        ]
     parts += [] if opts.precision_only or opts.roofline else precision
-    parts.append(f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB.")
+    parts.append(
+        f"Peak resident memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB."
+    )
     text = "\n\n".join(parts)
     print(text)
     if opts.out:

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from co3sop_nodes import kernels
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.data import opv2v
 from co3sop_nodes.data.bags import BagWriter
-from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.sim import camera, lidar, rig
 from co3sop_nodes.sim.raycast import ObjectMeshes, RayScene
 from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
@@ -86,10 +86,13 @@ def ray_table() -> str:
     scene = RayScene([ObjectMeshes(town.objects), ObjectMeshes(traffic.objects())])
     vehicle = traffic.cavs[0].pose()
     poses = [vehicle @ mount for mount in rig.vehicle_from_cameras()]
-    rows = [f"Scene: {len(scene.mesh.faces):,} triangles. Camera rays: one primary ray per pixel (and a shadow ray per "
-            "pixel that hits something), counted once; best of 3.", "",
-            "| sensor | path | threads | rays per frame | seconds | rays/s | reference / path | images identical |",
-            "|---|---|---:|---:|---:|---:|---:|---|"]
+    rows = [
+        f"Scene: {len(scene.mesh.faces):,} triangles. Camera rays: one primary ray per pixel (and a shadow ray per "
+        "pixel that hits something), counted once; best of 3.",
+        "",
+        "| sensor | path | threads | rays per frame | seconds | rays/s | reference / path | images identical |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
+    ]
     for width, height in ((400, 300), (800, 600)):
         k = rig.intrinsics(width, height)
         rays = 4 * width * height
@@ -103,19 +106,34 @@ def ray_table() -> str:
                 times.append(time.perf_counter() - t0)
             dt = seconds[compiled, threads] = min(times)
             reference = reference or images
-            same = all(np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth) and np.array_equal(a.semantic, b.semantic)
-                       for a, b in zip(reference, images))
-            rows.append(f"| 4 cameras {width}x{height} (+ shadow rays) | {'kernel' if compiled else 'reference'} | {threads} | "
-                        f"{rays:,} | {dt:.3f} | {rays / dt:,.0f} | {seconds[False, 1] / dt:.1f}x | {'yes' if same else 'NO'} |")
-            print(f"  cameras {width}x{height} {'kernel' if compiled else 'reference'} x{threads}: {dt:.3f} s", flush=True)
+            same = all(
+                np.array_equal(a.rgb, b.rgb)
+                and np.array_equal(a.depth, b.depth)
+                and np.array_equal(a.semantic, b.semantic)
+                for a, b in zip(reference, images)
+            )
+            rows.append(
+                f"| 4 cameras {width}x{height} (+ shadow rays) | {'kernel' if compiled else 'reference'} | {threads} | "
+                f"{rays:,} | {dt:.3f} | {rays / dt:,.0f} | {seconds[False, 1] / dt:.1f}x | {'yes' if same else 'NO'} |"
+            )
+            print(
+                f"  cameras {width}x{height} {'kernel' if compiled else 'reference'} x{threads}: {dt:.3f} s", flush=True
+            )
     cfg = lidar.LidarConfig()
     rays = cfg.channels * cfg.azimuth_steps
     for compiled in (False, True):
         t0 = time.perf_counter()
-        scene.cast(np.broadcast_to(vehicle[:3, 3], (rays, 3)), lidar.beam_directions(cfg) @ vehicle[:3, :3].T, cfg.range, compiled=compiled)
+        scene.cast(
+            np.broadcast_to(vehicle[:3, 3], (rays, 3)),
+            lidar.beam_directions(cfg) @ vehicle[:3, :3].T,
+            cfg.range,
+            compiled=compiled,
+        )
         dt = time.perf_counter() - t0
-        rows.append(f"| LiDAR {cfg.channels} x {cfg.azimuth_steps} | {'kernel' if compiled else 'reference'} | 1 | {rays:,} | "
-                    f"{dt:.3f} | {rays / dt:,.0f} | | |")
+        rows.append(
+            f"| LiDAR {cfg.channels} x {cfg.azimuth_steps} | {'kernel' if compiled else 'reference'} | 1 | {rays:,} | "
+            f"{dt:.3f} | {rays / dt:,.0f} | | |"
+        )
     return "\n".join(rows)
 
 
@@ -153,23 +171,35 @@ def generation_table(frames: int) -> str:
         kernels.ENABLED = enabled
         dt, cav_frames, bag_mb, bag_s = generate_once(frames)
         per_cav_frame[enabled] = dt / cav_frames
-        rows.append(f"| {'on' if enabled else 'off'} | {frames / dt:.2f} | {cav_frames / dt:.2f} | {dt / cav_frames:.2f} | "
-                    f"{bag_mb / cav_frames:.2f} | {bag_s / cav_frames:.2f} |")
+        rows.append(
+            f"| {'on' if enabled else 'off'} | {frames / dt:.2f} | {cav_frames / dt:.2f} | {dt / cav_frames:.2f} | "
+            f"{bag_mb / cav_frames:.2f} | {bag_s / cav_frames:.2f} |"
+        )
     rows += ["", f"Kernels off / on, s per CAV-frame: {per_cav_frame[False] / per_cav_frame[True]:.2f}x."]
     return "\n".join(rows)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--full", action="store_true", help="also the full 1000 x 1000 x 70 grid (minutes for the oracle)")
+    parser.add_argument(
+        "--full", action="store_true", help="also the full 1000 x 1000 x 70 grid (minutes for the oracle)"
+    )
     parser.add_argument("--frames", type=int, default=3, help="frames for the generation figure")
     parser.add_argument("--workers", type=int, default=2, help="voxel sensor threads")
-    parser.add_argument("--tables", nargs="+", choices=("sensor", "rays", "generation"), default=["sensor", "rays", "generation"],
-                        help="which tables (default: all)")
+    parser.add_argument(
+        "--tables",
+        nargs="+",
+        choices=("sensor", "rays", "generation"),
+        default=["sensor", "rays", "generation"],
+        help="which tables (default: all)",
+    )
     parser.add_argument("--out", type=Path, help="also write the tables to this markdown file")
     opts = parser.parse_args()
-    tables = {"sensor": ("### Voxel sensor vs oracle", lambda: sensor_table(opts.full, opts.workers)),
-              "rays": ("### Ray casting", ray_table), "generation": ("### Scenario generation", lambda: generation_table(opts.frames))}
+    tables = {
+        "sensor": ("### Voxel sensor vs oracle", lambda: sensor_table(opts.full, opts.workers)),
+        "rays": ("### Ray casting", ray_table),
+        "generation": ("### Scenario generation", lambda: generation_table(opts.frames)),
+    }
     text = "\n\n".join(part for name in opts.tables for part in (tables[name][0], tables[name][1]()))
     print(text)
     if opts.out:

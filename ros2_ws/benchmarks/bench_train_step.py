@@ -22,14 +22,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.train.dataset import OccupancyDataset
-from co3sop_nodes.cli.device import add_device_argument, select_device
-from co3sop_nodes.train.trainer import Trainer
-from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.co3sop import build_model
 from timing import timed
+
+from co3sop_nodes.cli.device import add_device_argument, select_device
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.train.trainer import Trainer
 
 
 def main() -> None:
@@ -54,7 +54,14 @@ def main() -> None:
             torch.manual_seed(0)
             cfg = preset(opts.preset, range=name)
             model = build_model(cfg).to(device)
-            trainer = Trainer(model, OccupancyDataset(opts.data, opts.splits, cfg, max_scenarios=1), stage, opts.sample_fraction, 1e-3, device)
+            trainer = Trainer(
+                model,
+                OccupancyDataset(opts.data, opts.splits, cfg, max_scenarios=1),
+                stage,
+                opts.sample_fraction,
+                1e-3,
+                device,
+            )
             rng = np.random.default_rng(0)
             trainer.step([0], [rng])  # warm-up (and, for fusion, the cached vehicle outputs)
             if gpu:
@@ -67,8 +74,10 @@ def main() -> None:
                 torch.cuda.empty_cache()
         rows.append(f"| {stage} | " + " | ".join(cells) + " |")
     where = torch.cuda.get_device_name(device) if gpu else f"{opts.threads} CPU threads"
-    print(f"\nseconds per training step (median of {opts.repeats}){', peak GPU memory' if gpu else ''}, preset {opts.preset}, "
-          f"{sum(p.numel() for p in build_model(preset(opts.preset)).parameters()):,} parameters, {where}\n")
+    print(
+        f"\nseconds per training step (median of {opts.repeats}){', peak GPU memory' if gpu else ''}, preset {opts.preset}, "
+        f"{sum(p.numel() for p in build_model(preset(opts.preset)).parameters()):,} parameters, {where}\n"
+    )
     print("\n".join(rows))
 
 

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import torch
 
-from co3sop_nodes.v2x.codec import QUANTIZED, FeatureCodecConfig
-from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.eval.evaluate import evaluate
 from co3sop_nodes.eval.metrics import Bootstrap, point
 from co3sop_nodes.inference.checkpoint import load_model
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.v2x.codec import QUANTIZED, FeatureCodecConfig
 
 UNBOUNDED = 2**31 - 1  # the largest codec.max_bytes: every requested voxel fits
 
@@ -38,7 +38,9 @@ def main() -> None:
     parser.add_argument("--budget", type=int, default=65536, help="codec.max_bytes of the request maps")
     parser.add_argument("--ranks", type=int, nargs="+", default=[4, 6, 8, 10, 16])
     parser.add_argument("--unbounded", type=int, nargs="*", default=[0, 8], help="ranks also run with no budget")
-    parser.add_argument("--bursts", type=int, nargs="*", default=[], help="codec.burst_bytes also run (at --burst-rank)")
+    parser.add_argument(
+        "--bursts", type=int, nargs="*", default=[], help="codec.burst_bytes also run (at --burst-rank)"
+    )
     parser.add_argument("--burst-ranks", type=int, nargs="+", default=[8], help="the ranks run with each burst")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
@@ -49,26 +51,56 @@ def main() -> None:
     boot = Bootstrap(["/".join(k) for k in dataset.scenarios])
     cache: dict = {}  # the vehicle halves' outputs, shared by every run
     alone = evaluate(model, dataset, collaborators=0, cache=cache, desc="alone")[0]
-    lossless = evaluate(model, dataset, codec=FeatureCodecConfig("float32", "dense", codec="none"), cache=cache, desc="lossless")[0]
-    runs = ([(rank, opts.budget, 0) for rank in (0, *opts.ranks)] + [(rank, UNBOUNDED, 0) for rank in opts.unbounded]
-            + [(rank, opts.budget, burst) for rank in opts.burst_ranks for burst in opts.bursts])
+    lossless = evaluate(
+        model, dataset, codec=FeatureCodecConfig("float32", "dense", codec="none"), cache=cache, desc="lossless"
+    )[0]
+    runs = (
+        [(rank, opts.budget, 0) for rank in (0, *opts.ranks)]
+        + [(rank, UNBOUNDED, 0) for rank in opts.unbounded]
+        + [(rank, opts.budget, burst) for rank in opts.burst_ranks for burst in opts.bursts]
+    )
     rows, results = [], []
     for rank, budget, burst in runs:
         cfg = FeatureCodecConfig(opts.dtype, "request", max_bytes=budget, burst_bytes=burst, rank=rank)
         confusions, size = evaluate(model, dataset, codec=cfg, cache=cache, desc=cfg.name)
         kept = boot.ratio(confusions, lossless, alone)
-        results.append({"dtype": opts.dtype, "rank": rank, "max_bytes": budget, "burst_bytes": burst, "bytes": size, "miou": point(boot.summary(confusions), "co3sop-code"),
-                        "gain_kept": kept})
+        results.append(
+            {
+                "dtype": opts.dtype,
+                "rank": rank,
+                "max_bytes": budget,
+                "burst_bytes": burst,
+                "bytes": size,
+                "miou": point(boot.summary(confusions), "co3sop-code"),
+                "gain_kept": kept,
+            }
+        )
         limit = "none" if budget == UNBOUNDED else f"{budget:,}" + (f" on average, {burst:,} at most" if burst else "")
-        rows.append(f"| {opts.dtype} | {rank or '- (channels)'} | {limit} | {size:,.0f} | "
-                    f"{100 * results[-1]['miou']:.2f} | {100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |")
-    title = (f"{model.cfg.name} {model.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 alone "
-             f"{100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless {100 * point(boot.summary(lossless), 'co3sop-code'):.2f}")
-    print("\n".join([title, "", "| codec.dtype | codec.rank | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain kept (%) [95 % interval] |",
-                     "|---|---|---:|---:|---:|---|", *rows]))
+        rows.append(
+            f"| {opts.dtype} | {rank or '- (channels)'} | {limit} | {size:,.0f} | "
+            f"{100 * results[-1]['miou']:.2f} | {100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |"
+        )
+    title = (
+        f"{model.cfg.name} {model.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 alone "
+        f"{100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless {100 * point(boot.summary(lossless), 'co3sop-code'):.2f}"
+    )
+    print(
+        "\n".join(
+            [
+                title,
+                "",
+                "| codec.dtype | codec.rank | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain kept (%) [95 % interval] |",
+                "|---|---|---:|---:|---:|---|",
+                *rows,
+            ]
+        )
+    )
     if opts.out:
         opts.out.parent.mkdir(parents=True, exist_ok=True)
-        opts.out.write_text(json.dumps({"title": title, "model": str(opts.model), "splits": opts.splits, "runs": results}, indent=2) + "\n")
+        opts.out.write_text(
+            json.dumps({"title": title, "model": str(opts.model), "splits": opts.splits, "runs": results}, indent=2)
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

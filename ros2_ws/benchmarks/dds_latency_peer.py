@@ -25,13 +25,13 @@ else:
 
     configure_environment()
 
-import rclpy  # noqa: E402
-from co3sop_msgs.msg import VoxelFeatures  # noqa: E402
-from rclpy.node import Node  # noqa: E402
+import rclpy
+from rclpy.node import Node
 
-from co3sop_nodes.messages import stamp_ns, time_msg  # noqa: E402
-from co3sop_nodes.ros.message_types import RCLPY  # noqa: E402
-from co3sop_nodes.ros.dds import FEATURES_QOS  # noqa: E402
+from co3sop_msgs.msg import VoxelFeatures
+from co3sop_nodes.messages import stamp_ns, time_msg
+from co3sop_nodes.ros.dds import FEATURES_QOS
+from co3sop_nodes.ros.message_types import RCLPY
 
 TOPIC = "/bench/latency"
 

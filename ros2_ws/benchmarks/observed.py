@@ -16,9 +16,9 @@ import argparse
 import json
 from pathlib import Path
 
-from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.eval.observed import observed, observed_table
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.train.dataset import OccupancyDataset
 
 
 def main() -> None:

@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 from conftest import executable
 
-from co3sop_nodes.v2x import channel as ch
 from co3sop_nodes.common import topics
-from co3sop_nodes.v2x.channel import Channel, ChannelError, Link
-from co3sop_nodes.ros.dds import channel_environment
 from co3sop_nodes.eval.scoring import message_counts
+from co3sop_nodes.ros.dds import channel_environment
+from co3sop_nodes.v2x import channel as ch
+from co3sop_nodes.v2x.channel import Channel, ChannelError, Link
 
 FRAMES = 5
 
@@ -28,7 +28,9 @@ def ours(pid: int) -> list[str]:
 
 
 def in_namespace(channel: Channel, member: str, code: str) -> subprocess.Popen:
-    return subprocess.Popen(channel.wrap(member, [sys.executable, "-c", code]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        channel.wrap(member, [sys.executable, "-c", code]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 RECEIVE = """
@@ -84,7 +86,9 @@ def test_channel_shapes_rate_and_loss_and_removes_everything():
         received = int(receiver.communicate(timeout=30)[0])
         assert 1450 < received < 1750, received  # binomial(2000, 0.8): mean 1600, sd 18
         assert 250 < channel.dropped("lossy") < 550 and channel.dropped("ego") == 0
-        shaping = subprocess.run(channel.wrap("ego", ["tc", "qdisc", "show", "dev", "eth0"]), capture_output=True, text=True).stdout
+        shaping = subprocess.run(
+            channel.wrap("ego", ["tc", "qdisc", "show", "dev", "eth0"]), capture_output=True, text=True
+        ).stdout
         assert "tbf" in shaping and "8Mbit" in shaping
         host_if = ch.host_link(os.getpid())
         assert host_if in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
@@ -120,7 +124,10 @@ def test_namespaces_of_a_killed_launcher_are_reaped():
         while ours(launcher.pid) and time.monotonic() < deadline:
             time.sleep(0.2)
         assert ours(launcher.pid) == []
-        assert ch.host_link(launcher.pid) not in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
+        assert (
+            ch.host_link(launcher.pid)
+            not in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
+        )
     finally:
         if launcher.poll() is None:
             launcher.kill()
@@ -143,7 +150,9 @@ def transports(member: str | None) -> dict[str, dict[str, str]]:
     root = ET.parse(env["FASTRTPS_DEFAULT_PROFILES_FILE"]).getroot()
     found = {}
     for descriptor in root.iterfind(".//f:transport_descriptor", ns):
-        found[descriptor.findtext("f:type", namespaces=ns)] = {child.tag.split("}")[1]: child.text for child in descriptor}
+        found[descriptor.findtext("f:type", namespaces=ns)] = {
+            child.tag.split("}")[1]: child.text for child in descriptor
+        }
     participant = root.find(".//f:participant", ns)
     assert participant.get("is_default_profile") == "true"
     assert participant.findtext(".//f:useBuiltinTransports", namespaces=ns) == "false"
@@ -172,17 +181,59 @@ def test_neighbours_share_no_memory_and_every_process_takes_the_same_udp_message
 @pytest.fixture(scope="module")
 def scenario(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("scenario")
-    done = subprocess.run([executable("generate"), "--out", str(root / "data"), "--bags", str(root / "bags"), "--splits", "test=1",
-                           "--frames", str(FRAMES), "--cavs", "3", "--seed", "11", "--image-size", "160x120", "--lidar-steps", "256",
-                           "--workers", "1"], capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [
+            executable("generate"),
+            "--out",
+            str(root / "data"),
+            "--bags",
+            str(root / "bags"),
+            "--splits",
+            "test=1",
+            "--frames",
+            str(FRAMES),
+            "--cavs",
+            "3",
+            "--seed",
+            "11",
+            "--image-size",
+            "160x120",
+            "--lidar-steps",
+            "256",
+            "--workers",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr
     return next((root / "bags" / "test").iterdir())
 
 
 def demo(bag: Path, out: Path, *extra: str) -> subprocess.Popen:
-    return subprocess.Popen([executable("demo"), "--bag", str(bag), "--out", str(out), "--model", "tiny-lidar", "--rate", "0.25",
-                             "--quiet", "--channel-rate", "27", "--channel-loss", "5", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        [
+            executable("demo"),
+            "--bag",
+            str(bag),
+            "--out",
+            str(out),
+            "--model",
+            "tiny-lidar",
+            "--rate",
+            "0.25",
+            "--quiet",
+            "--channel-rate",
+            "27",
+            "--channel-loss",
+            "5",
+            *extra,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 def fused_per_frame(out: str) -> tuple[list[int], list[int]]:
@@ -192,7 +243,9 @@ def fused_per_frame(out: str) -> tuple[list[int], list[int]]:
     used, rest = line.split("; heard but late: ")
     late, silent = rest.split("; never received: ")
     count = [0 if m == "-" else len(m.split(",")) for m in late.split()]
-    return [int(n) for n in used.split()], [a + (0 if m == "-" else len(m.split(","))) for a, m in zip(count, silent.split())]
+    return [int(n) for n in used.split()], [
+        a + (0 if m == "-" else len(m.split(","))) for a, m in zip(count, silent.split())
+    ]
 
 
 def test_demo_through_a_lossy_channel(scenario, tmp_path):
@@ -243,4 +296,7 @@ def test_demo_stopped_by_sigterm_leaves_no_namespace_and_no_node(scenario, tmp_p
     assert proc.returncode == 130, out
     assert ours(proc.pid) == []
     for pid in nodes:
-        assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        assert (
+            not Path(f"/proc/{pid}").exists()
+            or "Z" in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        )

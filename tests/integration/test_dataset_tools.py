@@ -11,13 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import executable
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from co3sop_nodes.data import bags, opv2v
 from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
-from co3sop_nodes.data import bags
-from co3sop_nodes.data import opv2v
-from conftest import executable
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
 SCENARIO = "2021_08_24_21_29_28"
@@ -31,7 +30,7 @@ def assert_bag_matches_folder(bag: Path, root: Path, split: str, scenario: str, 
     """Every array in the bag equals the folder's (read through opv2v); returns the frames compared."""
     folder = {ts: frames for ts, frames in opv2v.read_scenario(root, split, scenario, ranges)}
     compared = 0
-    for (stamp, cavs), (ts, frames) in zip(bags.read_frames(bag), sorted(folder.items())):
+    for (stamp, cavs), (_, frames) in zip(bags.read_frames(bag), sorted(folder.items())):
         assert stamp == frames[0].stamp_ns
         for f in frames:
             entry = cavs[f.cav_id]
@@ -112,8 +111,17 @@ def test_tools_explain_bad_paths_without_traceback(tmp_path):
         assert result.returncode == 2 and "error:" in result.stderr and "Traceback" not in result.stderr
 
 
-@pytest.mark.parametrize("option", [("--frames", "0"), ("--image-size", "0x48"), ("--lidar-steps", "-1"), ("--vehicles", "-1"),
-                                    ("--workers", "0"), ("--cavs", "0")])
+@pytest.mark.parametrize(
+    "option",
+    [
+        ("--frames", "0"),
+        ("--image-size", "0x48"),
+        ("--lidar-steps", "-1"),
+        ("--vehicles", "-1"),
+        ("--workers", "0"),
+        ("--cavs", "0"),
+    ],
+)
 def test_generate_refuses_impossible_settings_before_writing(tmp_path, option):
     result = tool("generate", "--out", str(tmp_path / "data"), "--splits", "test=1", *option)
     assert result.returncode == 2 and result.stderr.startswith(f"generate: error: {option[0]}"), result.stderr
@@ -123,8 +131,27 @@ def test_generate_refuses_impossible_settings_before_writing(tmp_path, option):
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory):
     out = tmp_path_factory.mktemp("gen")
-    args = ("generate", "--out", str(out / "data"), "--splits", "train=1", "test=1", "--frames", "2", "--cavs", "2",
-            "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "10", "--bags", str(out / "bags"), "--pictures")
+    args = (
+        "generate",
+        "--out",
+        str(out / "data"),
+        "--splits",
+        "train=1",
+        "test=1",
+        "--frames",
+        "2",
+        "--cavs",
+        "2",
+        "--image-size",
+        "64x48",
+        "--lidar-steps",
+        "128",
+        "--vehicles",
+        "10",
+        "--bags",
+        str(out / "bags"),
+        "--pictures",
+    )
     first = tool(*args)
     assert first.returncode == 0, first.stderr
     return out, args, first
@@ -186,15 +213,42 @@ def alive(pid: int) -> bool:
 def test_generate_stops_every_worker_and_leaves_no_debris_in_the_splits(tmp_path, how):
     """Interrupted mid-scenario: no process left, nothing in a split or label folder (unfinished scenarios are
     in OUT/.partial, where OPV2V loaders do not look), and a re-run completes the dataset."""
-    args = ("generate", "--out", str(tmp_path / "data"), "--splits", "train=2", "--frames", "8", "--cavs", "2",
-            "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "10", "--workers", "2")
+    args = (
+        "generate",
+        "--out",
+        str(tmp_path / "data"),
+        "--splits",
+        "train=2",
+        "--frames",
+        "8",
+        "--cavs",
+        "2",
+        "--image-size",
+        "64x48",
+        "--lidar-steps",
+        "128",
+        "--vehicles",
+        "10",
+        "--workers",
+        "2",
+    )
     # SIGINT as a terminal delivers it: a test run started in the background (`&`) inherits SIGINT ignored
-    proc = subprocess.Popen([executable(args[0]), *args[1:]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [executable(args[0]), *args[1:]],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     staging = tmp_path / "data" / ".partial" / "train"
     deadline = time.monotonic() + 240
-    while len({p.relative_to(staging).parts[0] for p in staging.glob("*/train/*/*/*.yaml")}) < 2:  # both workers writing frames
-        assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read() if proc.poll() is not None else "no frame written"
+    while (
+        len({p.relative_to(staging).parts[0] for p in staging.glob("*/train/*/*/*.yaml")}) < 2
+    ):  # both workers writing frames
+        assert proc.poll() is None and time.monotonic() < deadline, (
+            proc.stdout.read() if proc.poll() is not None else "no frame written"
+        )
         time.sleep(0.2)
     workers = descendants(proc.pid)
     assert len(workers) >= 3  # the pool's two workers and the manager
@@ -241,18 +295,22 @@ def test_voxelize_reproduces_the_benchmark_labels(generated):
 
 # --- damaged files: one line naming the file and what is wrong (exit 2), never a traceback ---------------------------
 
+
 def _first_chunk_data(mcap: bytes) -> int:
     """Offset of the first chunk's compressed records (MCAP: opcode, u64 length, start, end, size, crc, compression)."""
     pos = 8
     while mcap[pos] != 0x06:
-        pos += 9 + int.from_bytes(mcap[pos + 1: pos + 9], "little")
+        pos += 9 + int.from_bytes(mcap[pos + 1 : pos + 9], "little")
     compression = pos + 9 + 28
-    return compression + 4 + int.from_bytes(mcap[compression: compression + 4], "little") + 8
+    return compression + 4 + int.from_bytes(mcap[compression : compression + 4], "little") + 8
 
 
 DAMAGES = {
     "truncated": lambda mcap, meta: (mcap[: len(mcap) // 2], meta),
-    "corrupt-chunk": lambda mcap, meta: (mcap[: (at := _first_chunk_data(mcap))] + bytes(b ^ 0xFF for b in mcap[at: at + 8]) + mcap[at + 8:], meta),
+    "corrupt-chunk": lambda mcap, meta: (
+        mcap[: (at := _first_chunk_data(mcap))] + bytes(b ^ 0xFF for b in mcap[at : at + 8]) + mcap[at + 8 :],
+        meta,
+    ),
     "random-bytes": lambda mcap, meta: (np.random.default_rng(0).bytes(len(mcap)), meta),
     "bad-metadata": lambda mcap, meta: (mcap, "rosbag2_bagfile_information: [unclosed\n  : {"),
 }
@@ -284,9 +342,9 @@ def test_damaged_bags_are_explained(damaged_bags, command, damage):
 
 def _recording(path: Path, malformed_at: int | None) -> Path:
     """A recording of 3 predictions and their ground truth; the prediction at `malformed_at` is not valid CDR."""
-    from co3sop_nodes.v2x.codec import encode_labels
     from co3sop_nodes.common.grid import BENCHMARK_RANGES
     from co3sop_nodes.data.recording import McapRecorder
+    from co3sop_nodes.v2x.codec import encode_labels
 
     grid, store = BENCHMARK_RANGES["51.2m"], bags.typestore()
     with McapRecorder(path) as rec:
@@ -294,10 +352,17 @@ def _recording(path: Path, malformed_at: int | None) -> Path:
             stamp = (i + 1) * 10**8
             labels = np.zeros(grid.dims, np.uint8)
             labels[:50] = 7
-            msg = occupancy_msg(RosbagsTypes(store), encode_labels(labels, grid, 24), stamp_ns=stamp, frame_id="cav_1/lidar", agent_id=1)
+            msg = occupancy_msg(
+                RosbagsTypes(store), encode_labels(labels, grid, 24), stamp_ns=stamp, frame_id="cav_1/lidar", agent_id=1
+            )
             raw = store.serialize_cdr(msg, "co3sop_msgs/msg/SemanticOccupancy")
             rec.write("/cav_1/ground_truth/occupancy_50m", "co3sop_msgs/msg/SemanticOccupancy", raw, stamp)
-            rec.write("/ego/occupancy", "co3sop_msgs/msg/SemanticOccupancy", raw[: len(raw) // 2] if i == malformed_at else raw, stamp)
+            rec.write(
+                "/ego/occupancy",
+                "co3sop_msgs/msg/SemanticOccupancy",
+                raw[: len(raw) // 2] if i == malformed_at else raw,
+                stamp,
+            )
     return path
 
 
@@ -308,8 +373,13 @@ def test_score_explains_a_malformed_message_and_damaged_recordings(tmp_path):
     assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr
     assert "bad.mcap: /ego/occupancy at 200000000 ns: not a valid co3sop_msgs/msg/SemanticOccupancy" in bad.stderr
     data = (tmp_path / "good.mcap").read_bytes()
-    for name, content in (("random.mcap", np.random.default_rng(1).bytes(len(data))), ("corrupt.mcap",
-                          data[: (at := _first_chunk_data(data))] + bytes(b ^ 0xFF for b in data[at: at + 8]) + data[at + 8:])):
+    for name, content in (
+        ("random.mcap", np.random.default_rng(1).bytes(len(data))),
+        (
+            "corrupt.mcap",
+            data[: (at := _first_chunk_data(data))] + bytes(b ^ 0xFF for b in data[at : at + 8]) + data[at + 8 :],
+        ),
+    ):
         (tmp_path / name).write_bytes(content)
         done = tool("score", str(tmp_path / name), "--pictures", "0")
         assert done.returncode == 2 and f"{name}: damaged or not a MCAP recording" in done.stderr, done.stderr
@@ -323,17 +393,41 @@ def test_generate_shards_are_disjoint_parts_of_one_dataset(tmp_path):
     """`generate --shard I/N` on N machines: each writes its share, the shares are disjoint and together the dataset."""
     from co3sop_nodes.data.generation import scenario_name
 
-    common = ["--splits", "train=2", "test=1", "--frames", "1", "--cavs", "1", "--image-size", "32x24", "--lidar-steps", "64",
-              "--vehicles", "2", "--workers", "1", "--seed", "5"]
+    common = [
+        "--splits",
+        "train=2",
+        "test=1",
+        "--frames",
+        "1",
+        "--cavs",
+        "1",
+        "--image-size",
+        "32x24",
+        "--lidar-steps",
+        "64",
+        "--vehicles",
+        "2",
+        "--workers",
+        "1",
+        "--seed",
+        "5",
+    ]
     written = {}
     for shard in ("1/2", "2/2"):
         done = tool("generate", "--out", str(tmp_path / shard.replace("/", "of")), *common, "--shard", shard)
         assert done.returncode == 0, done.stderr
-        written[shard] = {(split.name, s.name) for split in (tmp_path / shard.replace("/", "of")).iterdir() if split.name in ("train", "test")
-                          for s in split.iterdir()}
+        written[shard] = {
+            (split.name, s.name)
+            for split in (tmp_path / shard.replace("/", "of")).iterdir()
+            if split.name in ("train", "test")
+            for s in split.iterdir()
+        }
     assert written["1/2"] and written["2/2"] and written["1/2"].isdisjoint(written["2/2"])
-    assert written["1/2"] | written["2/2"] == {("train", scenario_name("train", 0, 5)), ("train", scenario_name("train", 1, 5)),
-                                               ("test", scenario_name("test", 0, 5))}
+    assert written["1/2"] | written["2/2"] == {
+        ("train", scenario_name("train", 0, 5)),
+        ("train", scenario_name("train", 1, 5)),
+        ("test", scenario_name("test", 0, 5)),
+    }
     for bad in ("3/2", "0/2", "half"):
         done = tool("generate", "--out", str(tmp_path / "bad"), *common, "--shard", bad)
         assert done.returncode == 2 and f"--shard {bad!r}" in done.stderr and "Traceback" not in done.stderr

@@ -8,8 +8,8 @@ import sys
 from conftest import HERE, finish
 
 sys.path.insert(0, str(HERE / "peers"))
-from cases import CASES, encoded  # noqa: E402
-from digest import decoded_digest  # noqa: E402
+from cases import CASES, encoded
+from digest import decoded_digest
 
 
 def test_every_payload_decodes_bit_exact_in_another_process(processes, tmp_path):

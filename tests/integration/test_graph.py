@@ -15,25 +15,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from co3sop_msgs.msg import RequestMap, VoxelFeatures
-from mcap.reader import make_reader
-from rclpy.serialization import deserialize_message
 from ament_index_python.packages import get_package_share_directory
 from conftest import executable
+from mcap.reader import make_reader
+from rclpy.serialization import deserialize_message
 
+from co3sop_msgs.msg import RequestMap, VoxelFeatures
 from co3sop_nodes.common import topics
 from co3sop_nodes.data.bags import read_frames
-from co3sop_nodes.v2x.sender_budget import SenderBudgets
-from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.eval.bag_eval import predict_bag, vehicle_outputs
-from co3sop_nodes.inference.checkpoint import export_model, load_model, shipped_checkpoint
-from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.co3sop import build_model
-from co3sop_nodes.inference.outputs import encode_output
-from co3sop_nodes.v2x.request_map import request_for_neighbour
-from co3sop_nodes.messages import features_of, pose_of, request_of, stamp_ns
-from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.eval.scoring import read_recording
+from co3sop_nodes.inference.checkpoint import export_model, load_model, shipped_checkpoint
+from co3sop_nodes.inference.outputs import encode_output
+from co3sop_nodes.messages import features_of, pose_of, request_of, stamp_ns
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.ros.supervisor import Supervisor
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
+from co3sop_nodes.v2x.request_map import request_for_neighbour
+from co3sop_nodes.v2x.sender_budget import SenderBudgets
 
 FRAMES = 4
 # the ego fuses (and vehicles encode) every frame, waiting for every neighbour, whatever the machine keeps up with:
@@ -85,7 +85,7 @@ class Graph:
         return proc.wait(timeout)
 
     def close(self) -> None:
-        for name, proc in self.procs.items():
+        for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
         for proc in self.procs.values():
@@ -107,33 +107,88 @@ def graph(tmp_path):
 def scenario(tmp_path_factory) -> tuple[Path, list[int]]:
     """A small generated scenario bag (the demo's town and traffic, smaller images) and its CAV ids."""
     root = tmp_path_factory.mktemp("scenario")
-    done = subprocess.run([executable("generate"), "--out", str(root / "data"), "--bags", str(root / "bags"), "--splits", "test=1",
-                           "--frames", str(FRAMES), "--cavs", "3", "--seed", "7", "--image-size", "160x120", "--lidar-steps", "256",
-                           "--workers", "1"], capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [
+            executable("generate"),
+            "--out",
+            str(root / "data"),
+            "--bags",
+            str(root / "bags"),
+            "--splits",
+            "test=1",
+            "--frames",
+            str(FRAMES),
+            "--cavs",
+            "3",
+            "--seed",
+            "7",
+            "--image-size",
+            "160x120",
+            "--lidar-steps",
+            "256",
+            "--workers",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr
     bag = next((root / "bags" / "test").iterdir())
     cavs = sorted(int(p.name) for p in next((root / "data" / "test").iterdir()).iterdir() if p.is_dir())
     return bag, cavs
 
 
-def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str], ego_params: list[str] = (),
-              recorded: tuple[str, ...] = (), before_play=lambda: None) -> Path:
+def run_graph(
+    graph: Graph,
+    bag: Path,
+    cavs: list[int],
+    vehicle_params: list[str],
+    ego_params: list[str] = (),
+    recorded: tuple[str, ...] = (),
+    before_play=lambda: None,
+) -> Path:
     """Recorder (its default topics, or `recorded`), ego (the first CAV), one vehicle per CAV; `before_play()`; the
     bag played once; everything stopped; the MCAP path."""
     mcap = graph.folder / "run.mcap"
     graph.start("recorder", executable("recorder"), "--out", str(mcap), *(("--topics", *recorded) if recorded else ()))
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={cavs[0]}", "-p", "max_wait:=60.0",
-                *EVERY_FRAME, *ego_params)
+    graph.start(
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={cavs[0]}",
+        "-p",
+        "max_wait:=60.0",
+        *EVERY_FRAME,
+        *ego_params,
+    )
     for c in cavs:
-        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *EVERY_FRAME,
-                    *[x for p in vehicle_params for x in ("-p", p)])
+        graph.start(
+            f"vehicle{c}",
+            executable("vehicle"),
+            "--id",
+            str(c),
+            "--ros-args",
+            *EVERY_FRAME,
+            *[x for p in vehicle_params for x in ("-p", p)],
+        )
     graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
     graph.wait_discovered(cavs[1:])
     graph.supervisor.wait_subscribed("/recorder", topics.EGO_OCCUPANCY)
-    played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in cavs for s in
-                               ["lidar/pose", "ground_truth/occupancy_50m", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
+    played = ["/tf_static"] + [
+        f"/cav_{c}/{s}"
+        for c in cavs
+        for s in [
+            "lidar/pose",
+            "ground_truth/occupancy_50m",
+            *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info")),
+        ]
+    ]
     before_play()
-    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    player = graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
+    )
     assert player.wait(120) == 0, graph.log("player")
     graph.wait_fused(FRAMES)
     for c in cavs:
@@ -143,17 +198,26 @@ def run_graph(graph: Graph, bag: Path, cavs: list[int], vehicle_params: list[str
     return mcap
 
 
-@pytest.mark.parametrize("codec", [FeatureCodecConfig("float32", "dense", codec="none"), FeatureCodecConfig("int8", "topk", topk=1024)],
-                         ids=lambda c: c.name)
+@pytest.mark.parametrize(
+    "codec",
+    [FeatureCodecConfig("float32", "dense", codec="none"), FeatureCodecConfig("int8", "topk", topk=1024)],
+    ids=lambda c: c.name,
+)
 def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
     bag, cavs = scenario
-    params = [f"codec.dtype:={codec.dtype}", f"codec.selection:={codec.selection}", f"codec.topk:={codec.topk}",
-              f"codec.compression:={codec.codec}"]
+    params = [
+        f"codec.dtype:={codec.dtype}",
+        f"codec.selection:={codec.selection}",
+        f"codec.topk:={codec.topk}",
+        f"codec.compression:={codec.codec}",
+    ]
     mcap = run_graph(graph, bag, cavs, params)
     rec = read_recording(mcap)
     published = len(graph.supervisor.reports("ego"))
     assert len(rec.predictions) == published == FRAMES  # the recording holds every prediction the ego published
-    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics  # collaboration really ran
+    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), (
+        rec.diagnostics
+    )  # collaboration really ran
 
     torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
     model, _ = load_model(shipped_checkpoint())
@@ -161,19 +225,27 @@ def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
     assert sorted(offline) == sorted(s for _, s in rec.predictions)
     for (agent, stamp), labels in rec.predictions.items():
         assert agent == cavs[0]
-        assert np.array_equal(labels, offline[stamp].labels), f"frame {stamp}: {(labels != offline[stamp].labels).mean():.2%} of voxels differ"
+        assert np.array_equal(labels, offline[stamp].labels), (
+            f"frame {stamp}: {(labels != offline[stamp].labels).mean():.2%} of voxels differ"
+        )
     assert rec.truths.keys() == rec.predictions.keys()
 
 
 def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[str, object]]:
     """(topic, message) of every message on topics matching the pattern, in log order."""
     with open(mcap, "rb") as f:
-        return [(channel.topic, deserialize_message(message.data, msg_type))
-                for _, channel, message in make_reader(f).iter_messages() if re.fullmatch(topic_pattern, channel.topic)]
+        return [
+            (channel.topic, deserialize_message(message.data, msg_type))
+            for _, channel, message in make_reader(f).iter_messages()
+            if re.fullmatch(topic_pattern, channel.topic)
+        ]
 
 
-@pytest.mark.parametrize("dtype, rank, budget, burst", [("int8", 0, 20000, 0), ("int8", 8, 20000, 0), ("int4", 8, 4000, 16000)],
-                         ids=["channels", "rank8", "rank8-int4-burst"])
+@pytest.mark.parametrize(
+    "dtype, rank, budget, burst",
+    [("int8", 0, 20000, 0), ("int8", 8, 20000, 0), ("int4", 8, 4000, 16000)],
+    ids=["channels", "rank8", "rank8-int4-burst"],
+)
 def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dtype, rank, budget, burst):
     """A request map reaches the vehicles (a stand-in's from before the first frame, then the ego's own after each
     frame); each vehicle answers it with the voxels it weighs highest under its byte budget, addressed to the ego;
@@ -183,9 +255,15 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     unspent going to the next."""
     bag, cavs = scenario
     codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, burst_bytes=burst, rank=rank)
-    params = [f"codec.dtype:={dtype}", "codec.selection:=request", f"codec.max_bytes:={budget}", f"codec.burst_bytes:={burst}",
-              f"codec.rank:={rank}", "request_timeout:=60.0",
-              "comm_range:=1000.0"]  # every neighbour answers, near or far
+    params = [
+        f"codec.dtype:={dtype}",
+        "codec.selection:=request",
+        f"codec.max_bytes:={budget}",
+        f"codec.burst_bytes:={burst}",
+        f"codec.rank:={rank}",
+        "request_timeout:=60.0",
+        "comm_range:=1000.0",
+    ]  # every neighbour answers, near or far
     torch.set_num_threads(1)
     model, _ = load_model(shipped_checkpoint())
     fg = model.cfg.feature_grid
@@ -194,15 +272,30 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     world_from_ego = outputs[first][cavs[0]][1]
 
     def ask() -> None:  # the stand-in ego's request, known to every vehicle before it encodes a frame
-        graph.start("requester", sys.executable, str(Path(__file__).parent / "peers" / "requester.py"), str(cavs[0]), "1",
-                    json.dumps(world_from_ego.tolist()), model.cfg.range)
+        graph.start(
+            "requester",
+            sys.executable,
+            str(Path(__file__).parent / "peers" / "requester.py"),
+            str(cavs[0]),
+            "1",
+            json.dumps(world_from_ego.tolist()),
+            model.cfg.range,
+        )
         for c in cavs[1:]:
             graph.supervisor.wait_subscribed(topics.vehicle_node(c), topics.EGO_REQUEST)
         time.sleep(1.0)
 
-    mcap = run_graph(graph, bag, cavs, params, recorded=("/cav_.*/voxel_features", topics.EGO_REQUEST, topics.DIAGNOSTICS,
-                                                         topics.EGO_OCCUPANCY), before_play=ask)
-    requests = {stamp_ns(m.header.stamp): m for _, m in recorded_messages(mcap, re.escape(topics.EGO_REQUEST), RequestMap)}
+    mcap = run_graph(
+        graph,
+        bag,
+        cavs,
+        params,
+        recorded=("/cav_.*/voxel_features", topics.EGO_REQUEST, topics.DIAGNOSTICS, topics.EGO_OCCUPANCY),
+        before_play=ask,
+    )
+    requests = {
+        stamp_ns(m.header.stamp): m for _, m in recorded_messages(mcap, re.escape(topics.EGO_REQUEST), RequestMap)
+    }
     assert 1 in requests and len(requests) >= FRAMES  # the stand-in's, and the ego's after each of its frames
     assert all(m.agent_id == cavs[0] for m in requests.values())
     features = recorded_messages(mcap, r"/cav_\d+/voxel_features", VoxelFeatures)
@@ -216,23 +309,45 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
                     used[int(name.split("_")[1]), int(status["stamp"])] = int(item.split(":")[1])
     assert len(addressed) >= FRAMES * (len(cavs) - 1)  # every neighbour frame (the ego's own encoder is not asked)
     carried, budgets, spent = 0, {}, {}
-    for _, msg in sorted(addressed, key=lambda tm: (tm[1].agent_id, stamp_ns(tm[1].header.stamp))):  # each sender's in order
+    for _, msg in sorted(
+        addressed, key=lambda tm: (tm[1].agent_id, stamp_ns(tm[1].header.stamp))
+    ):  # each sender's in order
         enc = features_of(msg)
         assert enc.budget_bytes <= (burst or budget)
         sender = budgets.setdefault(msg.agent_id, SenderBudgets(codec))
         spent[msg.agent_id] = spent.get(msg.agent_id, []) + [enc.budget_bytes]
-        assert sum(spent[msg.agent_id]) <= (burst or budget) + (len(spent[msg.agent_id]) - 1) * budget  # a token bucket's bound
+        assert (
+            sum(spent[msg.agent_id]) <= (burst or budget) + (len(spent[msg.agent_id]) - 1) * budget
+        )  # a token bucket's bound
         request = requests[used[msg.agent_id, stamp_ns(msg.header.stamp)]]
         need = decode_request(request_of(request))
         out, world_from_vehicle = outputs[stamp_ns(msg.header.stamp)][msg.agent_id]
         wanted = request_for_neighbour(need, pose_of(request.lidar_pose).matrix(), world_from_vehicle, fg)
         expected = encode_output(out, fg, sender.config(cavs[0]), wanted)
         sender.spend(cavs[0], expected.budget_bytes)
-        assert (enc.dtype, enc.voxel_mask, enc.values, enc.confidence, enc.quant_scale, enc.basis_rank, enc.basis, enc.basis_mean) == (
-            dtype, expected.voxel_mask, expected.values, expected.confidence, expected.quant_scale, rank, expected.basis,
-            expected.basis_mean), f"cav {msg.agent_id}"
+        assert (
+            enc.dtype,
+            enc.voxel_mask,
+            enc.values,
+            enc.confidence,
+            enc.quant_scale,
+            enc.basis_rank,
+            enc.basis,
+            enc.basis_mean,
+        ) == (
+            dtype,
+            expected.voxel_mask,
+            expected.values,
+            expected.confidence,
+            expected.quant_scale,
+            rank,
+            expected.basis,
+            expected.basis_mean,
+        ), f"cav {msg.agent_id}"
         sent = decode_features(enc).confidence.reshape(-1) > 0
-        assert (wanted.reshape(-1)[sent] > 0).all()  # only voxels the ego asked for (none where it asked nothing in view)
+        assert (
+            wanted.reshape(-1)[sent] > 0
+        ).all()  # only voxels the ego asked for (none where it asked nothing in view)
         carried += int(sent.sum())
     assert carried > 0
     if burst:  # the bucket starts full: a first answer takes more than the average
@@ -251,14 +366,40 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
     graph.start(
         "ego_a", executable("ego"), "--ros-args", "-p", f"ego_id:={a}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar
     )
-    graph.start("ego_b", executable("ego"), "--ros-args", "-p", f"ego_id:={b}", "-p", "max_wait:=60.0",
-                *EVERY_FRAME, *lidar,
-                "-r", "__ns:=/b", "-r", f"cav_{b}/voxel_features:={topics.voxel_features(b)}")
+    graph.start(
+        "ego_b",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={b}",
+        "-p",
+        "max_wait:=60.0",
+        *EVERY_FRAME,
+        *lidar,
+        "-r",
+        "__ns:=/b",
+        "-r",
+        f"cav_{b}/voxel_features:={topics.voxel_features(b)}",
+    )
     for v in (a, b):
         graph.start(f"vehicle{v}", executable("vehicle"), "--id", str(v), "--ros-args", *lidar, *dense, *EVERY_FRAME)
-    graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *lidar, *EVERY_FRAME,
-                "-p", "codec.dtype:=int8",
-                "-p", "codec.selection:=request", "-p", "codec.max_bytes:=20000", "-p", "request_timeout:=60.0")
+    graph.start(
+        f"vehicle{c}",
+        executable("vehicle"),
+        "--id",
+        str(c),
+        "--ros-args",
+        *lidar,
+        *EVERY_FRAME,
+        "-p",
+        "codec.dtype:=int8",
+        "-p",
+        "codec.selection:=request",
+        "-p",
+        "codec.max_bytes:=20000",
+        "-p",
+        "request_timeout:=60.0",
+    )
     graph.wait_active("/ego", "/b/ego", *map(topics.vehicle_node, cavs))
     sup = graph.supervisor
     for ego, others in (("/ego", (b, c)), ("/b/ego", (a, c))):
@@ -267,15 +408,25 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
     poses = {stamp: agents for stamp, agents in read_frames(bag)}
     first = min(poses)
     for ego, topic in ((a, topics.EGO_REQUEST), (b, "/b" + topics.EGO_REQUEST)):  # stand-ins, before the first frame
-        graph.start(f"requester{ego}", sys.executable, str(Path(__file__).parent / "peers" / "requester.py"), str(ego), "1",
-                    json.dumps(poses[first][ego]["pose"].tolist()), "51.2m", topic)
+        graph.start(
+            f"requester{ego}",
+            sys.executable,
+            str(Path(__file__).parent / "peers" / "requester.py"),
+            str(ego),
+            "1",
+            json.dumps(poses[first][ego]["pose"].tolist()),
+            "51.2m",
+            topic,
+        )
         # the requester's publisher in the graph (it starts slowly on 2 cores): the vehicle gets its latched request
         # as soon as they match, well within the second below, so even the first frame is answered
         sup.wait_subscribed(topics.vehicle_node(c), topic)
         sup.wait_published("/requester", topic)
     time.sleep(1.0)
     played = ["/tf_static", *(t for v in cavs for t in (topics.lidar_pose(v), topics.lidar_points(v)))]
-    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    player = graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
+    )
     assert player.wait(120) == 0, graph.log("player")
     reports = sup.wait_reports("ego", 2 * FRAMES, timeout=180)
     by_ego = {v: [r for r in reports if r["received_wall_ns"].startswith(f"{v}:")] for v in (a, b)}
@@ -284,7 +435,9 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
     for ego in (a, b):
         assert len(by_ego[ego]) == FRAMES
         # the answer to its request arrived in time (fused, or matched but beyond comm_range)
-        assert all(str(c) in (r["neighbours"] + "," + r["neighbours_not_chosen"]).split(",") for r in by_ego[ego]), by_ego[ego]
+        assert all(str(c) in (r["neighbours"] + "," + r["neighbours_not_chosen"]).split(",") for r in by_ego[ego]), (
+            by_ego[ego]
+        )
         # the other ego's answers, ignored: every frame's before its last frame's (the vehicle sends them in order)
         assert int(by_ego[ego][-1]["messages_for_other_egos"]) >= FRAMES - 1
     assert all(int(x.split(":")[1]) <= 20000 for rec in answered for x in rec.split(","))
@@ -316,9 +469,14 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     graph.wait_discovered([neighbour])
     for topic in ("/diagnostics", "/ego/occupancy"):  # recorded from the first frame on, as the demo makes sure
         graph.supervisor.wait_subscribed("/recorder", topic)
-    played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in (ego, neighbour) for s in
-                               ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
-    graph.start("player", executable("player"), str(bag), "--rate", "0.02", "--wait-subscribers", "30", "--topics", *played)
+    played = ["/tf_static"] + [
+        f"/cav_{c}/{s}"
+        for c in (ego, neighbour)
+        for s in ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]
+    ]
+    graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.02", "--wait-subscribers", "30", "--topics", *played
+    )
     graph.wait_fused(1, lambda r: r["neighbours_used"] == "1")
     graph.procs[f"vehicle{neighbour}"].kill()  # no goodbye: as a crash
     graph.wait_fused(1, lambda r: r["neighbours_used"] == "0" and r["neighbours_missing"] == str(neighbour))
@@ -355,9 +513,16 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
     graph.wait_discovered([neighbour])
     assert "tiny-lmscnet (lidar" in graph.log("lidar")
-    played = ["/tf_static", f"/cav_{neighbour}/lidar/pose", f"/cav_{neighbour}/lidar/points", f"/cav_{ego}/lidar/pose",
-              *(f"/cav_{ego}/camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]
-    graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    played = [
+        "/tf_static",
+        f"/cav_{neighbour}/lidar/pose",
+        f"/cav_{neighbour}/lidar/points",
+        f"/cav_{ego}/lidar/pose",
+        *(f"/cav_{ego}/camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info")),
+    ]
+    graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
+    )
     graph.wait_fused(2, lambda r: r["neighbours_used"] == "1")
 
 
@@ -368,11 +533,21 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     bag, cavs = scenario
     ego, neighbour = cavs[0], cavs[-1]
     sup, manual = graph.supervisor, ["-p", "autostart:=false"]
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0",
-                *EVERY_FRAME, *manual)
+    graph.start(
+        "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *manual
+    )
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *manual, *EVERY_FRAME)
-    graph.start("broken", executable("vehicle"), "--id", "99", "--ros-args", *manual, "-p", f"checkpoint:={graph.folder / 'missing.pt'}")
+    graph.start(
+        "broken",
+        executable("vehicle"),
+        "--id",
+        "99",
+        "--ros-args",
+        *manual,
+        "-p",
+        f"checkpoint:={graph.folder / 'missing.pt'}",
+    )
     broken = topics.vehicle_node(99)
     nodes = ["/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour)]
     for node in [*nodes, broken]:
@@ -383,27 +558,49 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     assert sup.state(broken) == "unconfigured" and "missing.pt" in graph.log("broken")
     for node in nodes:
         assert sup.change(node, "configure") and sup.state(node) == "inactive"
-    sup.wait("the publishers made by configure", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 1
-             and sup.node.count_publishers(topics.voxel_features(neighbour)) == 1, 30)
+    sup.wait(
+        "the publishers made by configure",
+        lambda: (
+            sup.node.count_publishers(topics.EGO_OCCUPANCY) == 1
+            and sup.node.count_publishers(topics.voxel_features(neighbour)) == 1
+        ),
+        30,
+    )
     assert not sup.subscribes("/ego", topics.voxel_features(ego))  # an inactive ego listens to nothing
 
     for node in nodes:
         assert sup.change(node, "activate") and sup.state(node) == "active"
     graph.wait_discovered([ego, neighbour])
-    played = ["/tf_static"] + [f"/cav_{c}/{s}" for c in (ego, neighbour) for s in
-                               ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]]
-    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    played = ["/tf_static"] + [
+        f"/cav_{c}/{s}"
+        for c in (ego, neighbour)
+        for s in ["lidar/pose", *(f"camera{i}/{k}" for i in range(4) for k in ("image_raw", "camera_info"))]
+    ]
+    player = graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
+    )
     assert player.wait(120) == 0, graph.log("player")
     graph.wait_fused(FRAMES, lambda r: r["neighbours_used"] == "1")
 
     vehicle = topics.vehicle_node(ego)
     assert sup.change(vehicle, "deactivate") and sup.state(vehicle) == "inactive"
-    sup.wait("the inactive vehicle to drop its sensor subscriptions", lambda: not sup.subscribes(vehicle, topics.lidar_pose(ego)), 30)
+    sup.wait(
+        "the inactive vehicle to drop its sensor subscriptions",
+        lambda: not sup.subscribes(vehicle, topics.lidar_pose(ego)),
+        30,
+    )
     assert sup.change("/ego", "deactivate")
-    sup.wait("the inactive ego to unsubscribe", lambda: not sup.subscribes("/ego", topics.voxel_features(neighbour)), 30)
+    sup.wait(
+        "the inactive ego to unsubscribe", lambda: not sup.subscribes("/ego", topics.voxel_features(neighbour)), 30
+    )
     assert sup.change("/ego", "cleanup") and sup.state("/ego") == "unconfigured"
-    sup.wait("cleanup to release the ego's publishers", lambda: sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
-             and sup.node.count_publishers(topics.EGO_REQUEST) == 0, 30)
+    sup.wait(
+        "cleanup to release the ego's publishers",
+        lambda: (
+            sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0 and sup.node.count_publishers(topics.EGO_REQUEST) == 0
+        ),
+        30,
+    )
     assert sup.change("/ego", "configure") and sup.change("/ego", "activate")  # loads again after a cleanup
     sup.wait_subscribed("/ego", topics.voxel_features(neighbour))
     for node in [*nodes, broken]:
@@ -436,7 +633,9 @@ def test_recordings_and_bags_decode_with_foxglove_readers_and_draw_in_3d(graph, 
         assert "error" not in topics_, topics_
         failed = {t: e for t, e in topics_.items() if e["failed"] or e["error"]}
         assert not failed, failed
-        assert {t: e["decoded"] for t, e in topics_.items()} == mcap_counts(path)  # every message, as the mcap library counts
+        assert {t: e["decoded"] for t, e in topics_.items()} == mcap_counts(
+            path
+        )  # every message, as the mcap library counts
     rec = decoded[str(mcap)]
     for topic in (topics.EGO_POINTS, topics.EGO_TRUTH_POINTS):
         assert rec[topic]["decoded"] == FRAMES and rec[topic]["schema"] == "sensor_msgs/msg/PointCloud2"
@@ -452,23 +651,66 @@ def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
     bag, cavs = scenario
     ego, neighbour = cavs[0], cavs[-1]
     lidar = ["-p", f"checkpoint:={Path(get_package_share_directory('co3sop_nodes'), 'checkpoints', 'tiny-lidar.pt')}"]
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0",
-                *EVERY_FRAME, *lidar,
-                "-r", "__ns:=/fleet", "-r", f"cav_{ego}/voxel_features:=/fleet/car_a/voxel_features")
-    graph.start("own", executable("vehicle"), "--id", str(ego), "--ros-args", *lidar, *EVERY_FRAME,
-                "-r", "__ns:=/fleet/car_a",
-                "-r", f"lidar/pose:={topics.lidar_pose(ego)}", "-r", f"lidar/points:={topics.lidar_points(ego)}")
-    graph.start("neighbour", executable("vehicle"), "--id", str(neighbour), "--ros-args", *lidar, *EVERY_FRAME,
-                "-r", "voxel_features:=/v2x/any_name")
+    graph.start(
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={ego}",
+        "-p",
+        "max_wait:=60.0",
+        *EVERY_FRAME,
+        *lidar,
+        "-r",
+        "__ns:=/fleet",
+        "-r",
+        f"cav_{ego}/voxel_features:=/fleet/car_a/voxel_features",
+    )
+    graph.start(
+        "own",
+        executable("vehicle"),
+        "--id",
+        str(ego),
+        "--ros-args",
+        *lidar,
+        *EVERY_FRAME,
+        "-r",
+        "__ns:=/fleet/car_a",
+        "-r",
+        f"lidar/pose:={topics.lidar_pose(ego)}",
+        "-r",
+        f"lidar/points:={topics.lidar_points(ego)}",
+    )
+    graph.start(
+        "neighbour",
+        executable("vehicle"),
+        "--id",
+        str(neighbour),
+        "--ros-args",
+        *lidar,
+        *EVERY_FRAME,
+        "-r",
+        "voxel_features:=/v2x/any_name",
+    )
     graph.wait_active("/fleet/ego", "/fleet/car_a/vehicle", topics.vehicle_node(neighbour))
     sup = graph.supervisor
     for topic in ("/fleet/car_a/voxel_features", "/v2x/any_name"):
         sup.wait_subscribed("/fleet/ego", topic)
-    assert sup.node.count_publishers("/fleet/ego/occupancy") == 1 and sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
-    assert sup.node.count_publishers(topics.voxel_features(ego)) == sup.node.count_publishers(topics.voxel_features(neighbour)) == 0
+    assert (
+        sup.node.count_publishers("/fleet/ego/occupancy") == 1 and sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
+    )
+    assert (
+        sup.node.count_publishers(topics.voxel_features(ego))
+        == sup.node.count_publishers(topics.voxel_features(neighbour))
+        == 0
+    )
     played = ["/tf_static", *(t for c in (ego, neighbour) for t in (topics.lidar_pose(c), topics.lidar_points(c)))]
-    player = graph.start("player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played)
+    player = graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
+    )
     assert player.wait(120) == 0, graph.log("player")
     reports = graph.wait_fused(FRAMES, lambda r: r["neighbours"] == str(neighbour))
     assert all(r["neighbours_missing"] == "" for r in reports), reports
-    assert "/fleet/car_a/voxel_features" in graph.log("own") and "neighbour discovered: /v2x/any_name" in graph.log("ego")
+    assert "/fleet/car_a/voxel_features" in graph.log("own") and "neighbour discovered: /v2x/any_name" in graph.log(
+        "ego"
+    )

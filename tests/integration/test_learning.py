@@ -12,20 +12,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
-from co3sop_nodes.data import synthetic
-from co3sop_nodes.inference import InferencePath
-from co3sop_nodes.train.dataset import OccupancyDataset
-from co3sop_nodes.eval.evaluate import evaluate
-from co3sop_nodes.eval.metrics import Confusion
-from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
-from co3sop_nodes.model.config import preset
-from co3sop_nodes.inference.inputs import to_batch
-from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
-from co3sop_nodes.model.co3sop import build_model
-from co3sop_nodes.inference.predict import predict_frame
 from conftest import executable
 from model_checks import MICRO, assert_labels_equal, reference
+
+from co3sop_nodes.data import synthetic
+from co3sop_nodes.eval.evaluate import evaluate
+from co3sop_nodes.eval.metrics import Confusion
+from co3sop_nodes.inference import InferencePath
+from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
+from co3sop_nodes.inference.inputs import to_batch
+from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
+from co3sop_nodes.train.dataset import OccupancyDataset
 
 
 def test_overfits_one_sample():
@@ -37,7 +37,10 @@ def test_overfits_one_sample():
     labels = torch.from_numpy(synthetic.street_labels(cfg.grid, seed=1)).long()[None]
     coarse = [downsample_labels(labels, 4, 24), downsample_labels(labels, 2, 24)]
     w, h = cfg.image_size
-    inputs = {"images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8), "lidar2img": torch.eye(4).repeat(1, 4, 1, 1)}
+    inputs = {
+        "images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8),
+        "lidar2img": torch.eye(4).repeat(1, 4, 1, 1),
+    }
     opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
     gen = torch.Generator().manual_seed(0)
     for _ in range(200):  # full resolution supervised on a fresh fifth of the voxels each step, as `train` does
@@ -65,8 +68,24 @@ def tool(*args: str) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def small_split(tmp_path_factory):
     out = tmp_path_factory.mktemp("learn")
-    result = tool("generate", "--out", str(out / "data"), "--splits", "train=1", "validate=1", "--frames", "2", "--cavs", "2",
-                  "--image-size", "64x48", "--lidar-steps", "128", "--vehicles", "8")
+    result = tool(
+        "generate",
+        "--out",
+        str(out / "data"),
+        "--splits",
+        "train=1",
+        "validate=1",
+        "--frames",
+        "2",
+        "--cavs",
+        "2",
+        "--image-size",
+        "64x48",
+        "--lidar-steps",
+        "128",
+        "--vehicles",
+        "8",
+    )
     assert result.returncode == 0, result.stderr
     return out
 
@@ -74,7 +93,22 @@ def small_split(tmp_path_factory):
 def test_train_stages_resume_and_evaluate(small_split):
     out, data = small_split, str(small_split / "data")
     common = ("--data", data, "--threads", "2", "--sample-fraction", "0.05")
-    ego = tool("train", *common, "--preset", "tiny", "--stage", "ego", "--device", "cpu", "--steps", "3", "--save-every", "2", "--out", str(out / "ego"))
+    ego = tool(
+        "train",
+        *common,
+        "--preset",
+        "tiny",
+        "--stage",
+        "ego",
+        "--device",
+        "cpu",
+        "--steps",
+        "3",
+        "--save-every",
+        "2",
+        "--out",
+        str(out / "ego"),
+    )
     assert ego.returncode == 0, ego.stderr
     for name in ("state.pt", "model.pt", "log.csv", "loss.png"):
         assert (out / "ego" / name).is_file()
@@ -84,13 +118,35 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert len((out / "ego" / "log.csv").read_text().splitlines()) == 5  # resumed at step 3
     ran = torch.load(out / "ego" / "model.pt", weights_only=True)["meta"]["history"]
     assert [(h["from_step"], h["steps"]) for h in ran] == [(0, 3), (3, 4)]  # both commands that made the weights
-    fusion = tool("train", *common, "--stage", "fusion", "--init", str(out / "ego" / "model.pt"), "--steps", "2", "--schedule", "cosine",
-                  "--out", str(out / "fusion"))
+    fusion = tool(
+        "train",
+        *common,
+        "--stage",
+        "fusion",
+        "--init",
+        str(out / "ego" / "model.pt"),
+        "--steps",
+        "2",
+        "--schedule",
+        "cosine",
+        "--out",
+        str(out / "fusion"),
+    )
     assert fusion.returncode == 0, fusion.stderr
     rates = [float(r["lr"]) for r in csv.DictReader((out / "fusion" / "log.csv").open())]
     assert rates == [2e-3, 1e-3]  # cosine from --lr towards 0 at --steps
     assert (out / "fusion" / "model.pt").stat().st_size < 5 * 2**20
-    result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "validate", "--out", str(out / "results"))
+    result = tool(
+        "evaluate",
+        "--model",
+        str(out / "fusion" / "model.pt"),
+        "--data",
+        data,
+        "--splits",
+        "validate",
+        "--out",
+        str(out / "results"),
+    )
     assert result.returncode == 0, result.stderr
     assert "mIoU co3sop-readme" in result.stdout and "mIoU surroundocc" in result.stdout
     data_json = json.loads((out / "results" / "evaluation.json").read_text())
@@ -100,8 +156,20 @@ def test_train_stages_resume_and_evaluate(small_split):
     every, _ = evaluate(model, OccupancyDataset(data, ["validate"], model.cfg), later_frames=later)
     first = {k: c.frames - later[k].frames for k, c in every.items()}
     assert first == {k: 2 for k in every} and sum(c.frames for c in later.values()) == 2  # the second frame's two egos
-    alone = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), str(out / "ego" / "model.pt"), "--collaborators", "0",
-                 "--data", data, "--splits", "validate", "--out", str(out / "alone"))
+    alone = tool(
+        "evaluate",
+        "--model",
+        str(out / "fusion" / "model.pt"),
+        str(out / "ego" / "model.pt"),
+        "--collaborators",
+        "0",
+        "--data",
+        data,
+        "--splits",
+        "validate",
+        "--out",
+        str(out / "alone"),
+    )
     assert alone.returncode == 0, alone.stderr
     columns = json.loads((out / "alone" / "evaluation.json").read_text())
     # one preset twice: the run folder tells the columns apart
@@ -110,17 +178,46 @@ def test_train_stages_resume_and_evaluate(small_split):
     assert [h["stage"] for h in history] == ["ego", "ego", "fusion"]
     # the protocol's last two steps: ablations with intervals on two scenarios, then the page made from their JSON
     bench = out / "bench" / "tiny-51.2m-s1"
-    result = tool("evaluate", "--model", str(out / "fusion" / "model.pt"), "--data", data, "--splits", "train", "validate",
-                  "--ablation", "collaboration", "inputs", "distance", "--out", str(bench))
+    result = tool(
+        "evaluate",
+        "--model",
+        str(out / "fusion" / "model.pt"),
+        "--data",
+        data,
+        "--splits",
+        "train",
+        "validate",
+        "--ablation",
+        "collaboration",
+        "inputs",
+        "distance",
+        "--out",
+        str(bench),
+    )
     assert result.returncode == 0, result.stderr
     report = json.loads((bench / "tiny_51.2m_collaboration.json").read_text())
     assert report["on"]["scenarios"] == 2 and set(report["differences"]) == {"on"}
     bins = json.loads((bench / "tiny_51.2m_distance.json").read_text())["bins"]
     assert sum(b["samples"] for b in bins.values()) == report["on"]["frames"]  # every sample in exactly one bin
     for b in bins.values():  # each bin's off / on are the whole run's restricted to its samples
-        assert b["on"]["frames"] == b["off"]["frames"] == b["samples"] and set(b["difference"]) >= {"co3sop-code", "geometry"}
-    result = tool("evaluate", "--model", str(out / "ego" / "model.pt"), "--collaborators", "0", "--data", data, "--splits", "train", "validate",
-                  "--out", str(bench / "ego-stage"))
+        assert b["on"]["frames"] == b["off"]["frames"] == b["samples"] and set(b["difference"]) >= {
+            "co3sop-code",
+            "geometry",
+        }
+    result = tool(
+        "evaluate",
+        "--model",
+        str(out / "ego" / "model.pt"),
+        "--collaborators",
+        "0",
+        "--data",
+        data,
+        "--splits",
+        "train",
+        "validate",
+        "--out",
+        str(bench / "ego-stage"),
+    )
     assert result.returncode == 0, result.stderr
     single = out / "bench" / "tiny-single-51.2m-s1" / "alone"  # a single-agent run's evidence (here: the ego stage's)
     shutil.copytree(bench / "ego-stage", single)
@@ -133,16 +230,28 @@ def test_train_stages_resume_and_evaluate(small_split):
     text = page.read_text()
     gain = report["differences"]["on"]["co3sop-code"]
     alone = json.loads((bench / "ego-stage" / "evaluation.json").read_text())["tiny 51.2m, 0 collaborators"]
-    assert f"| tiny | 51.2m | ego 4 + fusion 2 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |" in text
+    assert (
+        f"| tiny | 51.2m | ego 4 + fusion 2 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |"
+        in text
+    )
     assert f"{100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}]" in text
     assert "Input controls" in text and "| blank |" in text
     on = report["on"]["co3sop-code"]["miou"]  # a camera model: its goal is an mIoU, the LiDAR model's a gain
     verdict = "**met**" if on >= 0.15 and gain["ci95"][0] > 0 else "**not met"
-    assert f"mIoU 1..23 with collaboration {100 * on:.2f} against the goal of 15.00 (gain {100 * gain['delta']:.2f})" in text
+    assert (
+        f"mIoU 1..23 with collaboration {100 * on:.2f} against the goal of 15.00 (gain {100 * gain['delta']:.2f})"
+        in text
+    )
     assert verdict in text
-    assert "## Single-agent models" in text and f"| tiny-single | 51.2m | ego 4 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} [" in text
+    assert (
+        "## Single-agent models" in text
+        and f"| tiny-single | 51.2m | ego 4 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} [" in text
+    )
     assert "## Choices made on validate" in text and "| an-option | tiny 51.2m | ego 4 + fusion 2 steps |" in text
-    assert "nearest collaborator's distance" in text and f"| {next(iter(bins))} | {next(iter(bins.values()))['samples']} |" in text
+    assert (
+        "nearest collaborator's distance" in text
+        and f"| {next(iter(bins))} | {next(iter(bins.values()))['samples']} |" in text
+    )
     bad = tool("report", str(out / "ego"), "--out", str(page))
     assert bad.returncode == 2 and "no <preset>-<range>-s<seed> folder" in bad.stderr and page.read_text() == text
 
@@ -152,18 +261,57 @@ def test_early_fusion_trains_in_one_stage_and_is_scored_off_and_on(small_split, 
     data = str(small_split / "data")
     common = ("--data", data, "--threads", "2", "--sample-fraction", "0.05", "--device", "cpu")
     early = tmp_path / "early"
-    done = tool("train", *common, "--preset", "tiny-sscnet-early", "--stage", "ego", "--steps", "2", "--out", str(early))
+    done = tool(
+        "train", *common, "--preset", "tiny-sscnet-early", "--stage", "ego", "--steps", "2", "--out", str(early)
+    )
     assert done.returncode == 0, done.stderr
-    refused = tool("train", *common, "--stage", "fusion", "--init", str(early / "model.pt"), "--steps", "1", "--out", str(tmp_path / "fusion"))
+    refused = tool(
+        "train",
+        *common,
+        "--stage",
+        "fusion",
+        "--init",
+        str(early / "model.pt"),
+        "--steps",
+        "1",
+        "--out",
+        str(tmp_path / "fusion"),
+    )
     assert refused.returncode == 2 and "needs a model with fusion" in refused.stderr
-    done = tool("evaluate", "--model", str(early / "model.pt"), "--data", data, "--splits", "validate", "--ablation", "collaboration",
-                "--out", str(tmp_path / "results"))
+    done = tool(
+        "evaluate",
+        "--model",
+        str(early / "model.pt"),
+        "--data",
+        data,
+        "--splits",
+        "validate",
+        "--ablation",
+        "collaboration",
+        "--out",
+        str(tmp_path / "results"),
+    )
     assert done.returncode == 0, done.stderr
     report = json.loads((tmp_path / "results" / "tiny-sscnet-early_51.2m_collaboration.json").read_text())
     assert report["off"]["frames"] == report["on"]["frames"] == 4 and "co3sop-code" in report["differences"]["on"]
-    refused = tool("evaluate", "--model", str(early / "model.pt"), "--data", data, "--splits", "validate", "--ablation", "codec",
-                   "--out", str(tmp_path / "results"))
-    assert refused.returncode == 2 and "receives no features to encode" in refused.stderr and "Traceback" not in refused.stderr
+    refused = tool(
+        "evaluate",
+        "--model",
+        str(early / "model.pt"),
+        "--data",
+        data,
+        "--splits",
+        "validate",
+        "--ablation",
+        "codec",
+        "--out",
+        str(tmp_path / "results"),
+    )
+    assert (
+        refused.returncode == 2
+        and "receives no features to encode" in refused.stderr
+        and "Traceback" not in refused.stderr
+    )
 
 
 def test_train_explains_bad_input(tmp_path):
@@ -173,18 +321,43 @@ def test_train_explains_bad_input(tmp_path):
     assert result.returncode == 2 and "no such checkpoint" in result.stderr
     for command in ("train", "evaluate"):
         result = tool(command, "--data", str(tmp_path), "--device", "gpu", "--out", str(tmp_path / "run"))
-        assert result.returncode == 2 and "--device 'gpu': not a device" in result.stderr and "Traceback" not in result.stderr
-    for option, value, needs in (("--steps", "0", "at least 1"), ("--lr", "-1e-3", "above 0"), ("--sample-fraction", "0", "in (0, 1]")):
+        assert (
+            result.returncode == 2
+            and "--device 'gpu': not a device" in result.stderr
+            and "Traceback" not in result.stderr
+        )
+    for option, value, needs in (
+        ("--steps", "0", "at least 1"),
+        ("--lr", "-1e-3", "above 0"),
+        ("--sample-fraction", "0", "in (0, 1]"),
+    ):
         result = tool("train", "--data", str(tmp_path), f"{option}={value}", "--out", str(tmp_path / "run"))
-        assert result.returncode == 2 and f"train: error: {option} " in result.stderr and needs in result.stderr, result.stderr
+        assert result.returncode == 2 and f"train: error: {option} " in result.stderr and needs in result.stderr, (
+            result.stderr
+        )
 
 
 @pytest.fixture(scope="module")
 def street_split(tmp_path_factory):
     """Two small scenarios at the cameras' and LiDAR's usual sizes, with a seed no training split uses."""
     out = tmp_path_factory.mktemp("street")
-    result = tool("generate", "--out", str(out), "--splits", "test=2", "--frames", "2", "--cavs", "2", "--seed", "11",
-                  "--image-size", "320x240", "--lidar-steps", "512")
+    result = tool(
+        "generate",
+        "--out",
+        str(out),
+        "--splits",
+        "test=2",
+        "--frames",
+        "2",
+        "--cavs",
+        "2",
+        "--seed",
+        "11",
+        "--image-size",
+        "320x240",
+        "--lidar-steps",
+        "512",
+    )
     assert result.returncode == 0, result.stderr
     return out
 
@@ -196,8 +369,19 @@ def shipped_models() -> list[Path]:
 @pytest.mark.parametrize("model", [p.name for p in shipped_models()])
 def test_shipped_models_use_their_sensors(street_split, tmp_path, model):
     """Input controls: every shipped model beats itself with blank sensors by a clear margin, with intervals."""
-    result = tool("evaluate", "--model", str(shipped_checkpoint(model)), "--data", str(street_split), "--splits", "test",
-                  "--ablation", "inputs", "--out", str(tmp_path))
+    result = tool(
+        "evaluate",
+        "--model",
+        str(shipped_checkpoint(model)),
+        "--data",
+        str(street_split),
+        "--splits",
+        "test",
+        "--ablation",
+        "inputs",
+        "--out",
+        str(tmp_path),
+    )
     assert result.returncode == 0, result.stderr
     report = json.loads(next(tmp_path.glob("*_inputs.json")).read_text())
     assert report["reference"] == "real" and set(report["differences"]) == {"blank", "shuffled"}
@@ -279,8 +463,12 @@ def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_spli
     ]
     runs = {"one": [executable("train"), "--batch", "2"], "two": torchrun}
     for name, launcher in runs.items():
-        done = subprocess.run([*launcher, *common, "--preset", "tiny", "--stage", "ego", "--steps", "2", "--out", str(tmp_path / name)],
-                              capture_output=True, text=True, timeout=600)
+        done = subprocess.run(
+            [*launcher, *common, "--preset", "tiny", "--stage", "ego", "--steps", "2", "--out", str(tmp_path / name)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert done.returncode == 0, done.stderr
         if name == "two":
             assert "global batch 2 per step (1 in each of 2 processes)" in done.stdout
@@ -300,10 +488,14 @@ def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_spli
 
     # resumed for one more step; a fusion step from one exported model (float16: the runs' last-bit differences may round apart)
     for name, launcher in runs.items():
-        for extra in (["--stage", "ego", "--steps", "3", "--resume"], ["--stage", "fusion", "--init", str(tmp_path / "one" / "model.pt"),
-                                                                      "--steps", "1"]):
+        for extra in (
+            ["--stage", "ego", "--steps", "3", "--resume"],
+            ["--stage", "fusion", "--init", str(tmp_path / "one" / "model.pt"), "--steps", "1"],
+        ):
             out = tmp_path / (name if "--resume" in extra else f"{name}-fusion")
-            done = subprocess.run([*launcher, *common, *extra, "--out", str(out)], capture_output=True, text=True, timeout=600)
+            done = subprocess.run(
+                [*launcher, *common, *extra, "--out", str(out)], capture_output=True, text=True, timeout=600
+            )
             assert done.returncode == 0, done.stderr
     for suffix in ("", "-fusion"):
         one, two = trained_parameters(tmp_path / f"one{suffix}"), trained_parameters(tmp_path / f"two{suffix}")

@@ -20,15 +20,29 @@ def test_executables_resolve_like_ros2_run():
 def test_monitor_reports_rate_size_ratio_decode_time_and_grid(processes):
     monitor = processes.start(executable("monitor"), "--count", "24", "--duration", "90", "--period", "0.5")
     stream = processes.start(
-        executable("sample_stream"), "--agents", "1", "2", "--frames", "20", "--rate", "20", "--dtype", "int8",
-        "--ros-args", "-r", "__node:=sample_stream_test",
+        executable("sample_stream"),
+        "--agents",
+        "1",
+        "2",
+        "--frames",
+        "20",
+        "--rate",
+        "20",
+        "--dtype",
+        "int8",
+        "--ros-args",
+        "-r",
+        "__node:=sample_stream_test",
     )
     code, out = finish(monitor)
     assert code == 0, out
     assert finish(stream)[0] == 0
     last = {}
     for line in out.splitlines():  # the last report line per topic
-        m = re.match(r"\[monitor\] (/\S+)\s+(\w+)\s+([\d.]+) Hz\s+n=(\d+)\s+wire\s+([\d.]+) KB/msg\s+ratio\s+([\d.]+)x\s+decode\s+([\d.]+) ms\s+\| (.*)", line)
+        m = re.match(
+            r"\[monitor\] (/\S+)\s+(\w+)\s+([\d.]+) Hz\s+n=(\d+)\s+wire\s+([\d.]+) KB/msg\s+ratio\s+([\d.]+)x\s+decode\s+([\d.]+) ms\s+\| (.*)",
+            line,
+        )
         if m:
             last[m.group(1)] = m
     assert set(last) == {"/cav_1/voxel_features", "/cav_2/voxel_features", "/ego/occupancy"}, out

@@ -15,26 +15,26 @@ import numpy as np
 import pytest
 import rclpy
 from ament_index_python.packages import get_package_share_directory
-from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from conftest import executable
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
-from rosbags.highlevel import AnyReader
 
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from co3sop_nodes.common import topics
-from co3sop_nodes.viz.cloud import occupancy_cloud
-from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_labels, encode_request
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.model.config import preset
 from co3sop_nodes.messages import features_msg, occupancy_msg, point_cloud_msg, request_msg, time_msg
-from co3sop_nodes.ros.message_types import RCLPY
+from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.dds import REQUEST_QOS
+from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.supervisor import Supervisor
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_labels, encode_request
+from co3sop_nodes.viz.cloud import occupancy_cloud
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 EGO, OTHER = 1, 7
@@ -68,17 +68,21 @@ def wait_for(log: Path, pattern: str, proc: subprocess.Popen, timeout: float = 1
 
 def wait_ready(sup: Supervisor, node: str, proc: subprocess.Popen, log: Path, timeout: float = 120) -> None:
     """`node` (fully qualified) is up: a lifecycle node (ego, a vehicle) in state active, the recorder present in the graph."""
+
     def up() -> bool:
         assert proc.poll() is None, log.read_text()
         if node == "/recorder":
             return "recorder" in sup.node.get_node_names()
         return f"{node}/get_state" in dict(sup.node.get_service_names_and_types()) and sup.state(node) == "active"
+
     sup.wait(f"{node} up", up, timeout)
 
 
 def fused(sup: Supervisor, n: int, neighbours: int, timeout: float = 120) -> None:
     """The ego reported its n-th frame on /diagnostics, fused with `neighbours` neighbours."""
-    sup.wait_reports("ego", 1, timeout, lambda r: r["frames_published"] == str(n) and r["neighbours_used"] == str(neighbours))
+    sup.wait_reports(
+        "ego", 1, timeout, lambda r: r["frames_published"] == str(n) and r["neighbours_used"] == str(neighbours)
+    )
 
 
 def features(agent: int, stamp: int, pose=Pose((10.0, 5.0, 1.8)), grid=None, channels=32) -> VoxelFeatures:
@@ -101,8 +105,20 @@ def wait_subscribed(peer, pubs) -> None:
 
 
 def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, sup):
-    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=0.5",
-                     "-p", "max_payload_mb:=4.0", "-p", "publish_points:=false")
+    ego, log = start(
+        tmp_path,
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={EGO}",
+        "-p",
+        "max_wait:=0.5",
+        "-p",
+        "max_payload_mb:=4.0",
+        "-p",
+        "publish_points:=false",
+    )
     try:
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
@@ -121,7 +137,12 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
         m = features(OTHER, stamp)
         m.values = bytes(np.random.default_rng(0).integers(0, 255, len(m.values), dtype=np.uint8))
         bad.append(("payload", m))  # corrupt
-        bad.append(("payload", features(OTHER, stamp, grid=BENCHMARK_RANGES["51.2m"].__class__((0.0, 0.0, 0.0), 0.8, (64, 64, 6)))))
+        bad.append(
+            (
+                "payload",
+                features(OTHER, stamp, grid=BENCHMARK_RANGES["51.2m"].__class__((0.0, 0.0, 0.0), 0.8, (64, 64, 6))),
+            )
+        )
         bad.append(("header", features(OTHER, stamp, pose=Pose((float("nan"), 0.0, 0.0)))))
         bad.append(("header", features(OTHER, stamp, pose=Pose((1e9, 0.0, 0.0)))))
         m = features(OTHER, stamp)
@@ -134,7 +155,12 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
         for kind in ("payload", "header", "size", "stale"):
             want = sum(1 for k, _ in bad if k == kind)
             assert len(re.findall(rf"/cav_{OTHER}/voxel_features: dropped \({kind}\)", text)) == want, text
-        assert "does not match the model's" in text and "not finite" in text and "more than" in text and "older than" in text
+        assert (
+            "does not match the model's" in text
+            and "not finite" in text
+            and "more than" in text
+            and "older than" in text
+        )
 
         other.publish(features(OTHER, stamp))
         acked(other)
@@ -149,8 +175,18 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
 def test_the_ego_fuses_each_frame_once_and_refuses_stamps_ahead_of_its_clock(tmp_path, peer, sup):
     """A duplicate of its own frame, a replay of one fused, an own frame and a neighbour's stamped in 2038: each
     dropped and counted by reason; the good frames around them are fused, each once, with the neighbour."""
-    with running(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=2.0",
-                 "-p", "publish_points:=false") as (ego, log):
+    with running(
+        tmp_path,
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={EGO}",
+        "-p",
+        "max_wait:=2.0",
+        "-p",
+        "publish_points:=false",
+    ) as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
         other = peer.create_publisher(VoxelFeatures, f"/cav_{OTHER}/voxel_features", QOS)
@@ -187,7 +223,9 @@ def occupancy(stamp: int) -> SemanticOccupancy:
 
 def record(tmp_path, peer, n: int, *extra: str) -> tuple[subprocess.Popen, Path, Path]:
     out = tmp_path / "rec.mcap"
-    rec, log = start(tmp_path, "recorder", executable("recorder"), "--out", str(out), "--topics", "/ego/occupancy", *extra)
+    rec, log = start(
+        tmp_path, "recorder", executable("recorder"), "--out", str(out), "--topics", "/ego/occupancy", *extra
+    )
     pub = peer.create_publisher(SemanticOccupancy, "/ego/occupancy", QOS)
     wait_subscribed(peer, [pub])
     for i in range(n):
@@ -279,8 +317,22 @@ def test_nodes_explain_bad_parameters(argv, message):
 def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
     """The shipped YAML (every parameter with its default) loads; -p after it overrides."""
     params = Path(get_package_share_directory("co3sop_nodes"), "config", "vehicle.yaml")
-    proc, log = start(tmp_path, "vehicle", executable("vehicle"), "--id", "3", "--ros-args", "--params-file", str(params),
-                      "-p", "codec.dtype:=int8", "-p", "codec.selection:=topk", "-p", "codec.topk:=1024")
+    proc, log = start(
+        tmp_path,
+        "vehicle",
+        executable("vehicle"),
+        "--id",
+        "3",
+        "--ros-args",
+        "--params-file",
+        str(params),
+        "-p",
+        "codec.dtype:=int8",
+        "-p",
+        "codec.selection:=topk",
+        "-p",
+        "codec.topk:=1024",
+    )
     try:
         wait_ready(sup, topics.vehicle_node(3), proc, log)
         assert "as int8-topk1024-zstd" in log.read_text()
@@ -291,10 +343,19 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
 
 # --- hostile input: malformed CDR, non-finite payloads, silent publishers, crafted checkpoints -------------------
 
-STATIC = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+STATIC = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 CAMERA_CAV, LIDAR_CAV = 3, 4
-NODES = {"ego": "/ego", "camera": topics.vehicle_node(CAMERA_CAV), "lidar": topics.vehicle_node(LIDAR_CAV), "recorder": "/recorder"}  # process -> node
+NODES = {
+    "ego": "/ego",
+    "camera": topics.vehicle_node(CAMERA_CAV),
+    "lidar": topics.vehicle_node(LIDAR_CAV),
+    "recorder": "/recorder",
+}  # process -> node
 
 
 def malformed(msg_type) -> dict[str, bytes]:
@@ -306,17 +367,22 @@ def malformed(msg_type) -> dict[str, bytes]:
     header.frame_id = "x" * 999  # CDR: uint32 length 1000 (with the terminating NUL), then the characters
     valid = serialize_message(msg)
     at = valid.index(struct.pack("<I", 1000))
-    return {"truncated": valid[: len(valid) // 2], "lying-length": valid[:at] + struct.pack("<I", 0x7FFFFFF0) + valid[at + 4:],
-            "random": np.random.default_rng(len(valid)).bytes(len(valid))}
+    return {
+        "truncated": valid[: len(valid) // 2],
+        "lying-length": valid[:at] + struct.pack("<I", 0x7FFFFFF0) + valid[at + 4 :],
+        "random": np.random.default_rng(len(valid)).bytes(len(valid)),
+    }
 
 
 def diagnostics_of(peer, seen: list) -> object:
     """Collects /diagnostics statuses (raw: the test publishes malformed ones there too)."""
+
     def on_raw(raw: bytes) -> None:
         try:
             seen.extend(deserialize_message(raw, DiagnosticArray).status)
-        except Exception:  # noqa: BLE001 - our own malformed messages
+        except Exception:
             pass
+
     return peer.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_raw, QOS, raw=True)
 
 
@@ -336,7 +402,9 @@ def lidar_frame(stamp: int) -> tuple[PoseStamped, PointCloud2]:
     pose.header.stamp = time_msg(RCLPY, stamp)
     pose.header.frame_id = "map"
     pose.pose.orientation.w = 1.0
-    return pose, point_cloud_msg(RCLPY, occupancy_cloud(labels, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(LIDAR_CAV))
+    return pose, point_cloud_msg(
+        RCLPY, occupancy_cloud(labels, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(LIDAR_CAV)
+    )
 
 
 def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, peer, sup):
@@ -344,23 +412,51 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
     running, names the topic and the reason, counts the drops in /diagnostics and still does its job."""
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
     procs = {
-        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=0.5",
-                     "-p", "publish_points:=false"),
+        "ego": start(
+            tmp_path,
+            "ego",
+            executable("ego"),
+            "--ros-args",
+            "-p",
+            f"ego_id:={EGO}",
+            "-p",
+            "max_wait:=0.5",
+            "-p",
+            "publish_points:=false",
+        ),
         "camera": start(tmp_path, "camera", executable("vehicle"), "--id", str(CAMERA_CAV)),
-        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+        "lidar": start(
+            tmp_path,
+            "lidar",
+            executable("vehicle"),
+            "--id",
+            str(LIDAR_CAV),
+            "--ros-args",
+            "-p",
+            f"checkpoint:={lidar_model}",
+        ),
         "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap")),
     }
     try:
         for name, (proc, log) in procs.items():
             wait_ready(sup, NODES[name], proc, log)
         targets = {  # topic -> (type, QoS, the node that must name it)
-            topics.voxel_features(EGO): (VoxelFeatures, QOS, "ego"), topics.voxel_features(OTHER): (VoxelFeatures, QOS, "ego"),
+            topics.voxel_features(EGO): (VoxelFeatures, QOS, "ego"),
+            topics.voxel_features(OTHER): (VoxelFeatures, QOS, "ego"),
             topics.TF_STATIC: (TFMessage, STATIC, "camera"),
             topics.lidar_pose(CAMERA_CAV): (PoseStamped, QOS, "camera"),
-            **{t: (m, QOS, "camera") for cam in ("camera0", "camera3") for t, m in
-               ((topics.camera_image(CAMERA_CAV, cam), Image), (topics.camera_info(CAMERA_CAV, cam), CameraInfo))},
-            topics.lidar_pose(LIDAR_CAV): (PoseStamped, QOS, "lidar"), topics.lidar_points(LIDAR_CAV): (PointCloud2, QOS, "lidar"),
-            topics.EGO_OCCUPANCY: (SemanticOccupancy, QOS, "recorder"), topics.ground_truth(EGO, "51.2m"): (SemanticOccupancy, QOS, "recorder"),
+            **{
+                t: (m, QOS, "camera")
+                for cam in ("camera0", "camera3")
+                for t, m in (
+                    (topics.camera_image(CAMERA_CAV, cam), Image),
+                    (topics.camera_info(CAMERA_CAV, cam), CameraInfo),
+                )
+            },
+            topics.lidar_pose(LIDAR_CAV): (PoseStamped, QOS, "lidar"),
+            topics.lidar_points(LIDAR_CAV): (PointCloud2, QOS, "lidar"),
+            topics.EGO_OCCUPANCY: (SemanticOccupancy, QOS, "recorder"),
+            topics.ground_truth(EGO, "51.2m"): (SemanticOccupancy, QOS, "recorder"),
             topics.DIAGNOSTICS: (DiagnosticArray, QOS, "recorder"),
         }
         pubs = {t: peer.create_publisher(m, t, q) for t, (m, q, _) in targets.items()}
@@ -375,7 +471,9 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
             if node != "recorder":  # the recorder stores bytes as they came, never deserialising
                 wait_for(procs[node][1], rf"{re.escape(topic)}: dropped \(malformed\)", procs[node][0])
         text = procs["camera"][1].read_text()
-        assert "not a valid Image" in text and "not a valid CameraInfo" in text and "not a valid TFMessage" in text, text
+        assert "not a valid Image" in text and "not a valid CameraInfo" in text and "not a valid TFMessage" in text, (
+            text
+        )
 
         # still working, and the drops are counted where operators look
         pubs[topics.voxel_features(OTHER)].publish(features(OTHER, T0))
@@ -386,7 +484,9 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
         for msg, topic in zip(lidar_frame(T0), (topics.lidar_pose(LIDAR_CAV), topics.lidar_points(LIDAR_CAV))):
             pubs[topic].publish(msg)
         values = status_values(seen, f"vehicle cav_{LIDAR_CAV}", peer)
-        assert values["frames_published"] == "1" and values["dropped_malformed"] == "9", values  # /tf_static, pose, points
+        assert values["frames_published"] == "1" and values["dropped_malformed"] == "9", (
+            values
+        )  # /tf_static, pose, points
         pubs[topics.EGO_OCCUPANCY].publish(occupancy(T0))
         acked(pubs[topics.EGO_OCCUPANCY])
         for name, (proc, log) in procs.items():
@@ -420,7 +520,9 @@ def spoiled(field: str, stamp: int) -> VoxelFeatures:
     grid = preset("tiny").feature_grid
     volume = np.random.default_rng(OTHER).normal(size=(32, *grid.dims)).astype(np.float32)
     enc = encode_features(volume, np.full(grid.dims, 0.5, np.float32), grid, FeatureCodecConfig(dtype))
-    msg = features_msg(RCLPY, enc, stamp_ns=stamp, frame_id=f"cav_{OTHER}/lidar", agent_id=OTHER, pose=Pose((10.0, 5.0, 1.8)))
+    msg = features_msg(
+        RCLPY, enc, stamp_ns=stamp, frame_id=f"cav_{OTHER}/lidar", agent_id=OTHER, pose=Pose((10.0, 5.0, 1.8))
+    )
     spoil(msg)
     return msg
 
@@ -428,8 +530,20 @@ def spoiled(field: str, stamp: int) -> VoxelFeatures:
 def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(tmp_path, peer, sup):
     """NaN or inf in any payload field is dropped with the field named; a neighbour whose publisher exists but has not
     sent within neighbour_timeout of the ego's first frame is no longer waited for (it would cost every frame max_wait)."""
-    ego, log = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=6.0",
-                     "-p", "neighbour_timeout:=1.0", "-p", "publish_points:=false")
+    ego, log = start(
+        tmp_path,
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={EGO}",
+        "-p",
+        "max_wait:=6.0",
+        "-p",
+        "neighbour_timeout:=1.0",
+        "-p",
+        "publish_points:=false",
+    )
     try:
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
@@ -440,7 +554,9 @@ def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(
             other.publish(spoiled(field, T0))
         text = wait_for(log, r"dropped \(non_finite\)", ego, n=len(NON_FINITE))
         for field in NON_FINITE:
-            assert re.search(rf"/cav_{OTHER}/voxel_features: dropped \(non_finite\): {field}: 1 NaN or infinite", text), text
+            assert re.search(
+                rf"/cav_{OTHER}/voxel_features: dropped \(non_finite\): {field}: 1 NaN or infinite", text
+            ), text
 
         # neither cav 7 (only bad messages) nor the silent cav 9 has spoken: the first frame waits for them only until
         # neighbour_timeout (1 s) after it arrived, not max_wait (6 s)
@@ -475,13 +591,17 @@ def crafted(tmp_path) -> tuple[Path, Path]:
     return path, marker
 
 
-@pytest.mark.parametrize("argv", [
-    ["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:={model}"],
-    ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:={model}"],
-    ["evaluate", "--model", "{model}", "--data", "{data}"],
-    ["train", "--data", "{data}", "--stage", "fusion", "--init", "{model}", "--out", "{out}"],
-    ["demo", "--model", "{model}", "--out", "{out}"],
-], ids=lambda argv: argv[0])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:={model}"],
+        ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:={model}"],
+        ["evaluate", "--model", "{model}", "--data", "{data}"],
+        ["train", "--data", "{data}", "--stage", "fusion", "--init", "{model}", "--out", "{out}"],
+        ["demo", "--model", "{model}", "--out", "{out}"],
+    ],
+    ids=lambda argv: argv[0],
+)
 def test_no_entry_point_runs_code_from_a_checkpoint(crafted, tmp_path, argv):
     model, marker = crafted
     args = [a.format(model=model, data=tmp_path, out=tmp_path / "out") for a in argv]
@@ -505,25 +625,59 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
     best_effort = ["-p", "features_reliability:=best_effort"]
     features = topics.voxel_features(LIDAR_CAV)
     procs = {
-        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}",
-                       *best_effort),
-        "recorder": start(tmp_path, "recorder", executable("recorder"), "--out", str(tmp_path / "rec.mcap"), "--topics", re.escape(truth_topic)),
-        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", f"checkpoint:={lidar_model}", *best_effort),
+        "lidar": start(
+            tmp_path,
+            "lidar",
+            executable("vehicle"),
+            "--id",
+            str(LIDAR_CAV),
+            "--ros-args",
+            "-p",
+            f"checkpoint:={lidar_model}",
+            *best_effort,
+        ),
+        "recorder": start(
+            tmp_path,
+            "recorder",
+            executable("recorder"),
+            "--out",
+            str(tmp_path / "rec.mcap"),
+            "--topics",
+            re.escape(truth_topic),
+        ),
+        "ego": start(
+            tmp_path,
+            "ego",
+            executable("ego"),
+            "--ros-args",
+            "-p",
+            f"ego_id:={EGO}",
+            "-p",
+            f"checkpoint:={lidar_model}",
+            *best_effort,
+        ),
     }
     try:
         for name, (proc, log) in procs.items():
             wait_ready(sup, NODES[name], proc, log)
-        assert [i.qos_profile.reliability for i in peer.get_publishers_info_by_topic(features)] == [ReliabilityPolicy.BEST_EFFORT]
+        assert [i.qos_profile.reliability for i in peer.get_publishers_info_by_topic(features)] == [
+            ReliabilityPolicy.BEST_EFFORT
+        ]
         sup.wait_subscribed("/ego", features)
-        assert {i.qos_profile.reliability for i in peer.get_subscriptions_info_by_topic(features) if i.node_name == "ego"} == {
-            ReliabilityPolicy.BEST_EFFORT}
+        assert {
+            i.qos_profile.reliability for i in peer.get_subscriptions_info_by_topic(features) if i.node_name == "ego"
+        } == {ReliabilityPolicy.BEST_EFFORT}
         got: list = []
         peer.create_subscription(VoxelFeatures, features, got.append, BEST_EFFORT)
         pose_pub = peer.create_publisher(PoseStamped, topics.lidar_pose(LIDAR_CAV), BEST_EFFORT)
         points_pub = peer.create_publisher(PointCloud2, topics.lidar_points(LIDAR_CAV), BEST_EFFORT)
         truth_pub = peer.create_publisher(SemanticOccupancy, truth_topic, BEST_EFFORT)
         wait_subscribed(peer, [pose_pub, points_pub, truth_pub])
-        wait_for(procs["recorder"][1], rf"recording {re.escape(truth_topic)} \(co3sop_msgs/msg/SemanticOccupancy, best_effort\)", procs["recorder"][0])
+        wait_for(
+            procs["recorder"][1],
+            rf"recording {re.escape(truth_topic)} \(co3sop_msgs/msg/SemanticOccupancy, best_effort\)",
+            procs["recorder"][0],
+        )
         deadline = time.monotonic() + 60
         stamp = T0
         while not got:  # best effort may lose a message: send frames until one is encoded
@@ -535,7 +689,9 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
             while not got and time.monotonic() < end:
                 rclpy.spin_once(peer, timeout_sec=0.1)
         assert got[0].agent_id == LIDAR_CAV
-        for _ in range(10):  # best effort drops what comes before the receiving side has matched the sender: keep sending
+        for _ in range(
+            10
+        ):  # best effort drops what comes before the receiving side has matched the sender: keep sending
             truth_pub.publish(occupancy(stamp))
             stamp += 100_000_000
             time.sleep(0.2)
@@ -561,8 +717,10 @@ def lidar_features(peer, proc: subprocess.Popen, log: Path) -> list[VoxelFeature
     """What the LiDAR vehicle publishes for one frame sent to it."""
     got: list = []
     peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
-    pubs = [peer.create_publisher(m, t, QOS) for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)),
-                                                          (PointCloud2, topics.lidar_points(LIDAR_CAV)))]
+    pubs = [
+        peer.create_publisher(m, t, QOS)
+        for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)), (PointCloud2, topics.lidar_points(LIDAR_CAV)))
+    ]
     wait_subscribed(peer, pubs)
     for msg, pub in zip(lidar_frame(T0), pubs):
         pub.publish(msg)
@@ -584,7 +742,16 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
     procs = {
         "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}"),
-        "lidar": start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={lidar_model}"),
+        "lidar": start(
+            tmp_path,
+            "lidar",
+            executable("vehicle"),
+            "--id",
+            str(LIDAR_CAV),
+            "--ros-args",
+            "-p",
+            f"checkpoint:={lidar_model}",
+        ),
     }
     try:
         for name, (proc, log) in procs.items():
@@ -597,7 +764,11 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
         tolerance, checkpoint = call(peer, ego.describe_parameters(["tolerance", "checkpoint"])).descriptors
         assert tolerance.description and not tolerance.read_only and tolerance.floating_point_range[0].to_value == 10.0
         assert checkpoint.read_only
-        assert call(peer, vehicle.describe_parameters(["codec.dtype"])).descriptors[0].additional_constraints.startswith("one of")
+        assert (
+            call(peer, vehicle.describe_parameters(["codec.dtype"]))
+            .descriptors[0]
+            .additional_constraints.startswith("one of")
+        )
 
         def set_(client, name, value):
             return call(peer, client.set_parameters([Parameter(name, value=value)])).results[0]
@@ -746,8 +917,10 @@ def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_p
         wait_ready(sup, NODES["lidar"], vehicle, log)
         got: list = []
         peer.create_subscription(VoxelFeatures, topics.voxel_features(LIDAR_CAV), got.append, QOS)
-        pubs = [peer.create_publisher(m, t, QOS) for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)),
-                                                              (PointCloud2, topics.lidar_points(LIDAR_CAV)))]
+        pubs = [
+            peer.create_publisher(m, t, QOS)
+            for m, t in ((PoseStamped, topics.lidar_pose(LIDAR_CAV)), (PointCloud2, topics.lidar_points(LIDAR_CAV)))
+        ]
         wait_subscribed(peer, pubs)
         for msg, pub in zip(lidar_frame(T0), pubs):  # a first frame: the vehicle knows where it is
             pub.publish(msg)
@@ -756,9 +929,14 @@ def test_request_maps_are_bound_to_one_topic_refused_from_afar_and_bounded(tmp_p
         spoof = peer.create_publisher(RequestMap, "/spoof/request_map", REQUEST_QOS)
         far = peer.create_publisher(RequestMap, "/far/request_map", REQUEST_QOS)
         flood = peer.create_publisher(RequestMap, "/flood/request_map", REQUEST_QOS)
-        sup.wait("the vehicle to subscribe to every request topic", lambda: all(
-            sup.subscribes(NODES["lidar"], t) for t in (topics.EGO_REQUEST, "/spoof/request_map", "/far/request_map",
-                                                        "/flood/request_map")), 30)
+        sup.wait(
+            "the vehicle to subscribe to every request topic",
+            lambda: all(
+                sup.subscribes(NODES["lidar"], t)
+                for t in (topics.EGO_REQUEST, "/spoof/request_map", "/far/request_map", "/flood/request_map")
+            ),
+            30,
+        )
         real.publish(request_map(EGO, T0, 10.0, 1.0))
         acked(real)
         spoof.publish(request_map(EGO, T0, 10.0, 0.0))  # claims the real ego's id, asks for nothing

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import rclpy
 from ament_index_python.packages import get_package_share_directory
-from co3sop_msgs.msg import VoxelFeatures
 from conftest import executable
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 from test_node_faults import EGO, LIDAR_CAV, OTHER, QOS, T0, features, lidar_frame, start, wait_ready, wait_subscribed
 
+from co3sop_msgs.msg import VoxelFeatures
 from co3sop_nodes.common import topics
 
 FRAMES = 40

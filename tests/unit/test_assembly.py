@@ -25,7 +25,9 @@ def test_a_frame_comes_out_once_when_its_last_part_arrives():
     assert frames == [] and drops == []
     frames, drops = a.add("info:camera0", 10, "late info", wall_ns=5)
     assert [f.stamp for f in frames] == [10] and drops == []
-    assert frames[0].parts["info:camera0"] == "late info" and frames[0].first_wall_ns == 1010  # when the first part came
+    assert (
+        frames[0].parts["info:camera0"] == "late info" and frames[0].first_wall_ns == 1010
+    )  # when the first part came
     assert a.ready() == ([], [])
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from co3sop_nodes.v2x.sender_budget import ByteBudget, SenderBudgets, budget_for
-from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features
 from co3sop_nodes.common.errors import CodecError
 from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features
+from co3sop_nodes.v2x.sender_budget import ByteBudget, SenderBudgets, budget_for
 
 
 def test_unspent_bytes_carry_over_up_to_the_burst():
@@ -53,12 +53,15 @@ def test_a_codec_with_a_burst_gets_a_budget_and_one_without_does_not():
     assert (cfg.max_bytes, cfg.burst_bytes, cfg.rank) == (65536 + 1000, 131072, 8)
 
 
-@pytest.mark.parametrize("kw, match", [
-    ({"burst_bytes": 1024}, "needs a max_bytes budget"),
-    ({"max_bytes": 4096, "burst_bytes": 1024}, "needs a max_bytes budget of at most it"),
-    ({"max_bytes": 4096, "burst_bytes": -1}, "whole number of bytes"),
-    ({"max_bytes": 4096, "burst_bytes": True}, "whole number of bytes"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"burst_bytes": 1024}, "needs a max_bytes budget"),
+        ({"max_bytes": 4096, "burst_bytes": 1024}, "needs a max_bytes budget of at most it"),
+        ({"max_bytes": 4096, "burst_bytes": -1}, "whole number of bytes"),
+        ({"max_bytes": 4096, "burst_bytes": True}, "whole number of bytes"),
+    ],
+)
 def test_bad_bursts_are_refused_naming_the_field(kw, match):
     with pytest.raises(CodecError, match=match):
         FeatureCodecConfig("int8", "request", **kw)

@@ -8,18 +8,30 @@ import torch
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.inference.checkpoint import export_model, load_graph_model, load_model, save_training_state
-from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
 from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
 
-SMALL = dict(custom_grid=((-6.4, -6.4, -2.0), 0.4, (32, 32, 8)), image_size=(32, 24),
-             backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8), fpn_channels=8, embed_dims=8,
-             image_attention=AttentionConfig(1, 2, 2), fusion_attention=AttentionConfig(1, 2, 2), head_channels=(8, 8, 4))
+SMALL = dict(
+    custom_grid=((-6.4, -6.4, -2.0), 0.4, (32, 32, 8)),
+    image_size=(32, 24),
+    backbone=BackboneConfig((1, 1, 1, 1), (8, 8, 16, 16), stem=8),
+    fpn_channels=8,
+    embed_dims=8,
+    image_attention=AttentionConfig(1, 2, 2),
+    fusion_attention=AttentionConfig(1, 2, 2),
+    head_channels=(8, 8, 4),
+)
 
 
 def _inputs(cfg):
     w, h = cfg.image_size
     gen = torch.Generator().manual_seed(1)
-    return [{"images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8, generator=gen), "lidar2img": torch.eye(4).repeat(1, 4, 1, 1)}]
+    return [
+        {
+            "images": torch.randint(0, 255, (1, 4, 3, h, w), dtype=torch.uint8, generator=gen),
+            "lidar2img": torch.eye(4).repeat(1, 4, 1, 1),
+        }
+    ]
 
 
 @pytest.mark.parametrize("half", [False, True])
@@ -123,8 +135,14 @@ def test_checkpoints_without_weights_or_config_or_that_do_not_fit_are_explained(
         "no-weights": ({"config": data["config"]}, r"no config/model"),
         "no-config": ({"model": data["model"]}, r"no config/model"),
         "weights-not-tensors": ({"config": data["config"], "model": {"a": 1}}, r"not a dict of named tensors"),
-        "unknown-config": ({"config": {**data["config"], "wings": 2}, "model": data["model"]}, r"config is not one this version knows"),
-        "other-model": ({"config": dataclasses.asdict(preset("tiny-lidar")), "model": data["model"]}, r"weights do not fit its config"),
+        "unknown-config": (
+            {"config": {**data["config"], "wings": 2}, "model": data["model"]},
+            r"config is not one this version knows",
+        ),
+        "other-model": (
+            {"config": dataclasses.asdict(preset("tiny-lidar")), "model": data["model"]},
+            r"weights do not fit its config",
+        ),
     }
     for name, (content, message) in cases.items():
         torch.save(content, tmp_path / f"{name}.pt")

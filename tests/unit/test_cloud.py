@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from co3sop_nodes.common.classes import IGNORE, PALETTE
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.data.bags import typestore
 from co3sop_nodes.messages import LABEL_POINTS, RosbagsTypes, point_cloud_msg, xyz_of
 from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
-from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 
 
 def test_occupied_voxel_centres_in_the_palette():
@@ -29,7 +29,8 @@ def test_occupied_voxel_centres_in_the_palette():
 def test_the_cloud_equals_its_definition_at_every_range(range_name):
     grid = BENCHMARK_RANGES[range_name]
     rng = np.random.default_rng(len(range_name))
-    labels = np.where(rng.random(grid.dims) < 0.2, rng.integers(0, 256, grid.dims), 0).astype(np.uint8)  # every value, out of range too
+    labels = np.where(rng.random(grid.dims) < 0.2, rng.integers(0, 256, grid.dims), 0).astype(
+        np.uint8
+    )  # every value, out of range too
     want, got = occupancy_cloud_reference(labels, grid), occupancy_cloud(labels, grid)
     assert len(got) > 1000 and got.tobytes() == want.tobytes()  # bit-identical payloads
-

@@ -22,6 +22,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from co3sop_nodes.common.errors import (
+    Co3sopError,
+    CodecError,
+    CorruptPayloadError,
+    NonFiniteError,
+    PayloadTooLargeError,
+    SizeMismatchError,
+    UnknownCodecError,
+)
+from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.v2x import codec
 from co3sop_nodes.v2x.codec import (
     CODECS,
@@ -38,16 +48,6 @@ from co3sop_nodes.v2x.codec import (
     encode_features,
     encode_labels,
 )
-from co3sop_nodes.common.errors import (
-    CodecError,
-    Co3sopError,
-    CorruptPayloadError,
-    NonFiniteError,
-    PayloadTooLargeError,
-    SizeMismatchError,
-    UnknownCodecError,
-)
-from co3sop_nodes.common.grid import GridSpec
 
 MIB = 1024 * 1024
 EPS32 = 2.0**-24  # unit round-off of float32
@@ -64,7 +64,13 @@ CONF_ELEMENTS = st.floats(0.0, 1.0, width=32)
 
 # VoxelFeatures.msg: the wire fields EncodedFeatures mirrors one to one.
 MSG_DIR = Path(__file__).resolve().parents[2] / "src" / "co3sop_msgs" / "msg"
-VOXEL_FEATURES_ENVELOPE = {"header", "agent_id", "addressed", "recipient_id", "lidar_pose"}  # set by the ROS glue, not the codec
+VOXEL_FEATURES_ENVELOPE = {
+    "header",
+    "agent_id",
+    "addressed",
+    "recipient_id",
+    "lidar_pose",
+}  # set by the ROS glue, not the codec
 
 # Every valid (dtype, selection, codec) setting; threshold needs a confidence.
 ALL_SETTINGS = [
@@ -498,7 +504,10 @@ def test_config_name_and_defaults():
     assert (cfg.dtype, cfg.selection, cfg.codec) == ("float16", "dense", "zstd")
     assert cfg.name == "float16-dense-zstd"
     assert FeatureCodecConfig(selection="topk").name == "float16-topk4096-zstd"
-    assert FeatureCodecConfig(dtype="int8", selection="threshold", threshold=0.25, codec="none").name == "int8-conf0.25-none"
+    assert (
+        FeatureCodecConfig(dtype="int8", selection="threshold", threshold=0.25, codec="none").name
+        == "int8-conf0.25-none"
+    )
     assert FeatureCodecConfig(dtype="float32", selection="topk", topk=7).name == "float32-topk7-zstd"
     assert DEFAULT_MAX_RAW_BYTES == 256 * MIB
 
@@ -579,7 +588,12 @@ def small():
     features = rng.standard_normal((3, *grid.dims)).astype(np.float32)
     confidence = rng.uniform(0, 1, grid.dims).astype(np.float32)
     feats = encode_features(features, confidence, grid, FeatureCodecConfig(dtype="int8", selection="topk", topk=20))
-    labels = encode_labels(rng.integers(0, 24, grid.dims, dtype=np.uint8), grid, 24, confidence=rng.integers(0, 256, grid.dims, dtype=np.uint8))
+    labels = encode_labels(
+        rng.integers(0, 24, grid.dims, dtype=np.uint8),
+        grid,
+        24,
+        confidence=rng.integers(0, 256, grid.dims, dtype=np.uint8),
+    )
     return grid, features, confidence, feats, labels
 
 
@@ -753,8 +767,14 @@ def _poison(a: np.ndarray, value: float) -> np.ndarray:
     return a
 
 
-NON_FINITE_CASES = [("values", "float32"), ("values", "float16"), ("confidence", "float32"), ("confidence", "float16"),
-                    ("quant_scale", "int8"), ("quant_offset", "int8")]
+NON_FINITE_CASES = [
+    ("values", "float32"),
+    ("values", "float16"),
+    ("confidence", "float32"),
+    ("confidence", "float16"),
+    ("quant_scale", "int8"),
+    ("quant_offset", "int8"),
+]
 
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")], ids=["nan", "inf", "-inf"])
@@ -780,7 +800,9 @@ def test_float_confidence_outside_unit_interval_is_refused(small, dtype):
 @pytest.mark.parametrize("codec_name", CODECS)
 def test_has_confidence_without_payload(small, codec_name):
     grid, features, _, _, _ = small
-    enc = encode_features(features, None, grid, FeatureCodecConfig(dtype="float32", selection="topk", topk=20, codec=codec_name))
+    enc = encode_features(
+        features, None, grid, FeatureCodecConfig(dtype="float32", selection="topk", topk=20, codec=codec_name)
+    )
     assert not enc.has_confidence
     with pytest.raises(SizeMismatchError) as info:
         decode_features(dataclasses.replace(enc, has_confidence=True))
@@ -788,7 +810,8 @@ def test_has_confidence_without_payload(small, codec_name):
 
 
 @pytest.mark.parametrize(
-    "field,raw_field", [("voxel_mask", "voxel_mask_raw_size"), ("values", "values_raw_size"), ("confidence", "confidence_raw_size")]
+    "field,raw_field",
+    [("voxel_mask", "voxel_mask_raw_size"), ("values", "values_raw_size"), ("confidence", "confidence_raw_size")],
 )
 @pytest.mark.parametrize("delta", [-1, 1])
 def test_declared_feature_size_differs_from_grid(small, field, raw_field, delta):
@@ -890,7 +913,15 @@ def test_payload_too_large_features_before_decompressing(zero_bomb, no_decompres
 
 def test_payload_too_large_labels_before_decompressing(zero_bomb, no_decompression):
     grid = _grid((512, 512, 400))  # uint8 labels: exactly 100 MiB
-    enc = EncodedLabels(grid=grid, num_classes=24, codec="zstd", labels=zero_bomb, labels_raw_size=100 * MIB, confidence=b"", confidence_raw_size=0)
+    enc = EncodedLabels(
+        grid=grid,
+        num_classes=24,
+        codec="zstd",
+        labels=zero_bomb,
+        labels_raw_size=100 * MIB,
+        confidence=b"",
+        confidence_raw_size=0,
+    )
     info = None
 
     def decode():
@@ -932,7 +963,15 @@ def test_limit_is_inclusive_and_configurable():
 
 def test_frame_header_cannot_bypass_the_limit(zero_bomb):
     grid = _grid((4, 4, 4))
-    enc = EncodedLabels(grid=grid, num_classes=24, codec="zstd", labels=zero_bomb, labels_raw_size=64, confidence=b"", confidence_raw_size=0)
+    enc = EncodedLabels(
+        grid=grid,
+        num_classes=24,
+        codec="zstd",
+        labels=zero_bomb,
+        labels_raw_size=64,
+        confidence=b"",
+        confidence_raw_size=0,
+    )
     info = None
 
     def decode():
@@ -1158,7 +1197,9 @@ def test_float16_out_of_range_is_an_error(codec_name, sign):
         _assert_error(info, CodecError, "features")
         # float32 and int8 carry the same volume
         for dtype in ("float32", "int8"):
-            out = decode_features(encode_features(f, None, grid, FeatureCodecConfig(dtype=dtype, codec=codec_name))).features
+            out = decode_features(
+                encode_features(f, None, grid, FeatureCodecConfig(dtype=dtype, codec=codec_name))
+            ).features
             assert np.isfinite(out).all()
 
 
@@ -1217,7 +1258,11 @@ def test_codec_config_types():
 
 def _volume(seed: int = 0, dims=(16, 16, 6), channels: int = 32):
     rng = np.random.default_rng(seed)
-    return (_grid(dims), rng.normal(size=(channels, *dims)).astype(np.float32), rng.uniform(size=dims).astype(np.float32))
+    return (
+        _grid(dims),
+        rng.normal(size=(channels, *dims)).astype(np.float32),
+        rng.uniform(size=dims).astype(np.float32),
+    )
 
 
 @pytest.mark.parametrize("selection", ["topk", "request"])
@@ -1241,15 +1286,29 @@ def test_a_budget_every_requested_voxel_fits_sends_them_all_in_few_encodings(dty
     grid, features, confidence = _volume(3)
     request = np.zeros(grid.dims, np.float32)
     request[:5] = 0.5  # 480 voxels asked for
-    unbounded = encode_features(features, confidence, grid, FeatureCodecConfig(dtype, "request", max_bytes=2**31 - 1, rank=rank), request)
+    unbounded = encode_features(
+        features, confidence, grid, FeatureCodecConfig(dtype, "request", max_bytes=2**31 - 1, rank=rank), request
+    )
     assert unbounded.num_voxels == 480
     calls, original = [], codec._encode
     monkeypatch.setattr(codec, "_encode", lambda *a: calls.append(1) or original(*a))
-    fits = encode_features(features, confidence, grid, FeatureCodecConfig(dtype, "request", max_bytes=unbounded.budget_bytes, rank=rank), request)
+    fits = encode_features(
+        features,
+        confidence,
+        grid,
+        FeatureCodecConfig(dtype, "request", max_bytes=unbounded.budget_bytes, rank=rank),
+        request,
+    )
     assert fits == unbounded and len(calls) == 3  # none, half, all: no bisection down to the last voxel
     # a byte less: bisection on the count, the best-scored 479 or fewer
     calls.clear()
-    tight = encode_features(features, confidence, grid, FeatureCodecConfig(dtype, "request", max_bytes=unbounded.budget_bytes - 1, rank=rank), request)
+    tight = encode_features(
+        features,
+        confidence,
+        grid,
+        FeatureCodecConfig(dtype, "request", max_bytes=unbounded.budget_bytes - 1, rank=rank),
+        request,
+    )
     assert tight.num_voxels < 480 and tight.budget_bytes < unbounded.budget_bytes and len(calls) > 9
 
 
@@ -1275,7 +1334,9 @@ def test_budget_and_request_are_checked():
     with pytest.raises(CodecError, match="even an empty selection"):
         encode_features(features, confidence, grid, FeatureCodecConfig("int8", "topk", max_bytes=10))
     with pytest.raises(CodecError, match="request: a"):
-        encode_features(features, confidence, grid, FeatureCodecConfig("int8", "request"), np.full(grid.dims, 2.0, np.float32))
+        encode_features(
+            features, confidence, grid, FeatureCodecConfig("int8", "request"), np.full(grid.dims, 2.0, np.float32)
+        )
     assert FeatureCodecConfig("int8", "request", max_bytes=65536).name == "int8-request64KB-zstd"
 
 
@@ -1306,14 +1367,19 @@ def test_rank_wire_layout_decodes_independently(dtype, selection):
     assert enc.budget_bytes == enc.payload_bytes + 4 * (len(enc.quant_scale) + len(enc.quant_offset) + 12 * rank + 12)
     wire = _wire_values(_raw_field(enc.values, cfg.codec), dtype, rank, n).astype(np.float64)
     if dtype in QUANT_LEVELS:
-        wire = wire * np.asarray(enc.quant_scale, np.float64)[:, None] + np.asarray(enc.quant_offset, np.float64)[:, None]
+        wire = (
+            wire * np.asarray(enc.quant_scale, np.float64)[:, None] + np.asarray(enc.quant_offset, np.float64)[:, None]
+        )
     basis = np.asarray(enc.basis, np.float64).reshape(12, rank)
     np.testing.assert_allclose(basis.T @ basis, np.eye(rank), atol=1e-6)  # orthonormal directions
     rebuilt = basis @ wire + np.asarray(enc.basis_mean, np.float64)[:, None]
     dec = decode_features(enc)
     np.testing.assert_allclose(dec.features.reshape(12, -1)[:, dec.mask.reshape(-1)], rebuilt, rtol=1e-6, atol=1e-6)
-    plain = decode_features(encode_features(features, confidence, grid, FeatureCodecConfig(dtype, selection, topk=300),
-                                            np.ones(grid.dims, np.float32)))
+    plain = decode_features(
+        encode_features(
+            features, confidence, grid, FeatureCodecConfig(dtype, selection, topk=300), np.ones(grid.dims, np.float32)
+        )
+    )
     np.testing.assert_array_equal(dec.mask, plain.mask)  # the same voxels: transform coding changes only their values
     np.testing.assert_array_equal(dec.confidence, plain.confidence)
 
@@ -1361,8 +1427,11 @@ def test_rank_errors_name_the_field():
         encode_features(spread, None, _grid((2, 1, 1)), FeatureCodecConfig("float16", rank=1))
     _assert_error(info, CodecError, "float16 range")
     enc = encode_features(features, confidence, grid, FeatureCodecConfig("float32", rank=2))
-    for bad, fragment in ((dict(basis=enc.basis[:-1]), "basis"), (dict(basis_mean=()), "basis"),
-                          (dict(basis_rank=5, basis=enc.basis * 3), "basis_rank")):
+    for bad, fragment in (
+        (dict(basis=enc.basis[:-1]), "basis"),
+        (dict(basis_mean=()), "basis"),
+        (dict(basis_rank=5, basis=enc.basis * 3), "basis_rank"),
+    ):
         with pytest.raises(SizeMismatchError) as info:
             decode_features(dataclasses.replace(enc, **bad))
         _assert_error(info, SizeMismatchError, fragment)

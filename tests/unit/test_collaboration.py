@@ -22,7 +22,11 @@ def test_nearest_first_within_range_at_most_k():
 def test_pose_noise_is_a_biased_planar_offset_of_the_neighbour():
     ego, other = at(0, 0), at(10, 0)
     assert np.allclose(noisy_relative(ego, other, 0.0, 0.0, np.random.default_rng(0)), np.linalg.inv(other) @ ego)
-    offsets = np.array([np.linalg.inv(noisy_relative(ego, other, 0.3, 0.02, np.random.default_rng(s)))[:3, 3] - [10, 0, 0]
-                        for s in range(200)])
+    offsets = np.array(
+        [
+            np.linalg.inv(noisy_relative(ego, other, 0.3, 0.02, np.random.default_rng(s)))[:3, 3] - [10, 0, 0]
+            for s in range(200)
+        ]
+    )
     assert np.allclose(offsets[:, :2].mean(0), 0.3, atol=0.01) and np.allclose(offsets[:, :2].std(0), 0.02, atol=0.005)
     assert abs(offsets[:, 2].mean()) < 0.003 and np.isclose(offsets[:, 2].std(), 0.01, atol=0.003)

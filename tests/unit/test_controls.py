@@ -18,7 +18,10 @@ def fake_dataset(scenarios: int, frames: int = 2, agents: int = 2, modality: str
             for j in range(agents):
                 tag = 100 * s + 10 * t + j
                 if modality == "camera":
-                    inputs = {"images": np.full((4, 3, 6, 8), tag, np.uint8), "lidar2img": np.full((4, 4, 4), tag, np.float32)}
+                    inputs = {
+                        "images": np.full((4, 3, 6, 8), tag, np.uint8),
+                        "lidar2img": np.full((4, 4, 4), tag, np.float32),
+                    }
                 else:
                     inputs = {"occupancy": np.full((1, 4, 4, 2), tag % 2 + 1, np.uint8)}
                 records.append(AgentRecord(j, np.eye(4), inputs, None))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.cli.device import select_device
+from co3sop_nodes.common.errors import Co3sopError
 
 
 def test_auto_and_cpu():

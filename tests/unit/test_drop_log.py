@@ -22,7 +22,10 @@ def test_a_burst_is_logged_once_and_counted_in_full():
         drops("/cav_7/voxel_features", "malformed", f"{i} bytes that are not a valid VoxelFeatures")
     drops("/cav_7/voxel_features", "payload", "values: truncated")  # another kind of reason: its own warning
     drops("/cav_8/voxel_features", "malformed", "3 bytes that are not a valid VoxelFeatures")  # another topic too
-    assert len(log.lines) == 3 and log.lines[0] == "/cav_7/voxel_features: dropped (malformed): 0 bytes that are not a valid VoxelFeatures"
+    assert (
+        len(log.lines) == 3
+        and log.lines[0] == "/cav_7/voxel_features: dropped (malformed): 0 bytes that are not a valid VoxelFeatures"
+    )
     assert drops.values() == {"dropped": 1002, "dropped_malformed": 1001, "dropped_payload": 1}
     time.sleep(0.25)  # the burst is over: the next one is logged, with how many were not
     drops("/cav_7/voxel_features", "malformed", "5 bytes that are not a valid VoxelFeatures")

@@ -7,18 +7,23 @@ import numpy as np
 import pytest
 import torch
 
-from co3sop_nodes.v2x.codec import FeatureCodecConfig
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.grid import GridSpec
-from co3sop_nodes.train.dataset import AgentRecord, OccupancyDataset
 from co3sop_nodes.eval.evaluate import evaluate
-from co3sop_nodes.train.trainer import _Forward
-from co3sop_nodes.model.config import LidarConfig, preset
 from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import LidarConfig, preset
+from co3sop_nodes.train.dataset import AgentRecord, OccupancyDataset
+from co3sop_nodes.train.trainer import _Forward
+from co3sop_nodes.v2x.codec import FeatureCodecConfig
 
 GRID = GridSpec((-6.4, -6.4, -2.0), 0.4, (32, 32, 8))
-CFG = preset("tiny-sscnet-early", custom_grid=(GRID.origin, GRID.voxel_size, GRID.dims), lidar=LidarConfig("sscnet", 8),
-             embed_dims=8, head_channels=(8, 8, 8))
+CFG = preset(
+    "tiny-sscnet-early",
+    custom_grid=(GRID.origin, GRID.voxel_size, GRID.dims),
+    lidar=LidarConfig("sscnet", 8),
+    embed_dims=8,
+    head_channels=(8, 8, 8),
+)
 OWN = {0: (10, 16, 4), 1: (11, 16, 4)}  # each agent's one occupied voxel in its own grid
 MERGED = {0: {(10, 16, 4), (16, 16, 4)}, 1: {(11, 16, 4), (5, 16, 4)}}  # agent 1 is 2 m (5 voxels) ahead of agent 0
 
@@ -83,7 +88,7 @@ def test_pose_noise_moves_the_collaborators_scans_each_time(model_and_scans):
         evaluate(model, data, mu=1.0, sigma=0.2, seed=seed, cache=cache)
     assert len(scans) == 6
     for scan in scans[2::2]:  # ego 0: its own voxel, and the neighbour's ~1 m (2.5 voxels) off along x and y
-        (x, y, z), = scan - {OWN[0]}
+        ((x, y, z),) = scan - {OWN[0]}
         assert 17 <= x <= 20 and 17 <= y <= 20 and z == 4, scan
     scans.clear()
     evaluate(model, data, cache=cache)

@@ -151,12 +151,19 @@ def test_carla_to_ros_matrix_known_heading():
 @given(st.tuples(coord, coord, coord, angle, angle, angle), st.tuples(coord, coord, coord, angle, angle, angle))
 def test_carla_to_ros_matrix_is_a_homomorphism_and_an_involution(a, b):
     ma, mb = carla_pose_to_matrix(a), carla_pose_to_matrix(b)
-    np.testing.assert_allclose(carla_to_ros_matrix(ma @ mb), carla_to_ros_matrix(ma) @ carla_to_ros_matrix(mb), atol=1e-6)
+    np.testing.assert_allclose(
+        carla_to_ros_matrix(ma @ mb), carla_to_ros_matrix(ma) @ carla_to_ros_matrix(mb), atol=1e-6
+    )
     np.testing.assert_allclose(ros_to_carla_matrix(carla_to_ros_matrix(ma)), ma, atol=0)
-    np.testing.assert_allclose(carla_to_ros_matrix(np.linalg.inv(ma)), np.linalg.inv(carla_to_ros_matrix(ma)), atol=1e-6)
+    np.testing.assert_allclose(
+        carla_to_ros_matrix(np.linalg.inv(ma)), np.linalg.inv(carla_to_ros_matrix(ma)), atol=1e-6
+    )
 
 
-@given(st.tuples(coord, coord, coord, angle, angle, angle), st.lists(st.tuples(coord, coord, coord), min_size=1, max_size=8))
+@given(
+    st.tuples(coord, coord, coord, angle, angle, angle),
+    st.lists(st.tuples(coord, coord, coord), min_size=1, max_size=8),
+)
 def test_points_and_matrices_convert_consistently(pose, pts):
     # transforming then converting equals converting then transforming
     m = carla_pose_to_matrix(pose)
@@ -197,7 +204,9 @@ def test_carla_to_ros_grid_reverses_y_and_is_an_involution():
 
 
 @given(
-    st.integers(1, 12), st.integers(1, 12), st.sampled_from([0.1, 0.2, 0.3, 0.4]),
+    st.integers(1, 12),
+    st.integers(1, 12),
+    st.sampled_from([0.1, 0.2, 0.3, 0.4]),
     st.integers(0, 10**6),
 )
 def test_carla_to_ros_grid_maps_voxel_at_y_to_voxel_at_minus_y(n_half, nz, voxel, pick):
@@ -206,13 +215,15 @@ def test_carla_to_ros_grid_maps_voxel_at_y_to_voxel_at_minus_y(n_half, nz, voxel
     i, j, k = np.unravel_index(pick % grid.num_voxels, grid.dims)
     labels = np.zeros(grid.dims, np.uint8)
     labels[i, j, k] = 7
-    (i2, j2, k2), = np.argwhere(carla_to_ros_grid(labels))
+    ((i2, j2, k2),) = np.argwhere(carla_to_ros_grid(labels))
     assert (i2, k2) == (i, k)
     y = grid.origin[1] + (j + 0.5) * voxel
     y2 = grid.origin[1] + (j2 + 0.5) * voxel
     assert y2 == pytest.approx(-y, abs=1e-9)
     # and a CARLA point inside that voxel lands in the converted voxel once converted to REP-103
-    point = np.array([[grid.origin[0] + (i + 0.3) * voxel, grid.origin[1] + (j + 0.8) * voxel, grid.origin[2] + (k + 0.5) * voxel]])
+    point = np.array(
+        [[grid.origin[0] + (i + 0.3) * voxel, grid.origin[1] + (j + 0.8) * voxel, grid.origin[2] + (k + 0.5) * voxel]]
+    )
     ros = carla_to_ros_points(point)[0].astype(float)
     assert int(math.floor((ros[1] - grid.origin[1]) / voxel)) == j2
 
@@ -252,7 +263,15 @@ def test_rotation_to_quaternion_near_180_degrees(axis, delta):
 
 @pytest.mark.parametrize(
     "r",
-    [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]), np.eye(3), rz(90), ry(-90), rx(180) @ rz(90)],
+    [
+        np.diag([1.0, -1.0, -1.0]),
+        np.diag([-1.0, 1.0, -1.0]),
+        np.diag([-1.0, -1.0, 1.0]),
+        np.eye(3),
+        rz(90),
+        ry(-90),
+        rx(180) @ rz(90),
+    ],
 )
 def test_rotation_to_quaternion_exact_cases(r):
     q = rotation_to_quaternion(r)

@@ -13,8 +13,18 @@ import co3sop_nodes
 PACKAGE_DIR = Path(co3sop_nodes.__file__).resolve().parent
 # rclpy, the generated message packages we use, and the ROS Python runtime.
 ROS_MODULES = (
-    "rclpy", "co3sop_msgs", "std_msgs", "geometry_msgs", "sensor_msgs", "builtin_interfaces",
-    "tf2_msgs", "rosgraph_msgs", "diagnostic_msgs", "rosidl_runtime_py", "rpyutils", "ament_index_python",
+    "rclpy",
+    "co3sop_msgs",
+    "std_msgs",
+    "geometry_msgs",
+    "sensor_msgs",
+    "builtin_interfaces",
+    "tf2_msgs",
+    "rosgraph_msgs",
+    "diagnostic_msgs",
+    "rosidl_runtime_py",
+    "rpyutils",
+    "ament_index_python",
 )
 GLUE = "co3sop_nodes.ros"
 

@@ -3,8 +3,19 @@
 import numpy as np
 import pytest
 
-from co3sop_nodes.common.classes import IGNORE, LABEL_BY_NAME as L
-from co3sop_nodes.eval.metrics import SCORES, Bootstrap, Confusion, confusions_of, difference_table, markdown_table, point, pooled, scores
+from co3sop_nodes.common.classes import IGNORE
+from co3sop_nodes.common.classes import LABEL_BY_NAME as L
+from co3sop_nodes.eval.metrics import (
+    SCORES,
+    Bootstrap,
+    Confusion,
+    confusions_of,
+    difference_table,
+    markdown_table,
+    point,
+    pooled,
+    scores,
+)
 
 
 def grids():
@@ -71,7 +82,9 @@ def scenario_confusions(seed: int, scenarios: int = 6, hit_rate: float = 0.7) ->
     rng = np.random.default_rng(seed)
     out = {}
     for s in range(scenarios):
-        truth = rng.choice([0, L["road"], L["vehicle"], L["building"]], size=(8, 8, 4), p=[0.6, 0.2, 0.1, 0.1]).astype(np.uint8)
+        truth = rng.choice([0, L["road"], L["vehicle"], L["building"]], size=(8, 8, 4), p=[0.6, 0.2, 0.1, 0.1]).astype(
+            np.uint8
+        )
         noise = rng.integers(0, 4, size=truth.shape).astype(np.uint8)
         pred = np.where(rng.random(truth.shape) < hit_rate, truth, noise)
         c = Confusion()
@@ -110,7 +123,10 @@ def test_identical_scenarios_give_a_zero_width_interval():
 
 
 def test_paired_difference_is_zero_against_itself_and_positive_for_a_better_run():
-    worse, better = scenario_confusions(3, hit_rate=0.5), scenario_confusions(3, hit_rate=0.9)  # same truths per scenario
+    worse, better = (
+        scenario_confusions(3, hit_rate=0.5),
+        scenario_confusions(3, hit_rate=0.9),
+    )  # same truths per scenario
     boot = Bootstrap(list(worse), draws=500)
     same = boot.difference(worse, worse)
     assert all(same[n]["delta"] == 0 and same[n]["ci95"] == [0.0, 0.0] for n in SCORES)

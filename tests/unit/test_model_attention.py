@@ -22,7 +22,6 @@ from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d, sam
 from co3sop_nodes.model.fusion import VoxelFusion
 from co3sop_nodes.model.positional import sine_encoding_3d
 
-
 # ---------------------------------------------------------------- references
 
 
@@ -269,8 +268,12 @@ def test_deform_conv2d_matches_reference(stride, seed):
     ref = deform_conv2d_reference(x, offset, mask, weight, bias, stride, 1)
     assert fast.shape == (b, cout, ho, wo)
     torch.testing.assert_close(fast, ref, atol=1e-4, rtol=1e-4)
-    torch.testing.assert_close(deform_conv2d(x, offset, mask, weight, None, stride, 1),
-                               deform_conv2d_reference(x, offset, mask, weight, None, stride, 1), atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(
+        deform_conv2d(x, offset, mask, weight, None, stride, 1),
+        deform_conv2d_reference(x, offset, mask, weight, None, stride, 1),
+        atol=1e-4,
+        rtol=1e-4,
+    )
 
 
 @pytest.mark.parametrize("stride", [1, 2])
@@ -281,7 +284,9 @@ def test_deform_conv2d_zero_offsets_unit_mask_is_conv2d(stride):
     ho, wo = expected.shape[-2:]
     zeros, ones = torch.zeros(1, 18, ho, wo), torch.ones(1, 9, ho, wo)
     torch.testing.assert_close(deform_conv2d(x, zeros, ones, weight, bias, stride, 1), expected, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(deform_conv2d_reference(x, zeros, ones, weight, bias, stride, 1), expected, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        deform_conv2d_reference(x, zeros, ones, weight, bias, stride, 1), expected, atol=1e-5, rtol=1e-5
+    )
 
 
 def test_deform_conv2d_offset_order_is_dy_dx():

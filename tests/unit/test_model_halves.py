@@ -17,23 +17,26 @@ import math
 from dataclasses import replace
 
 import numpy as np
-
 import pytest
 import torch
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.model.backbone import DeformConv2d
+from co3sop_nodes.model.co3sop import Co3SOP, EgoHalf, VehicleHalf, VehicleOutput, build_model
 from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, LidarConfig, ModelConfig, preset
 from co3sop_nodes.model.lifting import project
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupancy_loss
-from co3sop_nodes.model.co3sop import Co3SOP, EgoHalf, VehicleHalf, VehicleOutput, build_model
-
 
 W, H = 32, 24
 BIG = ModelConfig(
-    name="test", range="76.8m", image_size=(W, H),
-    backbone=BackboneConfig(channels=(8, 8, 16, 16), stem=8), fpn_channels=8, embed_dims=8, head_channels=(8, 8, 4),
+    name="test",
+    range="76.8m",
+    image_size=(W, H),
+    backbone=BackboneConfig(channels=(8, 8, 16, 16), stem=8),
+    fpn_channels=8,
+    embed_dims=8,
+    head_channels=(8, 8, 4),
 )
 SMALL_GRID = GridSpec((-4.8, -4.8, -2.0), 0.3, (32, 32, 16))
 
@@ -63,8 +66,10 @@ RIG = torch.stack([_lidar2img(0.0), _lidar2img(math.pi)])  # front and back came
 
 def _camera_inputs(b: int, seed: int) -> dict:
     g = torch.Generator().manual_seed(seed)
-    return dict(images=torch.randint(0, 256, (b, 2, 3, H, W), generator=g, dtype=torch.uint8),
-                lidar2img=RIG.expand(b, 2, 4, 4).clone())
+    return dict(
+        images=torch.randint(0, 256, (b, 2, 3, H, W), generator=g, dtype=torch.uint8),
+        lidar2img=RIG.expand(b, 2, 4, 4).clone(),
+    )
 
 
 def _transforms(b: int, a: int, seed: int, voxel: float) -> torch.Tensor:
@@ -209,8 +214,16 @@ def test_align_warps_each_collaborator_with_its_own_transform():
     for (n, a), (dx, dy, dz) in shifts.items():
         exp_f, exp_c = torch.zeros(8, *fg.dims), torch.zeros(fg.dims)
         covered = torch.zeros(fg.dims, dtype=torch.bool)
-        xs, ys, zs = slice(max(0, -dx), nx - max(0, dx)), slice(max(0, -dy), ny - max(0, dy)), slice(max(0, -dz), nz - max(0, dz))
-        src = (slice(xs.start + dx, xs.stop + dx), slice(ys.start + dy, ys.stop + dy), slice(zs.start + dz, zs.stop + dz))
+        xs, ys, zs = (
+            slice(max(0, -dx), nx - max(0, dx)),
+            slice(max(0, -dy), ny - max(0, dy)),
+            slice(max(0, -dz), nz - max(0, dz)),
+        )
+        src = (
+            slice(xs.start + dx, xs.stop + dx),
+            slice(ys.start + dy, ys.stop + dy),
+            slice(zs.start + dz, zs.stop + dz),
+        )
         exp_f[:, xs, ys, zs] = others[a].features[n][(slice(None),) + src]
         exp_c[xs, ys, zs] = others[a].confidence[n, 0][src]
         covered[xs, ys, zs] = True
@@ -288,7 +301,9 @@ def test_sampled_full_resolution_logits_equal_dense(train):
 
 
 # The paper's sizes (ResNet-101 with DCN, 256-channel FPN, 3 + 3 attention layers) on the small grid and images.
-PAPER_SMALL = preset("paper", image_size=(W, H), custom_grid=(SMALL_GRID.origin, SMALL_GRID.voxel_size, SMALL_GRID.dims))
+PAPER_SMALL = preset(
+    "paper", image_size=(W, H), custom_grid=(SMALL_GRID.origin, SMALL_GRID.voxel_size, SMALL_GRID.dims)
+)
 
 
 def test_paper_preset_has_the_papers_sizes():
@@ -309,8 +324,11 @@ def test_paper_preset_has_the_papers_sizes():
     assert sum(p.numel() for p in backbone.parameters()) == 42_500_160 + offsets
 
 
-SMALL_DCN = replace(SMALL, backbone=replace(SMALL.backbone, deform_stages=(False, True, True, True)),
-                    fusion_attention=AttentionConfig(layers=2, heads=2, points=2))
+SMALL_DCN = replace(
+    SMALL,
+    backbone=replace(SMALL.backbone, deform_stages=(False, True, True, True)),
+    fusion_attention=AttentionConfig(layers=2, heads=2, points=2),
+)
 
 
 @pytest.mark.parametrize("cfg", [SMALL_DCN, PAPER_SMALL], ids=["small", "paper"])
@@ -439,6 +457,10 @@ def test_sensor_inputs_refuse_degenerate_cameras(fault):
         k[:] = 0.0
     else:
         rgb = np.zeros((0, 64, 3), np.uint8)
-    sensor_inputs(cfg, np.eye(4), [("camera0", np.zeros((48, 64, 3), np.uint8), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), np.eye(4))])
+    sensor_inputs(
+        cfg,
+        np.eye(4),
+        [("camera0", np.zeros((48, 64, 3), np.uint8), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), np.eye(4))],
+    )
     with pytest.raises(Co3sopError, match="camera0|mount|projections"):
         sensor_inputs(cfg, np.eye(4), [("camera0", rgb, k, mount)])

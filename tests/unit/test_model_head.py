@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from model_checks import assert_labels_equal, reference
 
 from co3sop_nodes import kernels
 from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.head import OccupancyHead
-from model_checks import assert_labels_equal, reference
 
 
 def random_head(channels: tuple[int, int, int], dims: int, seed: int) -> OccupancyHead:
@@ -26,8 +26,17 @@ def random_head(channels: tuple[int, int, int], dims: int, seed: int) -> Occupan
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
-@pytest.mark.parametrize("name, range_name", [("tiny", "25.6m"), ("tiny", "51.2m"), ("tiny", "76.8m"), ("tiny-lidar", "51.2m"),
-                                              ("small", "51.2m"), ("paper", "76.8m")])
+@pytest.mark.parametrize(
+    "name, range_name",
+    [
+        ("tiny", "25.6m"),
+        ("tiny", "51.2m"),
+        ("tiny", "76.8m"),
+        ("tiny-lidar", "51.2m"),
+        ("small", "51.2m"),
+        ("paper", "76.8m"),
+    ],
+)
 def test_fast_labels_equal_the_dense_reference_at_every_range(name, range_name, compiled):
     cfg = preset(name, range=range_name)
     head = random_head(cfg.head_channels, cfg.embed_dims, 1)
@@ -51,7 +60,9 @@ def test_a_label_that_is_not_a_float32_tie_fails_the_comparison():
         assert_labels_equal(wrong, want, head, x)
 
 
-@pytest.mark.parametrize("chunk, compiled, threads", [(1, False, 1), (7, False, 1), (100_000, False, 1), (0, True, 1), (0, True, 3)])
+@pytest.mark.parametrize(
+    "chunk, compiled, threads", [(1, False, 1), (7, False, 1), (100_000, False, 1), (0, True, 1), (0, True, 3)]
+)
 def test_chunking_threads_and_batches_do_not_change_the_result(chunk, compiled, threads):
     head = random_head((8, 8, 4), 8, 2)
     x = torch.randn(2, 8, 4, 6, 2)

@@ -7,16 +7,16 @@ import math
 
 import pytest
 import torch
+from model_checks import MICRO
 
 from co3sop_nodes import kernels
+from co3sop_nodes.inference import pace
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
-from co3sop_nodes.inference import pace
+from co3sop_nodes.kernels.warp import compiled_available
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
-from co3sop_nodes.model.co3sop import VehicleOutput, build_model
-from co3sop_nodes.kernels.warp import compiled_available
-from model_checks import MICRO
 
 
 @pytest.mark.parametrize("channels_per_head, threads", [(8, 1), (16, 1), (8, 3)])
@@ -24,12 +24,16 @@ def test_the_compiled_sampler_equals_grid_sample(channels_per_head, threads):
     gen = torch.Generator().manual_seed(channels_per_head + threads)
     h, levels, points, q, n = 4, 3, 4, 2000, 3
     shapes = [(30, 40), (15, 20), (7, 11)]  # (Hl, Wl)
-    values = [torch.randn(n, rows, cols, h * channels_per_head, generator=gen) for rows, cols in shapes]  # channels-last, per camera
+    values = [
+        torch.randn(n, rows, cols, h * channels_per_head, generator=gen) for rows, cols in shapes
+    ]  # channels-last, per camera
     visible = torch.rand(n, q, generator=gen) < 0.4
     camera, query = visible.nonzero(as_tuple=True)
     uv = torch.rand(len(camera), 2, generator=gen)
     offsets = torch.randn(q, h, levels, points, 2, generator=gen) * 8  # pixels: some points fall outside every map
-    offsets[query[0], 0, 0, 0] = float("nan")  # the kernel reads zeros there (grid_sample's value for NaN is unspecified)
+    offsets[query[0], 0, 0, 0] = float(
+        "nan"
+    )  # the kernel reads zeros there (grid_sample's value for NaN is unspecified)
     weights = torch.softmax(torch.randn(q, h, levels * points, generator=gen), -1).view(q, h, levels, points)
     assert deform_kernel.available(channels_per_head)
     got = deform_kernel.sample_pairs(values, camera, query, uv, offsets, weights, threads)

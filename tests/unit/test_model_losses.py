@@ -23,7 +23,6 @@ from co3sop_nodes.model.losses import (
     sem_scal,
 )
 
-
 # 4 voxels, 3 classes (0 = empty); the last voxel is ignored
 PROBS = [
     [0.7, 0.2, 0.1],  # y = 0 (empty)
@@ -148,8 +147,12 @@ def test_occupancy_loss_hand_values_per_scale():
 def test_downsample_labels_block_rules():
     k = 10
     labels = torch.zeros(1, 4, 4, 2, dtype=torch.long)  # factor 2 -> (2, 2, 1): four 2x2x2 blocks
-    blk = {(0, 0): (slice(0, 2), slice(0, 2)), (0, 1): (slice(0, 2), slice(2, 4)),
-           (1, 0): (slice(2, 4), slice(0, 2)), (1, 1): (slice(2, 4), slice(2, 4))}
+    blk = {
+        (0, 0): (slice(0, 2), slice(0, 2)),
+        (0, 1): (slice(0, 2), slice(2, 4)),
+        (1, 0): (slice(2, 4), slice(0, 2)),
+        (1, 1): (slice(2, 4), slice(2, 4)),
+    }
     # block (0, 0): 7 empty + one pole voxel (9): any occupied voxel wins over empty
     labels[0, 1, 0, 1] = 9
     # block (0, 1): occupied 3, 3, 5 among empty: the most frequent occupied label (3), not empty
@@ -196,7 +199,12 @@ def test_downsample_labels_matches_counting_reference(factor):
         for i in range(m):
             for j in range(m):
                 for kk in range(m):
-                    block = labels[bi, i * factor:(i + 1) * factor, j * factor:(j + 1) * factor, kk * factor:(kk + 1) * factor]
+                    block = labels[
+                        bi,
+                        i * factor : (i + 1) * factor,
+                        j * factor : (j + 1) * factor,
+                        kk * factor : (kk + 1) * factor,
+                    ]
                     counts = Counter(block.flatten().tolist())
                     occupied = {c: v for c, v in counts.items() if c not in (EMPTY, IGNORE)}
                     if occupied:
@@ -212,7 +220,7 @@ def test_downsample_labels_matches_counting_reference(factor):
                         expected = IGNORE
                     assert out[bi, i, j, kk].item() == expected, (bi, i, j, kk, counts)
                     checked += 1
-    assert checked > m ** 3  # most blocks had a unique answer
+    assert checked > m**3  # most blocks had a unique answer
     assert out[0, 0, 0, 0] == IGNORE and out[1, 0, 0, 0] == EMPTY
 
 
@@ -228,8 +236,9 @@ def test_confidence_loss_is_mse_to_detached_true_class_probability():
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     loss.backward()
     assert logits.grad is None or torch.count_nonzero(logits.grad) == 0  # the target probability is detached
-    torch.testing.assert_close(conf.grad.view(4), torch.tensor([2 * (0.5 - 0.7), 2 * (0.9 - 0.6), 0.0, 0.0]) / 3,
-                               atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(
+        conf.grad.view(4), torch.tensor([2 * (0.5 - 0.7), 2 * (0.9 - 0.6), 0.0, 0.0]) / 3, atol=1e-6, rtol=1e-5
+    )
 
 
 def test_confidence_loss_all_ignored_is_zero():
@@ -260,12 +269,12 @@ def test_downsample_labels_equals_counting_every_block(seed):
     labels[torch.rand(labels.shape, generator=g) < 0.3] = IGNORE
     labels[torch.rand(labels.shape, generator=g) < 0.3] = EMPTY
     out = downsample_labels(labels, f, k)
-    for b, i, j, l in torch.cartesian_prod(*(torch.arange(n) for n in out.shape)).tolist():
-        block = labels[b, i * f:(i + 1) * f, j * f:(j + 1) * f, l * f:(l + 1) * f].flatten().tolist()
+    for b, i, j, k in torch.cartesian_prod(*(torch.arange(n) for n in out.shape)).tolist():
+        block = labels[b, i * f : (i + 1) * f, j * f : (j + 1) * f, k * f : (k + 1) * f].flatten().tolist()
         counts = Counter(v for v in block if v != IGNORE)
         occupied = {c: n for c, n in counts.items() if c != EMPTY}
         best = min(occupied, key=lambda c: (-occupied[c], c)) if occupied else (EMPTY if counts else IGNORE)
-        assert out[b, i, j, l].item() == best, (b, i, j, l, block)
+        assert out[b, i, j, k].item() == best, (b, i, j, k, block)
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -19,7 +19,6 @@ import torch
 from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.kernels.warp import warp, warp_with_mask
 
-
 # square in x/y and centred on the sensor: a 90-degree yaw maps the grid onto itself
 SQUARE = GridSpec((-2.0, -2.0, -1.0), 0.5, (8, 8, 4))
 # deliberately anisotropic and off-centre, so a swapped axis or centre cannot cancel out
@@ -41,11 +40,13 @@ def _yaw(angle: float) -> np.ndarray:
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _centres(grid: GridSpec) -> np.ndarray:

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from model_checks import MICRO
 
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import export_model, load_model
+from co3sop_nodes.inference.outputs import labels_from_logits
+from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import OccFormerConfig, preset
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels
 from co3sop_nodes.model.mask_loss import class_guided_points, mask_classification_loss
 from co3sop_nodes.model.matching import min_cost_assignment
-from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.occformer import OccFormerHead, WindowBlock, class_scores, log_scores, masks_at
-from co3sop_nodes.inference.outputs import labels_from_logits
-from model_checks import MICRO
 
 OCC = OccFormerConfig(stages=(16, 32), blocks=2, window=7, queries=8, dims=16, layers=3, heads=2, points=2048)
 CFG = preset("tiny-occformer", **MICRO, occformer=OCC)  # features 16 x 16 x 3, labels 64 x 64 x 12
@@ -48,7 +48,11 @@ def test_predictions_have_the_decoder_shapes():
     for logits, masks in preds:
         assert logits.shape == (1, OCC.queries, CFG.num_classes + 1)
         assert masks.shape == (1, OCC.queries, *CFG.feature_grid.dims)
-    assert coarse.shape == (1, CFG.num_classes, *CFG.feature_grid.dims) and fine.shape == (1, CFG.num_classes, *CFG.grid.dims)
+    assert coarse.shape == (1, CFG.num_classes, *CFG.feature_grid.dims) and fine.shape == (
+        1,
+        CFG.num_classes,
+        *CFG.grid.dims,
+    )
 
 
 def test_every_parameter_gets_a_gradient():
@@ -58,7 +62,9 @@ def test_every_parameter_gets_a_gradient():
     preds = model.ego(ego)
     labels = _labels()
     parts = mask_classification_loss(preds, labels, OCC.points, np.random.default_rng(0))
-    parts["confidence"] = confidence_loss(ego.confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, CFG.num_classes))
+    parts["confidence"] = confidence_loss(
+        ego.confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, CFG.num_classes)
+    )
     sum(parts.values()).backward()
     # the OccFormer side and the confidence it supervises (the camera lifting's own test is in test_model_halves)
     mine = [(n, p) for n, p in model.named_parameters() if n.startswith(("ego.", "vehicle.confidence"))]
@@ -92,7 +98,9 @@ def test_masks_at_are_the_trilinear_upsampling():
     dims = (16, 20, 12)
     dense = F.interpolate(masks, size=dims, mode="trilinear", align_corners=True).flatten(2)  # (B, Q, N)
     index = torch.randint(0, 16 * 20 * 12, (2, 300))
-    torch.testing.assert_close(masks_at(masks, index, dims), torch.gather(dense, 2, index[:, None].expand(-1, 3, -1)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        masks_at(masks, index, dims), torch.gather(dense, 2, index[:, None].expand(-1, 3, -1)), atol=1e-5, rtol=1e-5
+    )
 
 
 def test_fast_labels_equal_the_dense_definition(monkeypatch):
@@ -133,7 +141,7 @@ def test_class_guided_points_favour_rare_classes_and_skip_ignored_voxels():
     assert len(set(index.tolist())) == len(index) == 4000
     picked = labels.flatten()[index]
     assert (picked != 255).all()
-    share = lambda t, c: float((t == c).float().mean())  # noqa: E731
+    share = lambda t, c: float((t == c).float().mean())
     valid = labels[labels != 255]
     assert share(picked, 10) > 1.5 * share(valid, 10)  # a box of class 10 against mostly empty space
     assert share(picked, 0) < share(valid, 0)
@@ -164,7 +172,10 @@ def test_an_occformer_checkpoint_round_trips(tmp_path):
     assert loaded.cfg == model.cfg and loaded.cfg.occformer == OCC
     inputs = pace.shaped_inputs(model)
     with torch.no_grad():
-        a, b = model.ego.head.labels(model.vehicle(**inputs).features), loaded.ego.head.labels(loaded.vehicle(**inputs).features)
+        a, b = (
+            model.ego.head.labels(model.vehicle(**inputs).features),
+            loaded.ego.head.labels(loaded.vehicle(**inputs).features),
+        )
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
 
 

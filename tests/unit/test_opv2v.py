@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from co3sop_nodes.common import geometry as geo
-from co3sop_nodes.data import opv2v
 from co3sop_nodes.common.errors import Co3sopError, DatasetError
-from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
+from co3sop_nodes.data import opv2v
 from co3sop_nodes.sim.lidar import LidarConfig
+from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
 from co3sop_nodes.sim.traffic import TrafficConfig
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
@@ -23,8 +23,12 @@ SCENARIO = "2021_08_24_21_29_28"
 def simulated(tmp_path_factory):
     """Two frames of a small simulated scenario, written to an OPV2V folder."""
     cfg = ScenarioConfig(
-        traffic=TrafficConfig(cavs=2, vehicles=8, pedestrians=6), frames=2, warmup=5, image_size=(64, 48),
-        lidar=LidarConfig(azimuth_steps=128), ranges=("51.2m",),
+        traffic=TrafficConfig(cavs=2, vehicles=8, pedestrians=6),
+        frames=2,
+        warmup=5,
+        image_size=(64, 48),
+        lidar=LidarConfig(azimuth_steps=128),
+        ranges=("51.2m",),
     )
     root = tmp_path_factory.mktemp("opv2v")
     frames = list(simulate(cfg, seed=3, name="2021_01_02_03_04_05"))
@@ -66,8 +70,18 @@ def test_written_files_follow_the_opv2v_layout(simulated):
     names = {p.name for p in cav_dir.iterdir()}
     assert {f"{ts}.yaml", f"{ts}.pcd", *(f"{ts}_camera{i}.png" for i in range(4))} <= names
     data = opv2v.read_yaml(cav_dir / f"{ts}.yaml")
-    assert set(data) >= {"camera0", "camera1", "camera2", "camera3", "ego_speed", "lidar_pose", "plan_trajectory",
-                         "predicted_ego_pos", "true_ego_pos", "vehicles"}
+    assert set(data) >= {
+        "camera0",
+        "camera1",
+        "camera2",
+        "camera3",
+        "ego_speed",
+        "lidar_pose",
+        "plan_trajectory",
+        "predicted_ego_pos",
+        "true_ego_pos",
+        "vehicles",
+    }
     assert set(data["camera0"]) == {"cords", "extrinsic", "intrinsic"}
     # camera0's extrinsic is lidar -> camera in CARLA axes: the LiDAR sits 3 m behind and 0.9 m above it
     np.testing.assert_allclose(np.array(data["camera0"]["extrinsic"])[:3, 3], [-3.0, 0.0, 0.9], atol=1e-9)

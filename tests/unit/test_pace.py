@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
+from model_checks import MICRO
 
 from co3sop_nodes.inference import pace
-from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.co3sop import build_model
-from model_checks import MICRO
+from co3sop_nodes.model.config import preset
 
 
 def test_the_rate_is_bound_by_the_cores_and_by_the_ego():

@@ -22,18 +22,51 @@ PACKAGE = REPO / "src" / "co3sop_nodes"
 LAUNCH_FILES = sorted((PACKAGE / "launch").glob("*.launch.py"))
 
 # ROS packages the code may import: their rosdep key is their name
-ROS_PACKAGES = {"ament_index_python", "builtin_interfaces", "co3sop_msgs", "diagnostic_msgs", "geometry_msgs", "launch", "launch_ros", "lifecycle_msgs", "rcl_interfaces",
-                "rclpy", "rosgraph_msgs", "sensor_msgs", "std_msgs", "tf2_msgs"}
+ROS_PACKAGES = {
+    "ament_index_python",
+    "builtin_interfaces",
+    "co3sop_msgs",
+    "diagnostic_msgs",
+    "geometry_msgs",
+    "launch",
+    "launch_ros",
+    "lifecycle_msgs",
+    "rcl_interfaces",
+    "rclpy",
+    "rosgraph_msgs",
+    "sensor_msgs",
+    "std_msgs",
+    "tf2_msgs",
+}
 # Python modules -> rosdep key (what `rosdep install` must provide)
-PYTHON_KEYS = {"numpy": "python3-numpy", "torch": "python3-torch", "yaml": "python3-yaml", "PIL": "python3-pil", "matplotlib": "python3-matplotlib",
-               "tqdm": "python3-tqdm", "rosbags": "python3-rosbags-pip", "trimesh": "python3-trimesh-pip", "embreex": "python3-embreex-pip",
-               "mcap": "python3-mcap-pip", "zstandard": "python3-zstandard-pip"}
+PYTHON_KEYS = {
+    "numpy": "python3-numpy",
+    "torch": "python3-torch",
+    "yaml": "python3-yaml",
+    "PIL": "python3-pil",
+    "matplotlib": "python3-matplotlib",
+    "tqdm": "python3-tqdm",
+    "rosbags": "python3-rosbags-pip",
+    "trimesh": "python3-trimesh-pip",
+    "embreex": "python3-embreex-pip",
+    "mcap": "python3-mcap-pip",
+    "zstandard": "python3-zstandard-pip",
+}
 # modules that need another one at run time without naming it: trimesh's Embree ray caster loads embreex
 INDIRECT = {"trimesh.ray.ray_pyembree": "embreex"}
 # keys of rosdistro's rosdep/python.yaml we use (checked in ros/rosdistro at 662921b, 2026-08-22); any other
 # non-ROS key must be defined in the package's rosdep.yaml
-ROSDISTRO_KEYS = {"python3-numpy", "python3-torch", "python3-yaml", "python3-pil", "python3-matplotlib", "python3-tqdm", "python3-pytest",
-                  "python3-rosbags-pip", "python3-trimesh-pip"}
+ROSDISTRO_KEYS = {
+    "python3-numpy",
+    "python3-torch",
+    "python3-yaml",
+    "python3-pil",
+    "python3-matplotlib",
+    "python3-tqdm",
+    "python3-pytest",
+    "python3-rosbags-pip",
+    "python3-trimesh-pip",
+}
 
 
 def manifest(tag: str) -> set[str]:
@@ -79,8 +112,11 @@ def test_every_python_key_resolves():
     keys = {k for k in manifest("exec_depend") | manifest("test_depend") if k not in ROS_PACKAGES}
     assert keys <= ROSDISTRO_KEYS | own.keys(), sorted(keys - ROSDISTRO_KEYS - own.keys())
     assert own.keys() <= keys, "rosdep.yaml defines keys nothing uses"
-    pinned = {re.split(r"[=<>\[]", line)[0].strip().lower() for line in (REPO / "ros2_ws" / "requirements.txt").read_text().splitlines()
-              if line.strip() and not line.startswith("#")}
+    pinned = {
+        re.split(r"[=<>\[]", line)[0].strip().lower()
+        for line in (REPO / "ros2_ws" / "requirements.txt").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    }
     for key, rule in own.items():
         packages = rule["ubuntu"]["pip"]["packages"]
         assert set(packages) <= pinned, f"{key}: {packages} not pinned in ros2_ws/requirements.txt"
@@ -101,13 +137,17 @@ def console_scripts() -> set[str]:
 
 def config_parameters(executable: str) -> set[str]:
     """Every parameter of the node's parameter file, dotted."""
+
     def flat(d: dict, prefix: str = "") -> set[str]:
         return set().union(*(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k} for k, v in d.items()))
 
     return flat(yaml.safe_load((PACKAGE / "config" / f"{executable}.yaml").read_text())["/**"]["ros__parameters"])
 
 
-NODE_PARAMS = {"ego": (*ego.PARAMS, AUTOSTART), "vehicle": (*vehicle.PARAMS, AUTOSTART)}  # lifecycle nodes: autostart too
+NODE_PARAMS = {
+    "ego": (*ego.PARAMS, AUTOSTART),
+    "vehicle": (*vehicle.PARAMS, AUTOSTART),
+}  # lifecycle nodes: autostart too
 
 
 @pytest.mark.parametrize("executable", sorted(NODE_PARAMS))
@@ -118,7 +158,11 @@ def test_parameter_files_list_every_optional_parameter(executable):
 
 
 def calls(tree: ast.AST, name: str) -> list[ast.Call]:
-    return [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == name]
+    return [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == name
+    ]
 
 
 def keyword(call: ast.Call, name: str):
@@ -152,9 +196,13 @@ def test_launch_file_references_exist(path):
             assert names <= declared, f"{path.name}: {executable} has no parameters {names - declared}"
     declared = {ast.literal_eval(c.args[0]) for c in calls(tree, "DeclareLaunchArgument")}
     used = {c.args[0].value for c in calls(tree, "LaunchConfiguration") if isinstance(c.args[0], ast.Constant)}
-    used |= {c.args[0].value for c in calls(tree, "arg") if isinstance(c.args[0], ast.Constant)}  # graph: arg(name) performs one
+    used |= {
+        c.args[0].value for c in calls(tree, "arg") if isinstance(c.args[0], ast.Constant)
+    }  # graph: arg(name) performs one
     assert used <= declared, f"{path.name}: undeclared launch arguments {used - declared}"
-    for join in calls(tree, "PathJoinSubstitution"):  # parameter files: (share, "config", "x.yaml") or (CONFIG, "x.yaml")
+    for join in calls(
+        tree, "PathJoinSubstitution"
+    ):  # parameter files: (share, "config", "x.yaml") or (CONFIG, "x.yaml")
         for part in join.args[0].elts:
             if isinstance(part, ast.Constant) and part.value.endswith(".yaml"):
                 assert (PACKAGE / "config" / part.value).is_file(), f"{path.name}: no config/{part.value}"
@@ -171,18 +219,33 @@ def test_graph_launch_and_demo_start_the_one_described_graph():
 
 
 def test_the_described_graph_runs_existing_executables_with_declared_parameters(tmp_path):
-    graph = describe(tmp_path / "bag", [3, 5, 8], "lidar", tmp_path / "g.mcap", 0.5, common={"checkpoint": "tiny-lidar"},
-                     vehicle_params={"codec.dtype": "int8"})
+    graph = describe(
+        tmp_path / "bag",
+        [3, 5, 8],
+        "lidar",
+        tmp_path / "g.mcap",
+        0.5,
+        common={"checkpoint": "tiny-lidar"},
+        vehicle_params={"codec.dtype": "int8"},
+    )
     scripts = console_scripts()
-    assert [s.executable for s in (*graph.nodes, graph.player)] == ["recorder", "ego", "vehicle", "vehicle", "vehicle",
-                                                                    "player"]
+    assert [s.executable for s in (*graph.nodes, graph.player)] == [
+        "recorder",
+        "ego",
+        "vehicle",
+        "vehicle",
+        "vehicle",
+        "player",
+    ]
     for spec in (*graph.nodes, graph.player):
         assert spec.executable in scripts
         assert set(spec.parameters) <= {p.name for p in NODE_PARAMS.get(spec.executable, ())}, spec
     own, *others = graph.vehicles
     assert own.parameters == {"id": 3, "checkpoint": "tiny-lidar", **LOSSLESS} and own.car == "ego"
-    assert [(o.car, o.namespace, o.parameters["codec.dtype"]) for o in others] == [("cav5", "/cav_5", "int8"),
-                                                                                   ("cav8", "/cav_8", "int8")]
+    assert [(o.car, o.namespace, o.parameters["codec.dtype"]) for o in others] == [
+        ("cav5", "/cav_5", "int8"),
+        ("cav8", "/cav_8", "int8"),
+    ]
     assert own.ros_arguments()[:3] == ["--ros-args", "-r", "__ns:=/cav_3"] and "id:=3" in own.ros_arguments()
     assert graph.player.arguments[:3] == (str(tmp_path / "bag"), "--rate", "0.5")
     assert "/cav_8/lidar/points" in graph.player.arguments and "/cav_8/camera0/image_raw" not in graph.player.arguments

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from co3sop_nodes.data.bags import typestore
-from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
-from co3sop_nodes.data.inventory import describe
-from co3sop_nodes.v2x.codec import encode_labels
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.data.bags import typestore
+from co3sop_nodes.data.inventory import describe
 from co3sop_nodes.data.recording import McapRecorder, recover
 from co3sop_nodes.eval.scoring import read_recording, score, score_recording
+from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
+from co3sop_nodes.v2x.codec import encode_labels
 from co3sop_nodes.viz.bev import save_comparison
 
 GRID = BENCHMARK_RANGES["51.2m"]

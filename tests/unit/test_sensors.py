@@ -60,7 +60,12 @@ def expected_images(k: np.ndarray):
     depth = np.zeros((H, W))
     depth[on_wall], depth[on_ground] = 10.0, ground_x[on_ground]
     # pixels whose ray passes within 1 mm of a silhouette edge are not compared
-    ambiguous = (np.abs(np.abs(wall_y) - 3) < 1e-3) | (np.abs(wall_z - 4) < 1e-3) | (np.abs(wall_z) < 1e-3) | (np.abs(ground_x - 100) < 1e-2)
+    ambiguous = (
+        (np.abs(np.abs(wall_y) - 3) < 1e-3)
+        | (np.abs(wall_z - 4) < 1e-3)
+        | (np.abs(wall_z) < 1e-3)
+        | (np.abs(ground_x - 100) < 1e-2)
+    )
     return semantic, depth, ambiguous
 
 
@@ -135,7 +140,9 @@ def test_pixel_rays_centre_and_orientation():
     # the horizontal field of view: pixel edges 0 and 800 are 100 degrees apart
     f = rig.intrinsics(800, 600)[0, 0]
     assert math.degrees(2 * math.atan(400 / f)) == pytest.approx(100.0)
-    assert math.degrees(math.atan2(rays[300, 0, 1], rays[300, 0, 0])) == pytest.approx(math.degrees(math.atan(399.5 / f)))
+    assert math.degrees(math.atan2(rays[300, 0, 1], rays[300, 0, 0])) == pytest.approx(
+        math.degrees(math.atan(399.5 / f))
+    )
 
 
 def test_pixel_rays_invert_a_general_pinhole():
@@ -220,15 +227,20 @@ def test_render_of_an_empty_scene_is_sky():
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "trimesh"])
 def test_cast_reports_first_hit_owner_normal_and_range(compiled):
-    objs = [SceneObject(1, L["pole"], (Cylinder(5, 0, 0.5, -1, 1),)), SceneObject(2, L["wall"], (Box.make([8, 0, 0], [1, 4, 4]),)),
-            SceneObject(3, L["vegetation"], (Sphere(np.array([0.0, 6.0, 0.0]), 1.0),))]
+    objs = [
+        SceneObject(1, L["pole"], (Cylinder(5, 0, 0.5, -1, 1),)),
+        SceneObject(2, L["wall"], (Box.make([8, 0, 0], [1, 4, 4]),)),
+        SceneObject(3, L["vegetation"], (Sphere(np.array([0.0, 6.0, 0.0]), 1.0),)),
+    ]
     scene = RayScene([ObjectMeshes(objs[:2]), ObjectMeshes(objs[2:])])
     # rays 3 and 4 pass over the pole to the wall's two faces; ray 5 starts inside the wall
     origins = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 1.5], [20, 0, 1.5], [8.0, 0, 1.5]], float)
     directions = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [1.0, 0, 0], [-1.0, 0, 0], [1.0, 0, 0]])
     hits = scene.cast(origins, directions, compiled=compiled)
     np.testing.assert_array_equal(hits.object_index, [0, 2, -1, 1, 1, 1])
-    assert 4.5 - 1e-4 < hits.distance[0] < 4.5 + 0.5 * (1 - math.cos(math.pi / 12)) + 1e-4  # the pole's 12-gon, before the wall
+    assert (
+        4.5 - 1e-4 < hits.distance[0] < 4.5 + 0.5 * (1 - math.cos(math.pi / 12)) + 1e-4
+    )  # the pole's 12-gon, before the wall
     assert hits.distance[1] == pytest.approx(5.0, abs=0.05)  # the icosphere's near side
     assert np.isinf(hits.distance[2])
     np.testing.assert_allclose(hits.distance[3:], [7.5, 11.5, 0.5], atol=1e-4)
@@ -259,7 +271,9 @@ def random_scene(rng: np.random.Generator) -> RayScene:
         else:
             prim = Sphere(c, rng.uniform(0.3, 3))
         texture = str(rng.choice(["plain", "bricks", "stripes", "noise"]))
-        objects.append(SceneObject(i + 3, L["building"], (prim,), tuple(int(v) for v in rng.integers(0, 256, 3)), texture))
+        objects.append(
+            SceneObject(i + 3, L["building"], (prim,), tuple(int(v) for v in rng.integers(0, 256, 3)), texture)
+        )
     return scene_of(objects)
 
 
@@ -304,7 +318,9 @@ def test_compiled_render_equals_the_reference_in_a_town(town_scene, width, heigh
     # the images show every texture, sky and shadow
     seen = set()
     for p in poses:
-        hits = scene.cast(np.broadcast_to(p[:3, 3], (width * height, 3)), camera.pixel_rays(width, height, k) @ p[:3, :3].T)
+        hits = scene.cast(
+            np.broadcast_to(p[:3, 3], (width * height, 3)), camera.pixel_rays(width, height, k) @ p[:3, :3].T
+        )
         seen |= {scene.objects[i].texture for i in np.unique(hits.object_index[hits.object_index >= 0])}
     assert seen == {"plain", "bricks", "stripes", "noise"}
     assert any((r.semantic == SKY).any() for r in ref)
@@ -389,7 +405,7 @@ def test_scan_is_in_the_lidar_frame():
     out = lidar.scan(scene_of([wall]), world_from_lidar, cfg, np.random.default_rng(1))
     assert len(out.points) > 50 and (out.label == L["wall"]).all()
     np.testing.assert_allclose(out.points[:, 1], -10.0, atol=1e-3)  # right is -y in REP-103
-    assert (out.points[:, 0] ** 2 < 20.0 ** 2).all()
+    assert (out.points[:, 0] ** 2 < 20.0**2).all()
     np.testing.assert_allclose(out.intensity, np.exp(-0.004 * np.linalg.norm(out.points, axis=1)), rtol=1e-5)
 
 

@@ -256,7 +256,11 @@ def test_cylinder_overlap_equals_nearest_point_reference():
     rng = np.random.default_rng(8)
     counts = {True: 0, False: 0}
     for _ in range(200):
-        cyl = Cylinder(*rng.uniform(-3, 3, 2), float(np.exp(rng.uniform(np.log(0.01), np.log(2.0)))), *sorted(rng.uniform(-2, 3, 2)))
+        cyl = Cylinder(
+            *rng.uniform(-3, 3, 2),
+            float(np.exp(rng.uniform(np.log(0.01), np.log(2.0)))),
+            *sorted(rng.uniform(-2, 3, 2)),
+        )
         half = float(rng.choice([0.05, 0.1, 0.2]))
         lo, hi = cyl.aabb()
         c = centres_around(rng, lo, hi, half, 50)
@@ -271,7 +275,11 @@ def test_cylinder_overlap_equals_nearest_point_reference():
         # sampling: a cube point strictly inside the cylinder means overlap
         for centre, g in zip(c, got):
             p = cube_points(centre, half, 5)
-            inside = (np.hypot(p[:, 0] - cyl.x, p[:, 1] - cyl.y) < cyl.radius - 1e-4) & (p[:, 2] > cyl.z0 + 1e-4) & (p[:, 2] < cyl.z1 - 1e-4)
+            inside = (
+                (np.hypot(p[:, 0] - cyl.x, p[:, 1] - cyl.y) < cyl.radius - 1e-4)
+                & (p[:, 2] > cyl.z0 + 1e-4)
+                & (p[:, 2] < cyl.z1 - 1e-4)
+            )
             if inside.any():
                 assert g
     assert min(counts.values()) > 1000
@@ -356,7 +364,11 @@ def test_box_vertical_entry_matches_mesh_ray_cast():
     rng = np.random.default_rng(10)
     hit_count = miss_count = 0
     for n in range(60):
-        box = random_box(rng) if n % 3 else Box.make(rng.uniform(-3, 3, 3), rng.uniform(0.05, 3, 3), rng.uniform(-np.pi, np.pi))
+        box = (
+            random_box(rng)
+            if n % 3
+            else Box.make(rng.uniform(-3, 3, 3), rng.uniform(0.05, 3, 3), rng.uniform(-np.pi, np.pi))
+        )
         lo, hi = box.aabb()
         xy = rng.uniform(lo[:2] - 0.3, hi[:2] + 0.3, (300, 2))
         analytic, meshed = box.vertical_entry(xy), mesh_top(box, xy)
@@ -376,7 +388,9 @@ def test_box_vertical_entry_exact_values():
     np.testing.assert_allclose(got[:2], [0.0, 0.0], atol=1e-12)
     assert np.isnan(got[2:]).all()
     tilted = Box.make([0, 0, 0], [2, 2, 2], pitch=np.pi / 4)  # a ridge along y at z = sqrt 2
-    np.testing.assert_allclose(tilted.vertical_entry(np.array([[0.0, 0.5], [0.5, 0.0]])), [math.sqrt(2), math.sqrt(2) - 0.5], atol=1e-12)
+    np.testing.assert_allclose(
+        tilted.vertical_entry(np.array([[0.0, 0.5], [0.5, 0.0]])), [math.sqrt(2), math.sqrt(2) - 0.5], atol=1e-12
+    )
 
 
 def test_cylinder_vertical_entry_matches_mesh_ray_cast():
@@ -405,7 +419,9 @@ def test_sphere_vertical_entry_matches_mesh_ray_cast():
         xy = sph.center[:2] + rng.uniform(-1.3, 1.3, (400, 2)) * sph.radius
         d = np.hypot(*(xy - sph.center[:2]).T)
         analytic, meshed = sph.vertical_entry(xy), mesh_top(sph, xy)
-        np.testing.assert_allclose(analytic[d < sph.radius], sph.center[2] + np.sqrt(sph.radius**2 - d[d < sph.radius] ** 2), atol=1e-12)
+        np.testing.assert_allclose(
+            analytic[d < sph.radius], sph.center[2] + np.sqrt(sph.radius**2 - d[d < sph.radius] ** 2), atol=1e-12
+        )
         assert np.isnan(analytic[d > sph.radius]).all()
         assert np.isnan(meshed[d > sph.radius + 1e-4]).all()
         core = d < 0.8 * sph.radius
@@ -440,8 +456,11 @@ def test_aabb_contains_every_overlapping_cube_centre_within_half():
     # conservative culling relies on this: nothing overlaps a cube outside the aabb grown by half
     rng = np.random.default_rng(14)
     for _ in range(60):
-        for prim in (random_box(rng), Sphere(rng.uniform(-3, 3, 3), float(rng.uniform(0.01, 2))),
-                     Cylinder(*rng.uniform(-3, 3, 2), float(rng.uniform(0.01, 2)), *sorted(rng.uniform(-2, 3, 2)))):
+        for prim in (
+            random_box(rng),
+            Sphere(rng.uniform(-3, 3, 3), float(rng.uniform(0.01, 2))),
+            Cylinder(*rng.uniform(-3, 3, 2), float(rng.uniform(0.01, 2)), *sorted(rng.uniform(-2, 3, 2))),
+        ):
             lo, hi = prim.aabb()
             c = centres_around(rng, lo, hi, 0.1, 300)
             hit = prim.overlaps(c, 0.1)
@@ -465,8 +484,12 @@ def _trimesh_reference(prim) -> tuple[np.ndarray, np.ndarray]:
 
 def test_triangles_are_bit_identical_to_trimesh_creation():
     rng = np.random.default_rng(5)
-    prims = [Box.make([0, 0, 0], [1, 2, 3]), Box.make([1e-9, 0, 0], [1, 1, 1]), Sphere(np.zeros(3), 1.0),
-             Cylinder(0.0, 0.0, 0.5, -1.0, 1.0)]  # identity and near-identity placements: trimesh skips them
+    prims = [
+        Box.make([0, 0, 0], [1, 2, 3]),
+        Box.make([1e-9, 0, 0], [1, 1, 1]),
+        Sphere(np.zeros(3), 1.0),
+        Cylinder(0.0, 0.0, 0.5, -1.0, 1.0),
+    ]  # identity and near-identity placements: trimesh skips them
     for _ in range(200):
         prims.append(Box.make(rng.normal(size=3) * 50, rng.uniform(0.05, 20, 3), *rng.uniform(-np.pi, np.pi, 3)))
         prims.append(Cylinder(*rng.normal(size=2) * 50, rng.uniform(0.05, 3), *np.sort(rng.uniform(-2, 10, 2))))

@@ -8,7 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from co3sop_nodes.common.classes import CLASS_NAMES, LABEL_BY_NAME as L
+from co3sop_nodes.common.classes import CLASS_NAMES
+from co3sop_nodes.common.classes import LABEL_BY_NAME as L
 from co3sop_nodes.sim.shapes import Box, Sphere
 from co3sop_nodes.sim.town import LANE_WIDTH, Lane, Road, Town, TownConfig, generate_town
 from co3sop_nodes.sim.traffic import DT, VEHICLE_KINDS, Traffic, TrafficConfig, vehicle_primitives
@@ -91,7 +92,17 @@ def test_every_street_tag_appears(towns, seed):
     assert L["sky"] not in labels and 0 not in labels
     # the rarer ones come from the town itself
     town_labels = {o.label for o in town.objects}
-    for name in ("railtrack", "bridge", "water", "unlabeled", "guardrail", "trafficlight", "trafficsign", "terrain", "ground"):
+    for name in (
+        "railtrack",
+        "bridge",
+        "water",
+        "unlabeled",
+        "guardrail",
+        "trafficlight",
+        "trafficsign",
+        "terrain",
+        "ground",
+    ):
         assert L[name] in town_labels, name
 
 
@@ -136,7 +147,7 @@ def test_traffic_places_the_requested_cavs(towns, cavs):
     ids = [v.id for v in traffic.vehicles] + [p.id for p in traffic.pedestrians]
     assert len(set(ids)) == len(ids)
     # near a common centre: within cav_radius of one intersection, plus how far along its lane a car spawns
-    longest = max(np.hypot(l.end[0] - l.start[0], l.end[1] - l.start[1]) for l in town.lanes)
+    longest = max(np.hypot(lane.end[0] - lane.start[0], lane.end[1] - lane.start[1]) for lane in town.lanes)
     reach = TrafficConfig().cav_radius + 0.35 * longest + 1e-6
     assert any(all(np.hypot(v.x - ix, v.y - iy) <= reach for v in traffic.cavs) for ix, iy in town.intersections)
     assert len([v for v in traffic.vehicles if not v.parked and not v.connected]) <= TrafficConfig().vehicles
@@ -165,7 +176,7 @@ def test_objects_are_vehicles_and_pedestrians_in_place(towns):
         c, s = np.cos(v.yaw), np.sin(v.yaw)
         along, across = local @ [c, s], local @ [-s, c]
         assert np.abs(along).max() <= v.size[0] / 2 + 1e-6 and np.abs(across).max() <= v.size[1] / 2 + 1e-6
-    for obj, p in zip(objects[len(traffic.vehicles):], traffic.pedestrians):
+    for obj, p in zip(objects[len(traffic.vehicles) :], traffic.pedestrians):
         assert obj.label == L["pedestrian"]
         np.testing.assert_allclose((obj.aabb()[0][:2] + obj.aabb()[1][:2]) / 2, p.position(), atol=1e-9)
 
@@ -222,18 +233,35 @@ def run(town, seed: int, steps: int, cfg: TrafficConfig = TrafficConfig()):
         # moving vehicles: on a lane's centre line or inside an intersection
         centre = np.array([[v.x, v.y] for v in moving])
         on_lane = segment_distances(centre, starts, ends).min(axis=1) < 1e-6
-        in_junction = ((np.abs(centre[:, None, 0] - junctions[None, :, 0]) <= junctions[None, :, 2] + 1e-6)
-                       & (np.abs(centre[:, None, 1] - junctions[None, :, 1]) <= junctions[None, :, 3] + 1e-6)).any(axis=1)
-        assert (on_lane | in_junction).all(), [(v.id, v.x, v.y) for v, ok in zip(moving, on_lane | in_junction) if not ok]
+        in_junction = (
+            (np.abs(centre[:, None, 0] - junctions[None, :, 0]) <= junctions[None, :, 2] + 1e-6)
+            & (np.abs(centre[:, None, 1] - junctions[None, :, 1]) <= junctions[None, :, 3] + 1e-6)
+        ).any(axis=1)
+        assert (on_lane | in_junction).all(), [
+            (v.id, v.x, v.y) for v, ok in zip(moving, on_lane | in_junction) if not ok
+        ]
         # and no part of their footprint inside a building
         pts = [centre]
         for a in (-0.5, 0.5):
             for b in (-0.5, 0.5):
-                pts.append(np.array([[v.x + np.cos(v.yaw) * a * v.size[0] - np.sin(v.yaw) * b * v.size[1],
-                                      v.y + np.sin(v.yaw) * a * v.size[0] + np.cos(v.yaw) * b * v.size[1]] for v in moving]))
+                pts.append(
+                    np.array(
+                        [
+                            [
+                                v.x + np.cos(v.yaw) * a * v.size[0] - np.sin(v.yaw) * b * v.size[1],
+                                v.y + np.sin(v.yaw) * a * v.size[0] + np.cos(v.yaw) * b * v.size[1],
+                            ]
+                            for v in moving
+                        ]
+                    )
+                )
         pts = np.concatenate(pts)
-        inside = ((pts[:, None, 0] > footprints[None, :, 0]) & (pts[:, None, 0] < footprints[None, :, 2])
-                  & (pts[:, None, 1] > footprints[None, :, 1]) & (pts[:, None, 1] < footprints[None, :, 3]))
+        inside = (
+            (pts[:, None, 0] > footprints[None, :, 0])
+            & (pts[:, None, 0] < footprints[None, :, 2])
+            & (pts[:, None, 1] > footprints[None, :, 1])
+            & (pts[:, None, 1] < footprints[None, :, 3])
+        )
         assert not inside.any()
         for ped, old in zip(traffic.pedestrians, ped_before):
             assert 0.0 <= ped.t <= 1.0

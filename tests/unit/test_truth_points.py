@@ -9,16 +9,15 @@ import numpy as np
 import pytest
 
 from co3sop_nodes.common import topics
-from co3sop_nodes.data.bags import typestore
-from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
 from co3sop_nodes.common.classes import NUM_CLASSES
-from co3sop_nodes.viz.cloud import occupancy_cloud
-from co3sop_nodes.v2x.codec import encode_labels
 from co3sop_nodes.common.errors import DatasetError
-from co3sop_nodes.viz.foxglove import CAMERAS, layout
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.messages import OCCUPANCY
+from co3sop_nodes.data.bags import typestore
+from co3sop_nodes.messages import OCCUPANCY, RosbagsTypes, occupancy_msg
 from co3sop_nodes.messages.sensors import POINT_CLOUD as POINTS
+from co3sop_nodes.v2x.codec import encode_labels
+from co3sop_nodes.viz.cloud import occupancy_cloud
+from co3sop_nodes.viz.foxglove import CAMERAS, layout
 from co3sop_nodes.viz.truth_points import TruthPoints, truth_key
 
 STORE = typestore()
@@ -29,7 +28,9 @@ def occupancy(agent: int, range_name: str, stamp: int, seed: int = 0) -> tuple[b
     grid = BENCHMARK_RANGES[range_name]
     labels = np.random.default_rng(seed).choice([0, 0, 0, 4, 7, 10, 255], size=grid.dims).astype(np.uint8)
     enc = encode_labels(labels, grid, NUM_CLASSES)
-    msg = occupancy_msg(RosbagsTypes(STORE), enc, stamp_ns=stamp * 10**9, frame_id=topics.lidar_frame(agent), agent_id=agent)
+    msg = occupancy_msg(
+        RosbagsTypes(STORE), enc, stamp_ns=stamp * 10**9, frame_id=topics.lidar_frame(agent), agent_id=agent
+    )
     return bytes(STORE.serialize_cdr(msg, OCCUPANCY)), labels
 
 
@@ -60,7 +61,9 @@ def test_an_egos_ground_truth_at_its_range_becomes_the_points_the_ego_publishes(
         assert [f.name for f in msg.fields] == list(cloud.dtype.names)
         assert bytes(msg.data) == cloud.tobytes()
     assert conv.prediction(occupancy(EGO, "51.2m", 2)[0]) == []  # known ego: nothing waits
-    assert conv.truth(topics.ground_truth(EGO, "25.6m"), occupancy(EGO, "25.6m", 2)[0]) == []  # another range is not drawn
+    assert (
+        conv.truth(topics.ground_truth(EGO, "25.6m"), occupancy(EGO, "25.6m", 2)[0]) == []
+    )  # another range is not drawn
     assert conv.truth(topics.ground_truth(OTHER, "51.2m"), occupancy(OTHER, "51.2m", 2)[0]) == []  # nor another CAV
 
 
@@ -85,17 +88,22 @@ def test_malformed_messages_are_named_not_raised_raw(raw):
 def test_foxglove_layout_shows_prediction_truth_and_the_egos_cameras():
     doc = json.loads(json.dumps(layout(EGO)))  # plain JSON
     config = doc["configById"]
-    shown = {t for c in config.values() for t in c.get("topics", {})} | {c["imageMode"]["imageTopic"] for c in config.values() if "imageMode" in c}
+    shown = {t for c in config.values() for t in c.get("topics", {})} | {
+        c["imageMode"]["imageTopic"] for c in config.values() if "imageMode" in c
+    }
     assert shown == {topics.EGO_POINTS, topics.EGO_TRUTH_POINTS, *(topics.camera_image(EGO, cam) for cam in CAMERAS)}
     assert all(c["followTf"] == topics.lidar_frame(EGO) for k, c in config.items() if k.startswith("3D!"))
 
     def leaves(tree):
         return [tree] if isinstance(tree, str) else leaves(tree["first"]) + leaves(tree["second"])
+
     assert sorted(leaves(doc["layout"])) == sorted(config)  # every panel placed once
 
 
 def test_the_shipped_layout_is_the_generated_one():
     """config/foxglove_layout.json (the demo scene's ego) is what `layout` makes, so it never drifts from the topics."""
-    shipped = json.loads((Path(__file__).resolve().parents[2] / "src/co3sop_nodes/config/foxglove_layout.json").read_text())
+    shipped = json.loads(
+        (Path(__file__).resolve().parents[2] / "src/co3sop_nodes/config/foxglove_layout.json").read_text()
+    )
     ego = int(shipped["configById"]["3D!prediction"]["followTf"].split("/")[0].removeprefix("cav_"))
     assert shipped == json.loads(json.dumps(layout(ego)))

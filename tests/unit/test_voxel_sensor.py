@@ -26,9 +26,28 @@ SMALL = GridSpec((-4.0, -4.0, -2.0), 0.2, (40, 40, 24))
 
 # the overlap rule as the module documents it, lowest first (written out here, not imported)
 SPEC_PRIORITY = (
-    "unlabeled", "terrain", "ground", "water", "road", "sidewalk", "railtrack", "roadline", "bridge",
-    "building", "wall", "fence", "guardrail", "other", "vegetation", "static", "dynamic",
-    "pole", "trafficsign", "trafficlight", "vehicle", "pedestrian",
+    "unlabeled",
+    "terrain",
+    "ground",
+    "water",
+    "road",
+    "sidewalk",
+    "railtrack",
+    "roadline",
+    "bridge",
+    "building",
+    "wall",
+    "fence",
+    "guardrail",
+    "other",
+    "vegetation",
+    "static",
+    "dynamic",
+    "pole",
+    "trafficsign",
+    "trafficlight",
+    "vehicle",
+    "pedestrian",
 )
 
 
@@ -90,7 +109,9 @@ def random_primitive(rng, kind: str):
         return Box.make(c, size, *rng.uniform(-np.pi, np.pi, 3))
     if kind == "cylinder":
         z0 = c[2] - rng.uniform(0.05, 4)
-        return Cylinder(float(c[0]), float(c[1]), float(np.exp(rng.uniform(np.log(0.01), np.log(1.5)))), float(z0), float(c[2]))
+        return Cylinder(
+            float(c[0]), float(c[1]), float(np.exp(rng.uniform(np.log(0.01), np.log(1.5)))), float(z0), float(c[2])
+        )
     return Sphere(c, float(rng.uniform(0.05, 2.0)))
 
 
@@ -155,8 +176,10 @@ def test_random_scenes_exercise_overlaps_and_thin_objects():
 @pytest.mark.parametrize("workers", [1, 4])
 def test_worker_count_does_not_change_the_result(workers, compiled):
     world, _, world_from_sensor = random_scene(100)
-    np.testing.assert_array_equal(annotate(world, world_from_sensor, SMALL, workers=workers, compiled=compiled),
-                                  annotate(world, world_from_sensor, SMALL, workers=2))
+    np.testing.assert_array_equal(
+        annotate(world, world_from_sensor, SMALL, workers=workers, compiled=compiled),
+        annotate(world, world_from_sensor, SMALL, workers=2),
+    )
 
 
 # --- a procedural town around a CAV ---------------------------------------------------------------
@@ -182,7 +205,11 @@ def test_annotate_equals_brute_force_in_a_town(seed, compiled):
     assert annotate(objects, world_from_lidar, grid, compiled=compiled)[ijk] == L["vehicle"]
     # ... and the road surface lies just under it (world z in (-0.2, 0])
     under = np.linalg.inv(rig.vehicle_from_lidar()) @ [2.0, 0.0, -0.05, 1.0]
-    assert got[tuple(np.floor((under[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))] in (L["road"], L["roadline"], L["railtrack"])
+    assert got[tuple(np.floor((under[:3] - np.array(grid.origin)) / grid.voxel_size).astype(int))] in (
+        L["road"],
+        L["roadline"],
+        L["railtrack"],
+    )
     assert L["road"] in set(np.unique(got).tolist())
 
 
@@ -206,6 +233,7 @@ def test_only_the_carrying_cav_is_ignored():
     got = annotate(objects, world_from_lidar, grid, ignore=(me.id,))
     assert got[other_body] == L["vehicle"]
     assert got[voxel(me.pose() @ [0.0, 0.0, 0.8, 1.0])] == L["empty"]
+
 
 # --- the overlap rule ---------------------------------------------------------------------------
 
@@ -254,7 +282,15 @@ def test_vehicle_over_road_is_vehicle(reverse):
 
 @pytest.mark.parametrize(
     "low, high",
-    [("road", "roadline"), ("sidewalk", "pedestrian"), ("terrain", "vegetation"), ("pole", "trafficsign"), ("road", "railtrack"), ("building", "vehicle"), ("unlabeled", "terrain")],
+    [
+        ("road", "roadline"),
+        ("sidewalk", "pedestrian"),
+        ("terrain", "vegetation"),
+        ("pole", "trafficsign"),
+        ("road", "railtrack"),
+        ("building", "vehicle"),
+        ("unlabeled", "terrain"),
+    ],
 )
 def test_documented_pairs(low, high):
     a = SceneObject(1, L[high], (Box.make([0.05, 0.05, 0.05], [0.3, 0.3, 0.3]),))
@@ -266,9 +302,12 @@ def test_documented_pairs(low, high):
 
 def test_every_pair_follows_the_priority():
     for i, low in enumerate(SPEC_PRIORITY):
-        for high in SPEC_PRIORITY[i + 1:]:
+        for high in SPEC_PRIORITY[i + 1 :]:
             # give the lower label the larger id too: neither id nor list order decides
-            objs = [SceneObject(9, L[low], (Box.make([0, 0, 0], [0.4, 0.4, 0.4]),)), SceneObject(1, L[high], (Box.make([0, 0, 0], [0.2, 0.2, 0.2]),))]
+            objs = [
+                SceneObject(9, L[low], (Box.make([0, 0, 0], [0.4, 0.4, 0.4]),)),
+                SceneObject(1, L[high], (Box.make([0, 0, 0], [0.2, 0.2, 0.2]),)),
+            ]
             got = annotate(objs, np.eye(4), GridSpec((-0.2, -0.2, -0.2), 0.2, (2, 2, 2)))
             assert (got == L[high]).all(), (low, high)
 
@@ -322,14 +361,20 @@ def test_wire_crossing_the_volume_border():
 
 
 def test_empty_scene_is_all_zeros():
-    for got in (annotate([], np.eye(4), SMALL), annotate([], np.eye(4), SMALL, compiled=False), annotate_brute_force([], np.eye(4), SMALL)):
+    for got in (
+        annotate([], np.eye(4), SMALL),
+        annotate([], np.eye(4), SMALL, compiled=False),
+        annotate_brute_force([], np.eye(4), SMALL),
+    ):
         assert got.shape == SMALL.dims and got.dtype == np.uint8 and not got.any()
 
 
 def test_objects_outside_the_volume_give_zeros():
-    far = [SceneObject(1, L["building"], (Box.make([20, 0, 0], [5, 5, 5]),)),
-           SceneObject(2, L["vegetation"], (Sphere(np.array([0.0, 0.0, 5.0]), 2.0),)),  # bottom at z = 3 > 2.8
-           SceneObject(3, L["pole"], (Cylinder(0.0, 0.0, 0.5, -9.0, -2.0),))]  # top exactly at the grid's bottom
+    far = [
+        SceneObject(1, L["building"], (Box.make([20, 0, 0], [5, 5, 5]),)),
+        SceneObject(2, L["vegetation"], (Sphere(np.array([0.0, 0.0, 5.0]), 2.0),)),  # bottom at z = 3 > 2.8
+        SceneObject(3, L["pole"], (Cylinder(0.0, 0.0, 0.5, -9.0, -2.0),)),
+    ]  # top exactly at the grid's bottom
     assert not _labels_of(far, SMALL).any()
 
 

@@ -24,32 +24,56 @@ CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
 
 
 def nodes(context) -> list[Node]:
-    arg = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
+    arg = lambda name: LaunchConfiguration(name).perform(context)
     bag = Path(arg("bag"))
     checkpoint = str(resolve_checkpoint(arg("model"), "model"))
     cavs = bag_contents(bag)[0][: int(arg("vehicles"))]
     sensors = read_checkpoint(checkpoint)["config"]["modality"]
-    graph = describe(bag, cavs, sensors, Path(arg("out")) / "graph.mcap", float(arg("rate")),
-                     common={"checkpoint": checkpoint})
+    graph = describe(
+        bag, cavs, sensors, Path(arg("out")) / "graph.mcap", float(arg("rate")), common={"checkpoint": checkpoint}
+    )
     files = {"ego": [arg("ego_params_file")], "vehicle": [arg("vehicle_params_file")]}
 
     def node(spec: NodeSpec) -> Node:
-        return Node(package="co3sop_nodes", executable=spec.executable, name=spec.name, namespace=spec.namespace or None,
-                    output="screen", arguments=list(spec.arguments),
-                    parameters=[*files.get(spec.executable, []), spec.parameters] if spec.parameters else None)
+        return Node(
+            package="co3sop_nodes",
+            executable=spec.executable,
+            name=spec.name,
+            namespace=spec.namespace or None,
+            output="screen",
+            arguments=list(spec.arguments),
+            parameters=[*files.get(spec.executable, []), spec.parameters] if spec.parameters else None,
+        )
 
     return [node(spec) for spec in (*graph.nodes, graph.player)]
 
 
 def generate_launch_description() -> LaunchDescription:
-    return LaunchDescription([
-        DeclareLaunchArgument("bag", description="a CAV bag (rosbag2 folder) to play"),
-        DeclareLaunchArgument("model", default_value=DEFAULT_MODEL, description="a shipped checkpoint by name (tiny-lidar, tiny) or a path"),
-        DeclareLaunchArgument("vehicles", default_value="3", description="vehicle nodes: the bag's first CAVs; the first is the ego"),
-        DeclareLaunchArgument("rate", default_value="0.25", description="playback rate (1 = real time)"),
-        DeclareLaunchArgument("out", default_value="results/launch", description="folder of the recording graph.mcap"),
-        DeclareLaunchArgument("vehicle_params_file", default_value=PathJoinSubstitution([CONFIG, "vehicle.yaml"]),
-                              description="the vehicles' parameters (their V2X codec)"),
-        DeclareLaunchArgument("ego_params_file", default_value=PathJoinSubstitution([CONFIG, "ego.yaml"]), description="the ego's parameters"),
-        OpaqueFunction(function=nodes),
-    ])
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("bag", description="a CAV bag (rosbag2 folder) to play"),
+            DeclareLaunchArgument(
+                "model",
+                default_value=DEFAULT_MODEL,
+                description="a shipped checkpoint by name (tiny-lidar, tiny) or a path",
+            ),
+            DeclareLaunchArgument(
+                "vehicles", default_value="3", description="vehicle nodes: the bag's first CAVs; the first is the ego"
+            ),
+            DeclareLaunchArgument("rate", default_value="0.25", description="playback rate (1 = real time)"),
+            DeclareLaunchArgument(
+                "out", default_value="results/launch", description="folder of the recording graph.mcap"
+            ),
+            DeclareLaunchArgument(
+                "vehicle_params_file",
+                default_value=PathJoinSubstitution([CONFIG, "vehicle.yaml"]),
+                description="the vehicles' parameters (their V2X codec)",
+            ),
+            DeclareLaunchArgument(
+                "ego_params_file",
+                default_value=PathJoinSubstitution([CONFIG, "ego.yaml"]),
+                description="the ego's parameters",
+            ),
+            OpaqueFunction(function=nodes),
+        ]
+    )

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from co3sop_nodes.data import synthetic
 from co3sop_nodes.common.classes import NUM_CLASSES
-from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_labels
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.data import synthetic
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_labels
 
 SMALL = GridSpec((-12.8, -12.8, -2.0), 0.8, (32, 32, 16))
 FEATURE_25M = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))

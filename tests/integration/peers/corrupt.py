@@ -6,15 +6,15 @@ import sys
 import time
 
 import rclpy
-from co3sop_msgs.msg import VoxelFeatures
+from cases import encoded
 from rclpy.duration import Duration
 from rclpy.node import Node
 
-from cases import encoded
+from co3sop_msgs.msg import VoxelFeatures
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.messages import features_msg
-from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import FEATURES_QOS, configure_environment
+from co3sop_nodes.ros.message_types import RCLPY
 
 TOPIC = "/test_corrupt/voxel_features"
 

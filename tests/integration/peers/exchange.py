@@ -11,17 +11,17 @@ import sys
 import time
 
 import rclpy
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from cases import CASES, encoded
+from digest import decoded_digest
 from rclpy.duration import Duration
 from rclpy.node import Node
 
-from cases import CASES, encoded
-from digest import decoded_digest
-from co3sop_nodes.v2x.codec import EncodedFeatures
+from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.messages import features_msg, features_of, occupancy_msg, occupancy_of
-from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import FEATURES_QOS, OCCUPANCY_QOS, configure_environment
+from co3sop_nodes.ros.message_types import RCLPY
+from co3sop_nodes.v2x.codec import EncodedFeatures
 
 FEATURES_TOPIC, LABELS_TOPIC = "/test/voxel_features", "/test/occupancy"
 

@@ -13,15 +13,15 @@ import sys
 
 import numpy as np
 import rclpy
-from co3sop_msgs.msg import RequestMap
 
+from co3sop_msgs.msg import RequestMap
 from co3sop_nodes.common import topics
-from co3sop_nodes.v2x.codec import encode_request
 from co3sop_nodes.common.geometry import Pose
-from co3sop_nodes.model.config import preset
 from co3sop_nodes.messages import request_msg
-from co3sop_nodes.ros.message_types import RCLPY
+from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.dds import REQUEST_QOS
+from co3sop_nodes.ros.message_types import RCLPY
+from co3sop_nodes.v2x.codec import encode_request
 
 
 def main() -> None:
@@ -33,8 +33,14 @@ def main() -> None:
     rclpy.init()
     node = rclpy.create_node("requester")
     pub = node.create_publisher(RequestMap, topic, REQUEST_QOS)
-    msg = request_msg(RCLPY, encode_request(need, grid), stamp_ns=stamp, frame_id=topics.lidar_frame(ego), agent_id=ego,
-                         pose=Pose.from_matrix(matrix))
+    msg = request_msg(
+        RCLPY,
+        encode_request(need, grid),
+        stamp_ns=stamp,
+        frame_id=topics.lidar_frame(ego),
+        agent_id=ego,
+        pose=Pose.from_matrix(matrix),
+    )
     node.create_timer(0.2, lambda: pub.publish(msg))
     try:
         rclpy.spin(node)

@@ -79,8 +79,12 @@ def both(build, msgtype: str):
 
 def test_features_round_trip_through_both_bindings():
     volume, confidence = feature_volume(GRID, 8, 0)
-    enc = encode_features(volume, confidence, GRID, FeatureCodecConfig(dtype="int8", rank=4, selection="topk", topk=300))
-    for msg in both(lambda t: features_msg(t, enc, pose=POSE, agent_id=3, recipient_id=5, **AT), "co3sop_msgs/msg/VoxelFeatures"):
+    enc = encode_features(
+        volume, confidence, GRID, FeatureCodecConfig(dtype="int8", rank=4, selection="topk", topk=300)
+    )
+    for msg in both(
+        lambda t: features_msg(t, enc, pose=POSE, agent_id=3, recipient_id=5, **AT), "co3sop_msgs/msg/VoxelFeatures"
+    ):
         back = features_of(msg)
         assert np.array_equal(decode_features(back).features, decode_features(enc).features)
         assert (msg.addressed, msg.recipient_id, stamp_ns(msg.header.stamp)) == (True, 5, AT["stamp_ns"])
@@ -103,7 +107,12 @@ def test_point_clouds_keep_their_layout():
     cloud["x"], cloud["y"], cloud["z"], cloud["intensity"], cloud["label"] = 1.5, -2.0, 0.25, 0.5, 7
     for msg in both(lambda t: point_cloud_msg(t, cloud, **AT), "sensor_msgs/msg/PointCloud2"):
         assert [(f.name, f.offset, f.datatype) for f in msg.fields] == [
-            ("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7), ("label", 16, 2)]
+            ("x", 0, 7),
+            ("y", 4, 7),
+            ("z", 8, 7),
+            ("intensity", 12, 7),
+            ("label", 16, 2),
+        ]
         assert np.allclose(xyz_of(msg), [[1.5, -2.0, 0.25]] * 5)
         assert (points_of(msg, ("label",))["label"] == 7).all()
     labelled = np.zeros(2, LABEL_POINTS)
@@ -138,8 +147,10 @@ def test_poses_and_transforms():
     m = POSE.matrix()
     for msg in both(lambda t: pose_stamped_msg(t, AT["stamp_ns"], "map", POSE), "geometry_msgs/msg/PoseStamped"):
         assert np.allclose(pose_of(msg.pose).matrix(), m)
-    for msg in both(lambda t: tf_msg(t, [transform_msg(t, AT["stamp_ns"], "cav_3/base_link", "cav_3/lidar", m)]),
-                    "tf2_msgs/msg/TFMessage"):
+    for msg in both(
+        lambda t: tf_msg(t, [transform_msg(t, AT["stamp_ns"], "cav_3/base_link", "cav_3/lidar", m)]),
+        "tf2_msgs/msg/TFMessage",
+    ):
         [(parent, child, got)] = transforms_of(msg)
         assert (parent, child) == ("cav_3/base_link", "cav_3/lidar") and np.allclose(got, m)
 
@@ -147,5 +158,7 @@ def test_poses_and_transforms():
 def test_an_empty_range_grid_message_is_the_benchmark_grid():
     grid = BENCHMARK_RANGES["51.2m"]
     enc = encode_labels(np.zeros(grid.dims, np.uint8), grid, 24)
-    rosbags_msg, rclpy_msg = both(lambda t: occupancy_msg(t, enc, agent_id=1, **AT), "co3sop_msgs/msg/SemanticOccupancy")
+    rosbags_msg, rclpy_msg = both(
+        lambda t: occupancy_msg(t, enc, agent_id=1, **AT), "co3sop_msgs/msg/SemanticOccupancy"
+    )
     assert occupancy_of(rosbags_msg).grid == occupancy_of(rclpy_msg).grid == grid

@@ -24,4 +24,3 @@ def run(main: Callable[[list[str] | None], int]) -> Callable[[], None]:
         sys.exit(code)
 
     return entry
-

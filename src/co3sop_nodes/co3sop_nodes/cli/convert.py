@@ -14,19 +14,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from co3sop_nodes.data import opv2v
-from co3sop_nodes.data.bags import BagWriter
+from co3sop_nodes.cli.common import run
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.cli.common import run
 from co3sop_nodes.common.progress import progress
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.data.bags import BagWriter
 
 
 def convert_scenario(root: Path, split: str, scenario: str, bag: Path, on_error: str, ranges) -> list[str]:
     """Writes one scenario's bag; returns the problems skipped (on_error="skip")."""
     problems = []
     if on_error == "stop":  # check everything before writing anything
-        for ts, frames in opv2v.read_scenario(root, split, scenario, ranges):
+        for _, frames in opv2v.read_scenario(root, split, scenario, ranges):
             if isinstance(frames, DatasetError):
                 raise frames
     with BagWriter(bag) as writer:
@@ -41,12 +41,25 @@ def convert_scenario(root: Path, split: str, scenario: str, bag: Path, on_error:
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="convert", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="convert", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("root", type=Path, help="OPV2V root holding train/ validate/ test/ (and additional_*/ labels)")
     parser.add_argument("--out", type=Path, required=True, help="folder for the bags")
-    parser.add_argument("--on-error", choices=("stop", "skip"), default="stop", help="bad file: stop before writing, or skip that timestamp")
+    parser.add_argument(
+        "--on-error",
+        choices=("stop", "skip"),
+        default="stop",
+        help="bad file: stop before writing, or skip that timestamp",
+    )
     parser.add_argument("--splits", nargs="*", default=list(opv2v.SPLITS), help="splits to convert")
-    parser.add_argument("--ranges", nargs="*", default=list(BENCHMARK_RANGES), choices=list(BENCHMARK_RANGES), help="label ranges to include")
+    parser.add_argument(
+        "--ranges",
+        nargs="*",
+        default=list(BENCHMARK_RANGES),
+        choices=list(BENCHMARK_RANGES),
+        help="label ranges to include",
+    )
     opts = parser.parse_args(args)
     scenarios = [(s, n) for s, n in opv2v.find_scenarios(opts.root) if s in opts.splits]
     problems = []

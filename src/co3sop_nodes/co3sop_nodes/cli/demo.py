@@ -50,7 +50,9 @@ def _parameters(items: list[str], option: str, parser: argparse.ArgumentParser) 
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="demo", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--bag", type=Path, help="a CAV bag to play (default: the generated demo scenario)")
     parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
     parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
@@ -62,13 +64,24 @@ def main(args: list[str] | None = None) -> int:
         help="10 Hz frames of the generated demo scenario (the same "
         "town and traffic, longer; generated once per length)",
     )
-    parser.add_argument("--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)")
-    parser.add_argument("--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)")
-    parser.add_argument("--model", default=DEFAULT_MODEL,
-                        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera; small: the larger, GPU-trained camera model) or a path "
-                             f"(default: {DEFAULT_MODEL})")
-    parser.add_argument("--params", nargs="*", default=[],
-                        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)")
+    parser.add_argument(
+        "--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)"
+    )
+    parser.add_argument(
+        "--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)"
+    )
+    parser.add_argument(
+        "--model",
+        default=DEFAULT_MODEL,
+        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera; small: the larger, GPU-trained camera model) or a path "
+        f"(default: {DEFAULT_MODEL})",
+    )
+    parser.add_argument(
+        "--params",
+        nargs="*",
+        default=[],
+        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)",
+    )
     parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
     parser.add_argument(
         "--precision",
@@ -79,11 +92,20 @@ def main(args: list[str] | None = None) -> int:
     )
     parser.add_argument("--device", default="cpu", help="where every node's model runs: cpu, cuda, cuda:N, auto")
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
-    parser.add_argument("--channel-rate", type=float, metavar="MBIT",
-                        help="run over an emulated V2X channel: each CAV in its own network namespace, transmitting at most MBIT "
-                             "Mbit/s of real time (the link runs at MBIT x --rate); needs root, iproute2 and nftables")
-    parser.add_argument("--channel-loss", type=float, default=0.0, metavar="PERCENT",
-                        help="with --channel-rate: share of each CAV's packets dropped at random (default 0)")
+    parser.add_argument(
+        "--channel-rate",
+        type=float,
+        metavar="MBIT",
+        help="run over an emulated V2X channel: each CAV in its own network namespace, transmitting at most MBIT "
+        "Mbit/s of real time (the link runs at MBIT x --rate); needs root, iproute2 and nftables",
+    )
+    parser.add_argument(
+        "--channel-loss",
+        type=float,
+        default=0.0,
+        metavar="PERCENT",
+        help="with --channel-rate: share of each CAV's packets dropped at random (default 0)",
+    )
     opts = parser.parse_args(args)
     if opts.channel_rate is None and opts.channel_loss:
         parser.error("--channel-loss needs --channel-rate")

@@ -10,7 +10,11 @@ from co3sop_nodes.inference import resolve_device
 
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", default="auto", help="torch device: auto (the first CUDA GPU if torch sees one, else cpu), cpu, cuda, cuda:N")
+    parser.add_argument(
+        "--device",
+        default="auto",
+        help="torch device: auto (the first CUDA GPU if torch sees one, else cpu), cpu, cuda, cuda:N",
+    )
 
 
 def select_device(name: str) -> torch.device:

@@ -33,8 +33,11 @@ from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.eval.evaluate import ABLATIONS, evaluate_models
 from co3sop_nodes.inference import PRECISIONS
 
+
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="evaluate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument(
         "--model",
         nargs="+",
@@ -44,10 +47,19 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--out", type=Path, default=Path("results"))
-    parser.add_argument("--ablation", nargs="*", default=[], choices=sorted(ABLATIONS),
-                        help="ablations to run for each model (they share the vehicle halves' outputs)")
-    parser.add_argument("--collaborators", type=int, metavar="N",
-                        help="at most N collaborators, nearest first (0: every model alone; default: each model's maximum)")
+    parser.add_argument(
+        "--ablation",
+        nargs="*",
+        default=[],
+        choices=sorted(ABLATIONS),
+        help="ablations to run for each model (they share the vehicle halves' outputs)",
+    )
+    parser.add_argument(
+        "--collaborators",
+        type=int,
+        metavar="N",
+        help="at most N collaborators, nearest first (0: every model alone; default: each model's maximum)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     add_device_argument(parser)

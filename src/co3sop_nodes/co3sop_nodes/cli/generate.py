@@ -19,23 +19,39 @@ from co3sop_nodes.data.generation import GenerateOptions, generate, read_recipe
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="generate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--recipe", type=Path, help="a dataset recipe (YAML, e.g. config/benchmark.yaml): its values are the defaults; "
-                                                   "options given on the command line win")
+    parser = argparse.ArgumentParser(
+        prog="generate", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--recipe",
+        type=Path,
+        help="a dataset recipe (YAML, e.g. config/benchmark.yaml): its values are the defaults; "
+        "options given on the command line win",
+    )
     parser.add_argument("--out", type=Path, required=True, help="dataset root (OPV2V layout)")
-    parser.add_argument("--splits", nargs="+", default=["train=4", "validate=1", "test=1"], help="NAME=COUNT scenarios per split")
+    parser.add_argument(
+        "--splits", nargs="+", default=["train=4", "validate=1", "test=1"], help="NAME=COUNT scenarios per split"
+    )
     parser.add_argument("--frames", type=int, default=20, help="10 Hz frames per scenario")
     parser.add_argument("--seed", type=int, default=0, help="base seed: the same seed gives the same dataset")
     parser.add_argument("--workers", type=int, default=2, help="scenarios simulated in parallel")
-    parser.add_argument("--shard", default="1/1", help="I/N: only the I-th of N disjoint shares of the scenarios (1 <= I <= N), so N "
-                                                      "machines generate one dataset; copy their OUT folders together")
+    parser.add_argument(
+        "--shard",
+        default="1/1",
+        help="I/N: only the I-th of N disjoint shares of the scenarios (1 <= I <= N), so N "
+        "machines generate one dataset; copy their OUT folders together",
+    )
     parser.add_argument("--cavs", default="2-4", help="CAVs per scenario: N or MIN-MAX (OPV2V: 2-7)")
     parser.add_argument("--vehicles", type=int, default=30, help="other moving vehicles per town")
-    parser.add_argument("--image-size", default="400x300", help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it")
+    parser.add_argument(
+        "--image-size", default="400x300", help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it"
+    )
     parser.add_argument("--lidar-steps", type=int, default=1024, help="LiDAR rays per channel per sweep")
     parser.add_argument("--extras", action="store_true", help="also write depth and semantic camera images")
     parser.add_argument("--bags", type=Path, help="also write one rosbag2 (MCAP) bag per scenario under this folder")
-    parser.add_argument("--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures")
+    parser.add_argument(
+        "--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures"
+    )
     parser.add_argument("--picture-range", default="51.2m", choices=list(opv2v.LABEL_FOLDERS))
     recipe_path = parser.parse_known_args(args)[0].recipe
     if recipe_path:

@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from co3sop_nodes.data.recording import recover
 from co3sop_nodes.cli.common import run
+from co3sop_nodes.data.recording import recover
 
 
 def main(args: list[str] | None = None) -> int:

@@ -24,8 +24,11 @@ from pathlib import Path
 from co3sop_nodes.cli.common import run
 from co3sop_nodes.eval.report import write_report
 
+
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="report", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="report", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("results", type=Path, help="folder of <preset>-<range>-s<seed> evaluation folders")
     parser.add_argument("--out", type=Path, required=True, help="markdown page to write")
     opts = parser.parse_args(args)

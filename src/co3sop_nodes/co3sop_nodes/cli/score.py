@@ -20,9 +20,13 @@ from co3sop_nodes.eval.scoring import score_recording
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="score", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="score", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("recording", type=Path, help="an MCAP file written by `recorder`")
-    parser.add_argument("--out", type=Path, help="where score.md / score.json / pictures go (default: beside the recording)")
+    parser.add_argument(
+        "--out", type=Path, help="where score.md / score.json / pictures go (default: beside the recording)"
+    )
     parser.add_argument("--range", dest="range_name", help="benchmark range (default: the predictions')")
     parser.add_argument("--pictures", type=int, default=3, help="BEV pictures of this many frames spread over the run")
     parser.add_argument("--frames", type=int, nargs="*", default=[], help="stamps (ns) to picture instead")

@@ -30,14 +30,23 @@ from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.model.config import PRESETS
 from co3sop_nodes.train.trainer import train
 
+
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="train", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True, help="dataset root written by `generate` (or an OPV2V root)")
+    parser = argparse.ArgumentParser(
+        prog="train", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--data", type=Path, required=True, help="dataset root written by `generate` (or an OPV2V root)"
+    )
     parser.add_argument("--splits", nargs="+", default=["train"], help="splits to train on")
-    parser.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="model preset (ignored with --init or --resume)")
+    parser.add_argument(
+        "--preset", default="tiny", choices=sorted(PRESETS), help="model preset (ignored with --init or --resume)"
+    )
     parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
     parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
-    parser.add_argument("--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)")
+    parser.add_argument(
+        "--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)"
+    )
     parser.add_argument("--steps", type=int, default=1000, help="optimisation steps (one global batch each)")
     parser.add_argument(
         "--batch",
@@ -46,11 +55,21 @@ def main(args: list[str] | None = None) -> int:
         help="samples per step in each process; under torchrun the global batch is this times the processes",
     )
     parser.add_argument("--lr", type=float, default=2e-3)
-    parser.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
-                        help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps")
-    parser.add_argument("--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step")
+    parser.add_argument(
+        "--schedule",
+        choices=("constant", "cosine"),
+        default="constant",
+        help="learning rate over the run: constant, or cosine decay from --lr to 0 at --steps",
+    )
+    parser.add_argument(
+        "--sample-fraction", type=float, default=0.15, help="share of full-resolution voxels in the loss per step"
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, help="CPU threads for torch (default 2; under torchrun the cores shared by its processes)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        help="CPU threads for torch (default 2; under torchrun the cores shared by its processes)",
+    )
     add_device_argument(parser)
     parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")

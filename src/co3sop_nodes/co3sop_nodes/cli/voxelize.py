@@ -18,36 +18,47 @@ from pathlib import Path
 
 import numpy as np
 
+from co3sop_nodes.cli.common import run
 from co3sop_nodes.common import geometry as geo
-from co3sop_nodes.data import opv2v
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.common.progress import progress
+from co3sop_nodes.data import opv2v
 from co3sop_nodes.sim import rig
 from co3sop_nodes.sim.scenario import config_from_dict, world_states
 from co3sop_nodes.sim.voxel_sensor import annotate
-from co3sop_nodes.cli.common import run
-from co3sop_nodes.common.progress import progress
 
 
 def main(args: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="voxelize", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="voxelize", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("root", type=Path, help="a dataset written by `generate`")
     parser.add_argument("--name", required=True, help="label folder to write, e.g. additional_40m")
-    parser.add_argument("--extent", type=float, required=True, help="side of the square grid in x/y, m, centred on the LiDAR")
+    parser.add_argument(
+        "--extent", type=float, required=True, help="side of the square grid in x/y, m, centred on the LiDAR"
+    )
     parser.add_argument("--voxel", type=float, required=True, help="voxel size, m")
-    parser.add_argument("--z", type=float, nargs=2, default=(-2.0, 2.8), metavar=("MIN", "MAX"), help="z range relative to the LiDAR, m")
+    parser.add_argument(
+        "--z", type=float, nargs=2, default=(-2.0, 2.8), metavar=("MIN", "MAX"), help="z range relative to the LiDAR, m"
+    )
     parser.add_argument("--workers", type=int, default=2, help="voxel sensor threads")
     opts = parser.parse_args(args)
     if not opts.name.replace("_", "").isalnum():
         raise DatasetError(f"--name {opts.name!r}: use letters, digits and underscores")
     grid = GridSpec.centred(opts.extent, tuple(opts.z), opts.voxel)
     scenarios = opv2v.find_scenarios(opts.root)
-    print(f"voxelize: grid {'x'.join(map(str, grid.dims))} at {grid.voxel_size} m for {len(scenarios)} scenario(s)", flush=True)
+    print(
+        f"voxelize: grid {'x'.join(map(str, grid.dims))} at {grid.voxel_size} m for {len(scenarios)} scenario(s)",
+        flush=True,
+    )
     bar = progress(len(scenarios), "scenarios", "scenario")
     for split, scenario in scenarios:
         protocol = opv2v.read_yaml(opts.root / split / scenario / "data_protocol.yaml")
         if "co3sop_sim" not in protocol:
-            raise DatasetError(f"{opts.root / split / scenario / 'data_protocol.yaml'}: no co3sop_sim record: only generated scenarios can be re-annotated")
+            raise DatasetError(
+                f"{opts.root / split / scenario / 'data_protocol.yaml'}: no co3sop_sim record: only generated scenarios can be re-annotated"
+            )
         cfg = config_from_dict(protocol["co3sop_sim"]["config"])
         final = opts.root / opts.name / split / scenario
         partial = final.with_name(f".{scenario}.partial")

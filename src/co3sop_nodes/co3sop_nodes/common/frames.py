@@ -8,7 +8,7 @@ the bag writer turns them into ROS messages. World poses are 4x4 world_from_x.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -58,7 +58,7 @@ class CavFrame:
 def scenario_epoch_ns(scenario: str) -> int:
     """Start time of a scenario named as OPV2V's ('%Y_%m_%d_%H_%M_%S', UTC); 0 for other names."""
     try:
-        start = datetime.strptime(scenario, "%Y_%m_%d_%H_%M_%S").replace(tzinfo=timezone.utc)
+        start = datetime.strptime(scenario, "%Y_%m_%d_%H_%M_%S").replace(tzinfo=UTC)
     except ValueError:
         return 0
     return int(start.timestamp()) * 1_000_000_000

@@ -38,7 +38,7 @@ class Pose:
         return m
 
     @classmethod
-    def from_matrix(cls, m: np.ndarray) -> "Pose":
+    def from_matrix(cls, m: np.ndarray) -> Pose:
         return cls(tuple(float(v) for v in m[:3, 3]), rotation_to_quaternion(m[:3, :3]))
 
     def check(self, what: str, max_distance: float = MAX_POSITION) -> None:
@@ -49,7 +49,9 @@ class Pose:
         if np.abs(p).max() > max_distance:
             raise Co3sopError(f"{what}: position {p.tolist()} is more than {max_distance:g} m from the origin")
         if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise Co3sopError(f"{what}: orientation {q.tolist()} is not a unit quaternion (norm {np.linalg.norm(q):.4g})")
+            raise Co3sopError(
+                f"{what}: orientation {q.tolist()} is not a unit quaternion (norm {np.linalg.norm(q):.4g})"
+            )
 
 
 def quaternion_to_rotation(q) -> np.ndarray:

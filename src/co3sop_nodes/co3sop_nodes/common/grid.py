@@ -43,7 +43,7 @@ class GridSpec:
         return tuple(n * self.voxel_size for n in self.dims)
 
     @classmethod
-    def centred(cls, extent_xy: float, z_range: tuple[float, float], voxel_size: float) -> "GridSpec":
+    def centred(cls, extent_xy: float, z_range: tuple[float, float], voxel_size: float) -> GridSpec:
         """A grid centred on the sensor in x/y, spanning `z_range` in z."""
         _check_voxel_size(voxel_size)
         n_xy = round(extent_xy / voxel_size)

@@ -8,8 +8,12 @@ import re
 # below are what they resolve to in the default namespaces, as bags, recordings and tools name them.
 EGO_OCCUPANCY = "/ego/occupancy"  # co3sop_msgs/SemanticOccupancy: the ego's fused prediction
 EGO_POINTS = "/ego/occupancy/points"  # sensor_msgs/PointCloud2: the same, as coloured points
-EGO_REQUEST = "/ego/request_map"  # co3sop_msgs/RequestMap: where the ego is unsure, for the vehicles' codec (selection "request")
-EGO_TRUTH_POINTS = "/ego/ground_truth/points"  # sensor_msgs/PointCloud2: the ego's ground truth at its range (recordings only)
+EGO_REQUEST = (
+    "/ego/request_map"  # co3sop_msgs/RequestMap: where the ego is unsure, for the vehicles' codec (selection "request")
+)
+EGO_TRUTH_POINTS = (
+    "/ego/ground_truth/points"  # sensor_msgs/PointCloud2: the ego's ground truth at its range (recordings only)
+)
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray: per-frame status of the ego and each vehicle
 TF = "/tf"
 TF_STATIC = "/tf_static"

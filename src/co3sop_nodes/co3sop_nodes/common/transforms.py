@@ -38,5 +38,7 @@ class StaticTransforms:
         target_chain, root_from_target = self._to_root(target)
         source_chain, root_from_source = self._to_root(source)
         if target_chain[-1] != source_chain[-1]:
-            raise DatasetError(f"no transform between {target!r} and {source!r} (have: {', '.join(sorted(self._parent)) or 'none'})")
+            raise DatasetError(
+                f"no transform between {target!r} and {source!r} (have: {', '.join(sorted(self._parent)) or 'none'})"
+            )
         return np.linalg.inv(root_from_target) @ root_from_source

@@ -42,7 +42,9 @@ class ControlledInputs:
         if self.mode == "real":
             return inputs
         if self.mode == "blank":
-            return {k: (np.full_like(v, GREY if k == "images" else 0) if k in SENSOR_KEYS else v) for k, v in inputs.items()}
+            return {
+                k: (np.full_like(v, GREY if k == "images" else 0) if k in SENSOR_KEYS else v) for k, v in inputs.items()
+            }
         s, i = self.position[f]
         donors = self.scenarios[(s + 1) % len(self.scenarios)]
         agents = self.dataset.frames[donors[i % len(donors)]][1]

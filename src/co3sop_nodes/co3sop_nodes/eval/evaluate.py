@@ -12,31 +12,41 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from co3sop_nodes.v2x.sender_budget import SenderBudgets
+from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
-from co3sop_nodes.v2x.codec import FeatureCodecConfig
-from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative
-from co3sop_nodes.common.errors import Co3sopError
-from co3sop_nodes.inference import InferencePath, inference_path
+from co3sop_nodes.eval.controls import INPUT_CONTROLS, ControlledInputs
 from co3sop_nodes.eval.metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
+from co3sop_nodes.inference import InferencePath, inference_path
 from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint, shipped_checkpoint
 from co3sop_nodes.inference.inputs import to_batch
-from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.inference.outputs import through_codec
-from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 from co3sop_nodes.inference.predict import predict_frame
-from co3sop_nodes.eval.controls import INPUT_CONTROLS, ControlledInputs
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
-
+from co3sop_nodes.v2x.codec import FeatureCodecConfig
+from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative
+from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
+from co3sop_nodes.v2x.sender_budget import SenderBudgets
 
 
 @torch.no_grad()
-def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
-             codec: FeatureCodecConfig | None = None, seed: int = 0, desc: str = "evaluate",
-             cache: dict | None = None, inputs: str = "real",
-             where: Callable[[Sample], bool] | None = None, later_frames: dict | None = None,
-             path: InferencePath | None = None, labels: dict | None = None) -> tuple[dict, float]:
+def evaluate(
+    model: Co3SOP,
+    dataset: OccupancyDataset,
+    collaborators: int | None = None,
+    mu: float = 0.0,
+    sigma: float = 0.0,
+    codec: FeatureCodecConfig | None = None,
+    seed: int = 0,
+    desc: str = "evaluate",
+    cache: dict | None = None,
+    inputs: str = "real",
+    where: Callable[[Sample], bool] | None = None,
+    later_frames: dict | None = None,
+    path: InferencePath | None = None,
+    labels: dict | None = None,
+) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
     `cache` keeps the vehicle halves' outputs between calls (they do not depend on the ego's settings);
@@ -49,7 +59,9 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
     """
     early = model.cfg.early_fusion
     if early and codec is not None:
-        raise Co3sopError(f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no features to encode")
+        raise Co3sopError(
+            f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no features to encode"
+        )
     rng = np.random.default_rng(seed)
     if path is not None:
         model.use(path)
@@ -70,7 +82,9 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
         def vehicle(record, frame: int = f, j: int | None = None) -> VehicleOutput:
             key = (frame, record.cav_id, inputs)
             if key not in cache:
-                cache[key] = model.vehicle(**to_batch(controlled(frame, position[record.cav_id] if j is None else j), device))
+                cache[key] = model.vehicle(
+                    **to_batch(controlled(frame, position[record.cav_id] if j is None else j), device)
+                )
             return cache[key]
 
         def previous_frame(frame: int, cav: int) -> int | None:
@@ -88,13 +102,20 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
             return request_of(vehicle(agent, frame - 1, j).confidence), agent.world_from_lidar
 
         others = sample.others
-        if early:  # the collaborators' scans merged into the ego's (where the pose noise puts them), then the model alone
+        if (
+            early
+        ):  # the collaborators' scans merged into the ego's (where the pose noise puts them), then the model alone
             key, noisy = (f, sample.ego.cav_id, inputs, tuple(a.cav_id for a in others)), bool(mu or sigma)
             ego = None if noisy else cache.get(key)  # a noisy merge is drawn anew each time, never kept
             if ego is None:
-                placed = [noisy_relative(sample.ego.world_from_lidar, a.world_from_lidar, mu, sigma, rng) for a in others]
-                merged = early_fused(replace(sample, neighbour_from_ego=np.reshape(placed, (-1, 4, 4))), model.cfg.grid,
-                                     lambda r: controlled(f, position[r.cav_id])["occupancy"])
+                placed = [
+                    noisy_relative(sample.ego.world_from_lidar, a.world_from_lidar, mu, sigma, rng) for a in others
+                ]
+                merged = early_fused(
+                    replace(sample, neighbour_from_ego=np.reshape(placed, (-1, 4, 4))),
+                    model.cfg.grid,
+                    lambda r: controlled(f, position[r.cav_id])["occupancy"],
+                )
                 ego = model.vehicle(**to_batch(merged.ego.inputs, device))
                 if not noisy:
                     cache[key] = ego
@@ -108,7 +129,11 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
         for record in others:
             out = vehicle(record)
             if codec is not None:
-                wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)
+                wanted = (
+                    None
+                    if request is None
+                    else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)
+                )
                 key = (sample.key[:2], record.cav_id)
                 if key not in senders:
                     senders[key] = SenderBudgets(codec)
@@ -116,7 +141,16 @@ def evaluate(model: Co3SOP, dataset: OccupancyDataset, collaborators: int | None
                 senders[key].spend(sample.ego.cav_id, size)
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
-        pred = predict_frame(model, ego, sample.ego.world_from_lidar, candidates, max_collaborators=len(candidates), mu=mu, sigma=sigma, rng=rng)
+        pred = predict_frame(
+            model,
+            ego,
+            sample.ego.world_from_lidar,
+            candidates,
+            max_collaborators=len(candidates),
+            mu=mu,
+            sigma=sigma,
+            rng=rng,
+        )
         scenario = "/".join(sample.key[:2])
         confusions.setdefault(scenario, Confusion(model.cfg.num_classes)).add(pred.labels, sample.ego.labels)
         if labels is not None:
@@ -169,11 +203,27 @@ def _compare(
     `reference` (and a `note` below it, `extra` in the JSON)."""
     summaries = {name: boot.summary(c) for name, c in runs.items()}
     differences = {name: boot.difference(c, runs[reference]) for name, c in runs.items() if name != reference}
-    text = (f"### {heading}: {title}\n\n" + markdown_table(summaries)
-            + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
-            + difference_table(differences, reference) + (f"\n\n{note}" if note else ""))
-    _write(opts.out, stem, text, {"title": title, "command": opts.command, "trained": opts.trained, "reference": reference, **summaries,
-                                  "differences": differences, **(extra or {})})
+    text = (
+        f"### {heading}: {title}\n\n"
+        + markdown_table(summaries)
+        + f"\n\nPaired differences (points), 95 % intervals over {len(boot.scenarios)} scenarios:\n\n"
+        + difference_table(differences, reference)
+        + (f"\n\n{note}" if note else "")
+    )
+    _write(
+        opts.out,
+        stem,
+        text,
+        {
+            "title": title,
+            "command": opts.command,
+            "trained": opts.trained,
+            "reference": reference,
+            **summaries,
+            "differences": differences,
+            **(extra or {}),
+        },
+    )
     return summaries
 
 
@@ -185,29 +235,55 @@ def _collaboration(opts, cfg, stem, title, measure, boot) -> None:
 def _collaborators(opts, cfg, stem, title, measure, boot) -> None:
     counts = list(range(cfg.max_collaborators + 1))
     runs = {f"{n} collaborators": measure(collaborators=n, desc=f"{n} collaborators")[0] for n in counts}
-    summaries = _compare(opts, f"{stem}_collaborators", "Number of collaborators (nearest first)", title, runs, "0 collaborators", boot)
-    _plot(opts.out / f"{stem}_collaborators.png", counts, {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS}, "collaborators used", title)
+    summaries = _compare(
+        opts, f"{stem}_collaborators", "Number of collaborators (nearest first)", title, runs, "0 collaborators", boot
+    )
+    _plot(
+        opts.out / f"{stem}_collaborators.png",
+        counts,
+        {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS},
+        "collaborators used",
+        title,
+    )
 
 
 def _pose_noise(opts, cfg, stem, title, measure, boot) -> None:
     mus = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
     runs = {f"mu={m:.1f}": measure(mu=m, sigma=0.02 if m else 0.0, desc=f"pose noise {m:.1f}")[0] for m in mus}
-    summaries = _compare(opts, f"{stem}_pose_noise", "Pose noise (sigma 0.02 m, neighbours only)", title, runs, "mu=0.0", boot)
-    _plot(opts.out / f"{stem}_pose_noise.png", mus, {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS}, "pose noise mean mu (m)", title)
+    summaries = _compare(
+        opts, f"{stem}_pose_noise", "Pose noise (sigma 0.02 m, neighbours only)", title, runs, "mu=0.0", boot
+    )
+    _plot(
+        opts.out / f"{stem}_pose_noise.png",
+        mus,
+        {c: [r[c]["miou"] for r in summaries.values()] for c in CONVENTIONS},
+        "pose noise mean mu (m)",
+        title,
+    )
 
 
 def _inputs(opts, cfg, stem, title, measure, boot) -> None:
     runs = {mode: measure(inputs=mode, desc=f"{mode} inputs")[0] for mode in INPUT_CONTROLS}
-    _compare(opts, f"{stem}_inputs", "Input controls (real, blank and shuffled sensors of every agent)", title, runs, "real", boot)
+    _compare(
+        opts,
+        f"{stem}_inputs",
+        "Input controls (real, blank and shuffled sensors of every agent)",
+        title,
+        runs,
+        "real",
+        boot,
+    )
 
 
 def _codec(opts, cfg, stem, title, measure, boot) -> None:
     """Bytes per neighbour-frame against mIoU and the share of the collaboration gain each codec keeps (gain: the
     lossless codec against no collaborator; kept: (codec - alone) / (lossless - alone), a paired interval each), over
     every sample and over the later frames (the ego there the frame before: a request map reaches them)."""
-    rows = ["| feature codec | bytes per neighbour-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc | "
-            "Δ co3sop-code vs float32-dense-none | gain kept (%) [95 % interval] | gain kept after the first frame (%) |",
-            "|---|---:|---:|---:|---:|---:|---|---|"]
+    rows = [
+        "| feature codec | bytes per neighbour-frame | mIoU co3sop-readme | mIoU co3sop-code | mIoU surroundocc | "
+        "Δ co3sop-code vs float32-dense-none | gain kept (%) [95 % interval] | gain kept after the first frame (%) |",
+        "|---|---:|---:|---:|---:|---:|---|---|",
+    ]
     alone_later: dict = {}
     alone = measure(collaborators=0, desc="no collaborator", later_frames=alone_later)[0]
     results, runs, later = {"alone": boot.summary(alone)}, {}, {}
@@ -219,17 +295,29 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
         diff = boot.difference(runs[setting.name], runs[lossless])["co3sop-code"]
         kept = boot.ratio(runs[setting.name], runs[lossless], alone)
         kept_later = boot.ratio(later[setting.name], later[lossless], alone_later)
-        results[setting.name] = {"bytes": size, **summary, "difference": diff, "gain_kept": kept, "gain_kept_later_frames": kept_later}
-        rows.append(f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
-                    f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} | "
-                    f"{100 * diff['delta']:+.2f} [{100 * diff['ci95'][0]:.2f}, {100 * diff['ci95'][1]:.2f}] | "
-                    f"{100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] | "
-                    f"{100 * kept_later['ratio']:.0f} [{100 * kept_later['ci95'][0]:.0f}, {100 * kept_later['ci95'][1]:.0f}] |")
-    text = (f"### Feature codecs over V2X: {title}\n\nAlone (no collaborator): mIoU co3sop-code "
-            f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its "
-            "motion (none on the ego's first frame of a scenario, where a vehicle weighs by its own confidence alone): the "
-            "last column leaves those first frames out.\n\n" + "\n".join(rows))
-    _write(opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results})
+        results[setting.name] = {
+            "bytes": size,
+            **summary,
+            "difference": diff,
+            "gain_kept": kept,
+            "gain_kept_later_frames": kept_later,
+        }
+        rows.append(
+            f"| {setting.name} | {size:,.0f} | {100 * summary['co3sop-readme']['miou']:.2f} | "
+            f"{100 * summary['co3sop-code']['miou']:.2f} | {100 * summary['surroundocc']['miou']:.2f} | "
+            f"{100 * diff['delta']:+.2f} [{100 * diff['ci95'][0]:.2f}, {100 * diff['ci95'][1]:.2f}] | "
+            f"{100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] | "
+            f"{100 * kept_later['ratio']:.0f} [{100 * kept_later['ci95'][0]:.0f}, {100 * kept_later['ci95'][1]:.0f}] |"
+        )
+    text = (
+        f"### Feature codecs over V2X: {title}\n\nAlone (no collaborator): mIoU co3sop-code "
+        f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its "
+        "motion (none on the ego's first frame of a scenario, where a vehicle weighs by its own confidence alone): the "
+        "last column leaves those first frames out.\n\n" + "\n".join(rows)
+    )
+    _write(
+        opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results}
+    )
     plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
 
 
@@ -246,13 +334,23 @@ def plot_codecs(path: Path, results: dict[str, dict], title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9.5, 4.5))
-    colours = plt.get_cmap("tab20").colors  # one per codec (the default cycle repeats after 10; int4's own marker after 20)
+    colours = plt.get_cmap(
+        "tab20"
+    ).colors  # one per codec (the default cycle repeats after 10; int4's own marker after 20)
     for i, (name, r) in enumerate(results.items()):
         low, high = r["gain_kept"]["ci95"]
         kept = r["gain_kept"]["ratio"]
         marker = "D" if name.startswith("int4") else "s" if "request" in name else "o"
-        ax.errorbar(r["bytes"], 100 * kept, yerr=[[100 * (kept - low)], [100 * (high - kept)]], fmt=marker, capsize=3, label=name,
-                    color=colours[i % len(colours)], markerfacecolor="none" if "pca" in name else None)
+        ax.errorbar(
+            r["bytes"],
+            100 * kept,
+            yerr=[[100 * (kept - low)], [100 * (high - kept)]],
+            fmt=marker,
+            capsize=3,
+            label=name,
+            color=colours[i % len(colours)],
+            markerfacecolor="none" if "pca" in name else None,
+        )
     for name, size in PAPER_SIZES.items():
         ax.axvline(size, color="grey", linestyle=":", linewidth=1)
         ax.text(size, ax.get_ylim()[1], name, rotation=90, va="top", ha="right", fontsize=7, color="grey")
@@ -288,6 +386,7 @@ def _distance(opts, cfg, stem, title, measure, boot) -> None:
     """Off / on per bin of the nearest collaborator's distance, each bin over the test scenarios that have samples in it."""
     results = {}
     for name, accept in DISTANCE_BINS.items():
+
         def where(sample, accept=accept):
             return accept(nearest_distance(sample))
 
@@ -295,22 +394,38 @@ def _distance(opts, cfg, stem, title, measure, boot) -> None:
         if off:
             on = measure(where=where, desc=f"{name}: on")[0]
             binned = Bootstrap(list(off), seed=opts.seed)
-            results[name] = {"samples": sum(c.frames for c in off.values()), "off": binned.summary(off), "on": binned.summary(on),
-                             "difference": binned.difference(on, off)}
-    text = f"### Collaboration gain by the nearest collaborator's distance: {title}\n\n" + "\n".join(distance_table(results))
-    _write(opts.out, f"{stem}_distance", text, {"title": title, "command": opts.command, "trained": opts.trained, "bins": results})
+            results[name] = {
+                "samples": sum(c.frames for c in off.values()),
+                "off": binned.summary(off),
+                "on": binned.summary(on),
+                "difference": binned.difference(on, off),
+            }
+    text = f"### Collaboration gain by the nearest collaborator's distance: {title}\n\n" + "\n".join(
+        distance_table(results)
+    )
+    _write(
+        opts.out,
+        f"{stem}_distance",
+        text,
+        {"title": title, "command": opts.command, "trained": opts.trained, "bins": results},
+    )
 
 
 def distance_table(bins: dict) -> list[str]:
     """The rows of the distance ablation from its JSON `bins` (report prints the same table)."""
+
     def delta(d: dict) -> str:
         return f"{100 * d['delta']:+.2f} [{100 * d['ci95'][0]:.2f}, {100 * d['ci95'][1]:.2f}]"
 
-    rows = ["| nearest collaborator | samples | scenarios | off mIoU 1..23 | on mIoU 1..23 | Δ mIoU 1..23 [95 %] | Δ geometry IoU [95 %] |",
-            "|---|---:|---:|---:|---:|---:|---:|"]
+    rows = [
+        "| nearest collaborator | samples | scenarios | off mIoU 1..23 | on mIoU 1..23 | Δ mIoU 1..23 [95 %] | Δ geometry IoU [95 %] |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for name, r in bins.items():
-        rows.append(f"| {name} | {r['samples']} | {r['off']['scenarios']} | {100 * point(r['off'], 'co3sop-code'):.2f} | "
-                    f"{100 * point(r['on'], 'co3sop-code'):.2f} | {delta(r['difference']['co3sop-code'])} | {delta(r['difference']['geometry'])} |")
+        rows.append(
+            f"| {name} | {r['samples']} | {r['off']['scenarios']} | {100 * point(r['off'], 'co3sop-code'):.2f} | "
+            f"{100 * point(r['on'], 'co3sop-code'):.2f} | {delta(r['difference']['co3sop-code'])} | {delta(r['difference']['geometry'])} |"
+        )
     return rows
 
 
@@ -344,8 +459,15 @@ def _precision(opts, cfg, stem, title, measure, boot) -> None:
     )
 
 
-ABLATIONS = {"collaboration": _collaboration, "collaborators": _collaborators, "pose-noise": _pose_noise, "codec": _codec, "inputs": _inputs,
-             "distance": _distance, "precision": _precision}
+ABLATIONS = {
+    "collaboration": _collaboration,
+    "collaborators": _collaborators,
+    "pose-noise": _pose_noise,
+    "codec": _codec,
+    "inputs": _inputs,
+    "distance": _distance,
+    "precision": _precision,
+}
 
 
 def evaluate_models(opts) -> int:
@@ -355,7 +477,9 @@ def evaluate_models(opts) -> int:
     table: dict[str, dict] = {}
     for path in [resolve_checkpoint(m, "--model") for m in opts.model] if opts.model else [shipped_checkpoint()]:
         model, checkpoint = load_model(path)
-        opts.trained = checkpoint.get("meta", checkpoint).get("history", [])  # the train commands behind the weights, in the JSON
+        opts.trained = checkpoint.get("meta", checkpoint).get(
+            "history", []
+        )  # the train commands behind the weights, in the JSON
         model.use(opts.inference)
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg)
@@ -365,19 +489,29 @@ def evaluate_models(opts) -> int:
         boot = Bootstrap(["/".join(k) for k in dataset.scenarios], seed=opts.seed)
 
         def measure(model=model, dataset=dataset, shared=shared, **kw) -> tuple[dict, float]:
-            return evaluate(model, dataset, cache=shared, seed=opts.seed, **kw)  # runs of one model share vehicle outputs
+            return evaluate(
+                model, dataset, cache=shared, seed=opts.seed, **kw
+            )  # runs of one model share vehicle outputs
 
         if not opts.ablation:
-            label = f"{cfg.name} {cfg.range}" + ("" if opts.collaborators is None else f", {opts.collaborators} collaborators")
+            label = f"{cfg.name} {cfg.range}" + (
+                "" if opts.collaborators is None else f", {opts.collaborators} collaborators"
+            )
             if label in table:  # two runs of one preset: tell the columns apart by run folder
                 label += f" ({path.parent.name})"
-            table[label] = {**boot.summary(measure(collaborators=opts.collaborators, desc=label)[0]), "model": str(path), "trained": opts.trained}
+            table[label] = {
+                **boot.summary(measure(collaborators=opts.collaborators, desc=label)[0]),
+                "model": str(path),
+                "trained": opts.trained,
+            }
         for ablation in opts.ablation:
             ABLATIONS[ablation](opts, cfg, f"{cfg.name}_{cfg.range}", title, measure, boot)
     if table:
         splits = "+".join(opts.splits)
-        _write(opts.out, "evaluation", f"### Per-class IoU (%) and mIoU on {splits} (95 % intervals over scenarios)\n\n" + markdown_table(table),
-               {"splits": opts.splits, "command": opts.command, **table})
+        _write(
+            opts.out,
+            "evaluation",
+            f"### Per-class IoU (%) and mIoU on {splits} (95 % intervals over scenarios)\n\n" + markdown_table(table),
+            {"splits": opts.splits, "command": opts.command, **table},
+        )
     return 0
-
-

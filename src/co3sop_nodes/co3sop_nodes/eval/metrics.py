@@ -67,7 +67,7 @@ class Confusion:
         self.geo += [int((po & to).sum()), int(to.sum()), int(po.sum())]
         self.frames += 1
 
-    def merge(self, other: "Confusion") -> "Confusion":
+    def merge(self, other: Confusion) -> Confusion:
         """In place: adds another confusion's counts (e.g. pooling scenarios)."""
         self.tp += other.tp
         self.gt += other.gt
@@ -78,10 +78,16 @@ class Confusion:
 
     def counts(self) -> dict:
         """The counts as JSON-ready lists (from_counts inverts it)."""
-        return {"tp": self.tp.tolist(), "gt": self.gt.tolist(), "pred": self.pred.tolist(), "geo": self.geo.tolist(), "frames": self.frames}
+        return {
+            "tp": self.tp.tolist(),
+            "gt": self.gt.tolist(),
+            "pred": self.pred.tolist(),
+            "geo": self.geo.tolist(),
+            "frames": self.frames,
+        }
 
     @classmethod
-    def from_counts(cls, counts: dict) -> "Confusion":
+    def from_counts(cls, counts: dict) -> Confusion:
         c = cls(len(counts["tp"]))
         for name in ("tp", "gt", "pred", "geo"):
             getattr(c, name)[:] = counts[name]
@@ -96,7 +102,9 @@ class Confusion:
         s = scores(self.tp, self.gt, self.pred, self.geo)
         return {
             "frames": self.frames,
-            "per_class_iou": {CLASS_NAMES[c]: (None if np.isnan(s["iou"][c]) else float(s["iou"][c])) for c in range(self.classes)},
+            "per_class_iou": {
+                CLASS_NAMES[c]: (None if np.isnan(s["iou"][c]) else float(s["iou"][c])) for c in range(self.classes)
+            },
             "co3sop-readme": {"miou": float(s["co3sop-readme"])},
             "co3sop-code": {"miou": float(s["co3sop-code"])},
             "surroundocc": {"iou": float(s["geometry"]), "miou": float(s["surroundocc"])},
@@ -128,7 +136,9 @@ class Bootstrap:
         missing = [k for k in self.scenarios if k not in confusions]
         if missing:
             raise ValueError(f"no counts for scenario(s) {missing}")
-        stack = [np.stack([getattr(confusions[k], a) for k in self.scenarios]) for a in ("tp", "gt", "pred", "geo")]  # (S, K) / (S, 3)
+        stack = [
+            np.stack([getattr(confusions[k], a) for k in self.scenarios]) for a in ("tp", "gt", "pred", "geo")
+        ]  # (S, K) / (S, 3)
         return scores(*(self.counts @ x for x in stack))  # each (B,)
 
     def interval(self, confusions: dict) -> dict[str, list[float]]:
@@ -139,15 +149,21 @@ class Bootstrap:
     def summary(self, confusions: dict) -> dict:
         """The pooled summary of per-scenario confusions, with `ci95`, the number of scenarios and their counts
         (`per_scenario`, so later comparisons across runs can be paired: see confusions_of)."""
-        return {**pooled(confusions).summary(), "scenarios": len(self.scenarios), "ci95": self.interval(confusions),
-                "per_scenario": {k: confusions[k].counts() for k in self.scenarios}}
+        return {
+            **pooled(confusions).summary(),
+            "scenarios": len(self.scenarios),
+            "ci95": self.interval(confusions),
+            "per_scenario": {k: confusions[k].counts() for k in self.scenarios},
+        }
 
     def difference(self, run: dict, reference: dict) -> dict[str, dict]:
         """{score: {"delta": run - reference, "ci95": [low, high]}}, paired over the same resampled scenarios."""
         a, b = self._resampled(run), self._resampled(reference)
         sa, sb = pooled(run).summary(), pooled(reference).summary()
-        return {name: {"delta": point(sa, name) - point(sb, name), "ci95": _percentiles(a[name] - b[name])} for name in SCORES}
-
+        return {
+            name: {"delta": point(sa, name) - point(sb, name), "ci95": _percentiles(a[name] - b[name])}
+            for name in SCORES
+        }
 
     def ratio(self, run: dict, full: dict, base: dict, score: str = "co3sop-code") -> dict:
         """{"ratio": (run - base) / (full - base), "ci95": [low, high]}: the share of full's gain over base that run
@@ -155,7 +171,10 @@ class Bootstrap:
         a, f, b = (self._resampled(c)[score] for c in (run, full, base))
         pa, pf, pb = (point(pooled(c).summary(), score) for c in (run, full, base))
         with np.errstate(divide="ignore", invalid="ignore"):
-            return {"ratio": (pa - pb) / (pf - pb) if pf != pb else float("nan"), "ci95": _percentiles((a - b) / (f - b))}
+            return {
+                "ratio": (pa - pb) / (pf - pb) if pf != pb else float("nan"),
+                "ci95": _percentiles((a - b) / (f - b)),
+            }
 
 
 def confusions_of(summary: dict) -> dict[str, Confusion]:
@@ -186,13 +205,31 @@ def markdown_table(results: dict[str, dict], every_class: bool = False) -> str:
         if all(v is None for v in cells) and not every_class:
             continue
         lines.append(f"| {c} {cls} | " + " | ".join("-" if v is None else f"{100 * v:.2f}" for v in cells) + " |")
-    lines.append("| **mIoU co3sop-readme** (24 incl. empty) | " + " | ".join(f"**{100 * results[n]['co3sop-readme']['miou']:.2f}**" for n in names) + " |")
-    lines.append("| **mIoU co3sop-code** (1..23) | " + " | ".join(f"**{100 * results[n]['co3sop-code']['miou']:.2f}**" for n in names) + " |")
-    lines.append("| **mIoU surroundocc** (present 1..23) | " + " | ".join(f"**{100 * results[n]['surroundocc']['miou']:.2f}**" for n in names) + " |")
-    lines.append("| IoU geometry (surroundocc) | " + " | ".join(f"{100 * results[n]['surroundocc']['iou']:.2f}" for n in names) + " |")
+    lines.append(
+        "| **mIoU co3sop-readme** (24 incl. empty) | "
+        + " | ".join(f"**{100 * results[n]['co3sop-readme']['miou']:.2f}**" for n in names)
+        + " |"
+    )
+    lines.append(
+        "| **mIoU co3sop-code** (1..23) | "
+        + " | ".join(f"**{100 * results[n]['co3sop-code']['miou']:.2f}**" for n in names)
+        + " |"
+    )
+    lines.append(
+        "| **mIoU surroundocc** (present 1..23) | "
+        + " | ".join(f"**{100 * results[n]['surroundocc']['miou']:.2f}**" for n in names)
+        + " |"
+    )
+    lines.append(
+        "| IoU geometry (surroundocc) | "
+        + " | ".join(f"{100 * results[n]['surroundocc']['iou']:.2f}" for n in names)
+        + " |"
+    )
     if all("ci95" in results[n] for n in names):
         for score in SCORES:
-            lines.append(f"| 95 % interval {score} | " + " | ".join(_span(results[n]["ci95"][score]) for n in names) + " |")
+            lines.append(
+                f"| 95 % interval {score} | " + " | ".join(_span(results[n]["ci95"][score]) for n in names) + " |"
+            )
         lines.append("| scenarios | " + " | ".join(str(results[n]["scenarios"]) for n in names) + " |")
     return "\n".join(lines)
 

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from co3sop_nodes.common import topics
-from co3sop_nodes.data.bags import BagReader, occupancy_labels, open_recording
-from co3sop_nodes.messages import header_stamp_ns
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.data.bags import BagReader, occupancy_labels, open_recording
 from co3sop_nodes.eval.metrics import CONVENTIONS_NOTE, Confusion, markdown_table
+from co3sop_nodes.messages import header_stamp_ns
 from co3sop_nodes.viz.bev import save_comparison
 
 
@@ -35,7 +35,9 @@ class Recording:
     predictions: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> (X, Y, Z) labels
     range_name: str
     truths: dict[tuple[int, int], np.ndarray]  # (agent, stamp ns) -> labels at range_name, ego agents only
-    diagnostics: dict[str, list[dict[str, str]]] = field(default_factory=dict)  # status name ("ego", "vehicle cav_3") -> per-frame key/values
+    diagnostics: dict[str, list[dict[str, str]]] = field(
+        default_factory=dict
+    )  # status name ("ego", "vehicle cav_3") -> per-frame key/values
 
 
 def _open(path: Path) -> BagReader:
@@ -72,7 +74,9 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
             ranges.add(range_of(grid))
             preds[(msg.agent_id, header_stamp_ns(msg))] = labels
         if not preds and range_name is None:
-            raise DatasetError(f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames")
+            raise DatasetError(
+                f"{path}: no {topics.EGO_OCCUPANCY} message, and no --range given to score missed frames"
+            )
         if len(ranges) > 1:
             raise DatasetError(f"{path}: predictions at several ranges ({', '.join(sorted(ranges))})")
         recorded = ranges.pop() if ranges else None
@@ -80,8 +84,10 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
         if range_name not in BENCHMARK_RANGES:
             raise DatasetError(f"unknown range {range_name!r} (known: {', '.join(BENCHMARK_RANGES)})")
         if recorded is not None and range_name != recorded:
-            raise DatasetError(f"{path}: the predictions are at {recorded}, not at the range {range_name} asked for: "
-                               f"score them at {recorded} (leave out --range)")
+            raise DatasetError(
+                f"{path}: the predictions are at {recorded}, not at the range {range_name} asked for: "
+                f"score them at {recorded} (leave out --range)"
+            )
         egos = {a for a, _ in preds}  # no prediction at all: every agent's ground truth counts as missed
         wanted = {topics.ground_truth(a, range_name) for a in egos}
         suffix = topics.ground_truth(0, range_name).removeprefix(topics.namespace(0))
@@ -120,6 +126,8 @@ def score(rec: Recording) -> Score:
         confusion.add(prediction, truth)
     unmatched = sorted(k for k in rec.predictions if k not in rec.truths)
     return Score(confusion.summary(), rec.range_name, len(rec.truths), missed, unmatched)
+
+
 def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:
     grid = BENCHMARK_RANGES[rec.range_name]
     paths = []
@@ -144,12 +152,15 @@ def _diagnostics_summary(diagnostics: list[dict[str, str]]) -> str:
         return "no ego diagnostics recorded"
     neighbours = [int(d.get("neighbours_used", 0)) for d in diagnostics]
     total_ms = [float(d.get("total_ms", 0.0)) for d in diagnostics]
-    return (f"ego diagnostics: {len(diagnostics)} frames, neighbours used per frame min {min(neighbours)} / "
-            f"mean {np.mean(neighbours):.2f} / max {max(neighbours)}, ego time per frame p50 {np.median(total_ms):.0f} ms")
+    return (
+        f"ego diagnostics: {len(diagnostics)} frames, neighbours used per frame min {min(neighbours)} / "
+        f"mean {np.mean(neighbours):.2f} / max {max(neighbours)}, ego time per frame p50 {np.median(total_ms):.0f} ms"
+    )
 
 
-def score_recording(recording: Path, out: Path | None = None, range_name: str | None = None, pictures: int = 3,
-                    frames: list[int] = ()) -> int:
+def score_recording(
+    recording: Path, out: Path | None = None, range_name: str | None = None, pictures: int = 3, frames: list[int] = ()
+) -> int:
     """The table of a recording printed and written to OUT/score.md and score.json, with BEV pictures of
     `pictures` frames spread over the run (or of the stamps in `frames`); OUT defaults to the recording's folder."""
     out = out or recording.parent
@@ -157,10 +168,16 @@ def score_recording(recording: Path, out: Path | None = None, range_name: str | 
     rec = read_recording(recording, range_name)
     result = score(rec)
     name = f"{recording.stem} {result.range_name}"
-    lines = [f"### Per-class IoU (%) and mIoU: {recording.name}, {result.range_name}, {result.scored} frames", "",
-             markdown_table({name: result.summary}, every_class=True), "", CONVENTIONS_NOTE, "",
-             f"frames: {result.scored} with ground truth, {result.scored - len(result.missed)} predicted, "
-             f"{len(result.missed)} missed (scored as empty), {len(result.unmatched)} predictions without ground truth"]
+    lines = [
+        f"### Per-class IoU (%) and mIoU: {recording.name}, {result.range_name}, {result.scored} frames",
+        "",
+        markdown_table({name: result.summary}, every_class=True),
+        "",
+        CONVENTIONS_NOTE,
+        "",
+        f"frames: {result.scored} with ground truth, {result.scored - len(result.missed)} predicted, "
+        f"{len(result.missed)} missed (scored as empty), {len(result.unmatched)} predictions without ground truth",
+    ]
     lines += [f"- missed: cav {a} at stamp {s}" for a, s in result.missed]
     lines += [f"- no ground truth: cav {a} at stamp {s}" for a, s in result.unmatched]
     lines.append(_diagnostics_summary(rec.diagnostics.get("ego", [])))
@@ -168,14 +185,23 @@ def score_recording(recording: Path, out: Path | None = None, range_name: str | 
     if frames:
         chosen = [k for k in keys if k[1] in set(frames)]
     else:
-        chosen = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, pictures).round().astype(int))] if keys and pictures else []
+        chosen = (
+            [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, pictures).round().astype(int))]
+            if keys and pictures
+            else []
+        )
     for path in _pictures(rec, out, chosen):
         lines.append(f"picture (ground truth | prediction): {path}")
     text = "\n".join(lines)
     print(text)
     (out / "score.md").write_text(text + "\n")
-    data = {"recording": str(recording), "range": result.range_name, "frames": result.scored,
-            "missed": [list(k) for k in result.missed], "unmatched": [list(k) for k in result.unmatched], **result.summary}
+    data = {
+        "recording": str(recording),
+        "range": result.range_name,
+        "frames": result.scored,
+        "missed": [list(k) for k in result.missed],
+        "unmatched": [list(k) for k in result.unmatched],
+        **result.summary,
+    }
     (out / "score.json").write_text(json.dumps(data, indent=2) + "\n")
     return 0
-

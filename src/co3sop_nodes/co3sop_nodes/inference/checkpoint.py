@@ -10,9 +10,8 @@ from pathlib import Path
 import torch
 
 from co3sop_nodes.common.errors import Co3sopError, exception_line
-from co3sop_nodes.model.config import ModelConfig, config_from_dict
 from co3sop_nodes.model.co3sop import Co3SOP, build_model
-
+from co3sop_nodes.model.config import ModelConfig, config_from_dict
 
 SHIPPED = "tiny.pt"  # trained by `train`; how is recorded beside it in checkpoints/tiny.md
 
@@ -23,7 +22,9 @@ def shipped_checkpoint(name: str = SHIPPED) -> Path:
         candidate = Path(prefix, "share", "co3sop_nodes", "checkpoints", name)
         if candidate.is_file():
             return candidate
-    raise Co3sopError(f"no installed checkpoint {name!r}: build the workspace (ros2_ws/bootstrap.sh) and source ros2_ws/env.sh")
+    raise Co3sopError(
+        f"no installed checkpoint {name!r}: build the workspace (ros2_ws/bootstrap.sh) and source ros2_ws/env.sh"
+    )
 
 
 def shipped_names() -> list[str]:
@@ -57,8 +58,17 @@ def _atomic_save(obj, path: Path) -> None:
 
 
 def save_training_state(path: Path, model: Co3SOP, optimizer, step: int, stage: str, extra: dict) -> None:
-    _atomic_save({"config": dataclasses.asdict(model.cfg), "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                  "step": step, "stage": stage, **extra}, path)
+    _atomic_save(
+        {
+            "config": dataclasses.asdict(model.cfg),
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "step": step,
+            "stage": stage,
+            **extra,
+        },
+        path,
+    )
 
 
 def export_model(path: Path, model: Co3SOP, meta: dict, half: bool = True) -> None:
@@ -78,12 +88,18 @@ def read_checkpoint(path: Path) -> dict:
         raise Co3sopError(f"{path}: a directory, not a checkpoint") from None
     except pickle.UnpicklingError as exc:
         if "Unsupported global" in str(exc):  # a pickled object (class, function) rather than weights
-            raise Co3sopError(f"{path}: refused: holds Python objects other than weights (loading it could run code); "
-                              "not a Co3SOP checkpoint") from None
+            raise Co3sopError(
+                f"{path}: refused: holds Python objects other than weights (loading it could run code); "
+                "not a Co3SOP checkpoint"
+            ) from None
         raise Co3sopError(f"{path}: not a readable checkpoint (damaged, or not a PyTorch file)") from None
-    except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
+    except Exception as exc:
         raise Co3sopError(f"{path}: not a readable checkpoint ({exception_line(exc)})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("config"), dict) or not isinstance(data.get("model"), dict):
+    if (
+        not isinstance(data, dict)
+        or not isinstance(data.get("config"), dict)
+        or not isinstance(data.get("model"), dict)
+    ):
         raise Co3sopError(f"{path}: not a Co3SOP checkpoint (no config/model)")
     if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in data["model"].items()):
         raise Co3sopError(f"{path}: not a Co3SOP checkpoint (its model entry is not a dict of named tensors)")
@@ -113,8 +129,9 @@ def load_graph_model(path: Path) -> tuple[Co3SOP, dict]:
     collaborators' scans merged before it, an offline reference) has no place there and is refused."""
     model, data = load_model(path)
     if model.cfg.early_fusion:
-        raise Co3sopError(f"{path}: {model.cfg.name} is an early-fusion reference (collaborators' LiDAR scans merged before the "
-                          "model); the node graph shares voxel features: score it with `evaluate`, run the graph with a "
-                          "Co3SOP-Base checkpoint")
+        raise Co3sopError(
+            f"{path}: {model.cfg.name} is an early-fusion reference (collaborators' LiDAR scans merged before the "
+            "model); the node graph shares voxel features: score it with `evaluate`, run the graph with a "
+            "Co3SOP-Base checkpoint"
+        )
     return model, data
-

@@ -24,7 +24,11 @@ def camera_inputs(cameras: list[CameraFrame], world_from_lidar: np.ndarray, imag
     lidar_to_world = world_from_lidar
     for cam in cameras:
         h0, w0 = cam.rgb.shape[:2]
-        rgb = cam.rgb if (w0, h0) == (width, height) else np.asarray(Image.fromarray(cam.rgb).resize((width, height), Image.BILINEAR))
+        rgb = (
+            cam.rgb
+            if (w0, h0) == (width, height)
+            else np.asarray(Image.fromarray(cam.rgb).resize((width, height), Image.BILINEAR))
+        )
         images.append(rgb.transpose(2, 0, 1))
         k = np.eye(4)
         k[:3, :3] = np.diag([width / w0, height / h0, 1.0]) @ cam.intrinsics
@@ -51,12 +55,16 @@ def hits_in_ego_grid(occupancy: np.ndarray, ego_from_neighbour: np.ndarray, grid
     The neighbour's occupied voxels' centres are carried into the ego's LiDAR frame and binned as the ego's own
     returns are, so they land within half a voxel of where its returns were.
     """
-    centres = np.asarray(grid.origin) + (np.argwhere(occupancy) + 0.5) * grid.voxel_size  # (N, 3), neighbour's LiDAR frame
+    centres = (
+        np.asarray(grid.origin) + (np.argwhere(occupancy) + 0.5) * grid.voxel_size
+    )  # (N, 3), neighbour's LiDAR frame
     moved = centres @ ego_from_neighbour[:3, :3].T + ego_from_neighbour[:3, 3]
     return lidar_occupancy(moved, grid)[0].astype(bool)
 
 
-def merged_occupancy(ego: np.ndarray, others: list[np.ndarray], neighbour_from_ego: np.ndarray, grid: GridSpec) -> np.ndarray:
+def merged_occupancy(
+    ego: np.ndarray, others: list[np.ndarray], neighbour_from_ego: np.ndarray, grid: GridSpec
+) -> np.ndarray:
     """(1, X, Y, Z) uint8: the ego's LiDAR occupancy with its collaborators' joined in, for an early-fusion model.
 
     ego and others[a]: (1, X, Y, Z) uint8 occupancy, each in its own agent's LiDAR frame; neighbour_from_ego: (A, 4, 4).

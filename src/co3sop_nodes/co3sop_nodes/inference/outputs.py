@@ -10,12 +10,20 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from co3sop_nodes.v2x.codec import DecodedFeatures, EncodedFeatures, FeatureCodecConfig, decode_features, encode_features
 from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.model.co3sop import VehicleOutput
+from co3sop_nodes.v2x.codec import (
+    DecodedFeatures,
+    EncodedFeatures,
+    FeatureCodecConfig,
+    decode_features,
+    encode_features,
+)
 
 
-def encode_output(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None) -> EncodedFeatures:
+def encode_output(
+    out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None
+) -> EncodedFeatures:
     """A batch-of-one vehicle output -> what the vehicle sends (to the ego whose `request` it weighs, if any)."""
     return encode_features(out.features[0].cpu().numpy(), out.confidence[0, 0].cpu().numpy(), grid, cfg, request)
 
@@ -26,7 +34,9 @@ def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
     return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(conf)[None, None])
 
 
-def through_codec(out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None) -> tuple[VehicleOutput, int]:
+def through_codec(
+    out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None
+) -> tuple[VehicleOutput, int]:
     """A vehicle output as the ego receives it through `cfg` without DDS, and the bytes it took (payload and
     quantisation constants, as a byte budget counts them)."""
     enc = encode_output(out, grid, cfg, request)

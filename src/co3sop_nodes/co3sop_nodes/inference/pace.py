@@ -17,14 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from co3sop_nodes.viz.cloud import occupancy_cloud
-from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_labels
 from co3sop_nodes.common.frames import CameraFrame
-from co3sop_nodes.sim import rig
 from co3sop_nodes.inference.inputs import camera_inputs, to_batch
-from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.inference.outputs import encode_output
 from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
+from co3sop_nodes.sim import rig
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_labels
+from co3sop_nodes.viz.cloud import occupancy_cloud
 
 # play at 1/1.5 of the rate the measured work allows: DDS, the player and the recorder (not measured here), the
 # scheduling of several processes on few cores, and jitter
@@ -45,8 +45,10 @@ def shaped_inputs(model: Co3SOP, seed: int = 0) -> dict:
     if cfg.modality == "lidar":
         return to_batch({"occupancy": (rng.random((1, *cfg.grid.dims)) < 0.03).astype(np.uint8)}, device)
     w, h = cfg.image_size
-    cams = [CameraFrame(name, mount, rig.intrinsics(w, h), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
-            for name, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras())]
+    cams = [
+        CameraFrame(name, mount, rig.intrinsics(w, h), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
+        for name, mount in zip(rig.CAMERA_NAMES, rig.vehicle_from_cameras())
+    ]
     images, lidar2img = camera_inputs(cams, rig.vehicle_from_lidar(), cfg.image_size)
     return to_batch({"images": images, "lidar2img": lidar2img}, device)
 
@@ -70,7 +72,9 @@ def frame_cost(model: Co3SOP, repeats: int = 3) -> FrameCost:
     torch.set_num_threads(1)
     try:
         inputs = shaped_inputs(model)
-        vehicle_s = _median_cpu(lambda: encode_output(model.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats)
+        vehicle_s = _median_cpu(
+            lambda: encode_output(model.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats
+        )
         ego = model.vehicle(**inputs)
         others = {}
         for i, dx in enumerate((10.0, -10.0)):
@@ -94,7 +98,9 @@ def cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def sustainable_rate(cost: FrameCost, vehicles: int, period_s: float, n_cores: int, headroom: float = HEADROOM) -> float:
+def sustainable_rate(
+    cost: FrameCost, vehicles: int, period_s: float, n_cores: int, headroom: float = HEADROOM
+) -> float:
     """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores, and the ego
     (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real time."""
     cpu = vehicles * cost.vehicle_s + cost.ego_s

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
+from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
-from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
-from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels.warp import compiled_available
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
+from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
 
 
 @dataclass
@@ -31,10 +31,17 @@ class FramePrediction:
 
 
 @torch.no_grad()
-def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
-                  candidates: Mapping[int, tuple[VehicleOutput, np.ndarray]], comm_range: float = COMM_RANGE,
-                  max_collaborators: int | None = None, mu: float = 0.0, sigma: float = 0.0,
-                  rng: np.random.Generator | None = None) -> FramePrediction:
+def predict_frame(
+    model: Co3SOP,
+    ego: VehicleOutput,
+    world_from_ego: np.ndarray,
+    candidates: Mapping[int, tuple[VehicleOutput, np.ndarray]],
+    comm_range: float = COMM_RANGE,
+    max_collaborators: int | None = None,
+    mu: float = 0.0,
+    sigma: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> FramePrediction:
     """candidates: agent id -> (its output as received, its world_from_lidar); all go to the model's device.
 
     On the model's inference path (`Co3SOP.use`); on its reference path (compiled kernels off), labels come
@@ -47,14 +54,19 @@ def predict_frame(model: Co3SOP, ego: VehicleOutput, world_from_ego: np.ndarray,
     device = model.path.torch_device
     ego = ego.to(device)
     t0 = time.perf_counter()
-    fused = model.ego.fuse(ego, [candidates[a][0].to(device) for a in chosen],
-                           torch.from_numpy(np.stack(rel)).float()[None].to(device) if rel else None)
+    fused = model.ego.fuse(
+        ego,
+        [candidates[a][0].to(device) for a in chosen],
+        torch.from_numpy(np.stack(rel)).float()[None].to(device) if rel else None,
+    )
     t1 = time.perf_counter()
     if not model.path.compiled:
         with model.path.autocast():
             labels, confidence = labels_from_logits(model.ego.head(fused)[-1].float())
     else:
-        labels, confidence = (t[0].cpu().numpy() for t in model.ego.head.labels(fused))  # exact fast path of labels_from_logits
+        labels, confidence = (
+            t[0].cpu().numpy() for t in model.ego.head.labels(fused)
+        )  # exact fast path of labels_from_logits
     return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)
 
 

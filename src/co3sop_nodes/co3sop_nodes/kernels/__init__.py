@@ -54,7 +54,9 @@ def load(name: str, **defines: int) -> ctypes.CDLL | None:
     source = Path(__file__).with_name(f"{name}.c").read_bytes()
     compiler = os.environ.get("CC", "cc")
     args = [*FLAGS, *(f"-D{k}={int(v)}" for k, v in sorted(defines.items()))]
-    key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(args).encode(), _cpu().encode()])).hexdigest()[:20]
+    key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(args).encode(), _cpu().encode()])).hexdigest()[
+        :20
+    ]
     path = cache_dir() / f"{name}-{key}.so"
     if not path.exists():
         if shutil.which(compiler) is None:
@@ -66,7 +68,12 @@ def load(name: str, **defines: int) -> ctypes.CDLL | None:
             src.write_bytes(source)
             done = subprocess.run([compiler, *args, str(src), "-o", str(out)], capture_output=True, text=True)
             if done.returncode != 0:
-                log.warning("%s failed to compile %s (%s): it runs on its PyTorch path", compiler, name, done.stderr.strip()[-500:])
+                log.warning(
+                    "%s failed to compile %s (%s): it runs on its PyTorch path",
+                    compiler,
+                    name,
+                    done.stderr.strip()[-500:],
+                )
                 return None
             os.replace(out, path)  # atomic: a concurrent loader sees the old state or the whole file
     return ctypes.CDLL(str(path))

@@ -23,8 +23,10 @@ _P = ctypes.c_void_p
 _I = ctypes.c_int64
 
 
-_ARGS = {"deform_sample_2d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
-         "deform_sample_3d": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I]}
+_ARGS = {
+    "deform_sample_2d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
+    "deform_sample_3d": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I],
+}
 
 
 @cache
@@ -44,27 +46,58 @@ def available(channels_per_head: int) -> bool:
     return kernels.ENABLED and _kernel(channels_per_head) is not None
 
 
-def sample_pairs(values: list[torch.Tensor], camera: torch.Tensor, query: torch.Tensor, uv: torch.Tensor, offsets: torch.Tensor,
-                 weights: torch.Tensor, threads: int) -> torch.Tensor:
+def sample_pairs(
+    values: list[torch.Tensor],
+    camera: torch.Tensor,
+    query: torch.Tensor,
+    uv: torch.Tensor,
+    offsets: torch.Tensor,
+    weights: torch.Tensor,
+    threads: int,
+) -> torch.Tensor:
     """values: L x (N, Hl, Wl, H*Ch) channels-last, per camera; per pair (camera, query index, uv (pairs, 2) in [0, 1]);
     offsets (Q, H, L, P, 2) in pixels of each level, weights (Q, H, L, P) -> (pairs, H*Ch). `available` first."""
     _, h, levels, p, _ = offsets.shape
     n, c = values[0].shape[0], values[0].shape[-1]
     fn = _kernel(c // h)
     maps = [kernels.array(v) for v in values]
-    pointers = (ctypes.c_void_p * (n * levels))(*[m.ctypes.data + k * m.strides[0] for k in range(n) for m in maps])  # camera-major
+    pointers = (ctypes.c_void_p * (n * levels))(
+        *[m.ctypes.data + k * m.strides[0] for k in range(n) for m in maps]
+    )  # camera-major
     shapes = np.array([m.shape[1:3] for m in maps], np.int64)  # (L, 2) Hl, Wl
     cams, queries, uvs = kernels.array(camera, np.int64), kernels.array(query, np.int64), kernels.array(uv)
     off, w = kernels.array(offsets), kernels.array(weights)
     pairs = len(cams)
     out = np.empty((pairs, c), np.float32)
-    kernels.parallel(fn, (ctypes.addressof(pointers), shapes.ctypes.data, levels, h, p, cams.ctypes.data, queries.ctypes.data, uvs.ctypes.data,
-              off.ctypes.data, w.ctypes.data, out.ctypes.data), pairs, threads)
+    kernels.parallel(
+        fn,
+        (
+            ctypes.addressof(pointers),
+            shapes.ctypes.data,
+            levels,
+            h,
+            p,
+            cams.ctypes.data,
+            queries.ctypes.data,
+            uvs.ctypes.data,
+            off.ctypes.data,
+            w.ctypes.data,
+            out.ctypes.data,
+        ),
+        pairs,
+        threads,
+    )
     return torch.from_numpy(out)
 
 
-def sample_3d(values: torch.Tensor, reference: torch.Tensor, offsets: torch.Tensor, scale: torch.Tensor, weights: torch.Tensor,
-              threads: int) -> torch.Tensor:
+def sample_3d(
+    values: torch.Tensor,
+    reference: torch.Tensor,
+    offsets: torch.Tensor,
+    scale: torch.Tensor,
+    weights: torch.Tensor,
+    threads: int,
+) -> torch.Tensor:
     """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, slots, P, 3) in voxels, scale (3,)
     voxels -> [0, 1]; weights (Q, H, A, P), agents the first A slots -> (Q, H*Ch). `available` first."""
     a, c = values.shape[0], values.shape[-1]
@@ -75,6 +108,22 @@ def sample_3d(values: torch.Tensor, reference: torch.Tensor, offsets: torch.Tens
     dims = np.array(maps.shape[1:4], np.int64)
     ref, off, sc, w = (kernels.array(t) for t in (reference, offsets, scale, weights))
     out = np.empty((q, c), np.float32)
-    kernels.parallel(fn, (ctypes.addressof(pointers), dims.ctypes.data, a, slots, h, p, ref.ctypes.data, off.ctypes.data, sc.ctypes.data,
-              w.ctypes.data, out.ctypes.data), q, threads)
+    kernels.parallel(
+        fn,
+        (
+            ctypes.addressof(pointers),
+            dims.ctypes.data,
+            a,
+            slots,
+            h,
+            p,
+            ref.ctypes.data,
+            off.ctypes.data,
+            sc.ctypes.data,
+            w.ctypes.data,
+            out.ctypes.data,
+        ),
+        q,
+        threads,
+    )
     return torch.from_numpy(out)

@@ -37,8 +37,14 @@ def available(c1: int, c2: int, classes: int) -> bool:
     return kernels.ENABLED and _kernel(c1, c2, classes) is not None
 
 
-def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.nn.ConvTranspose3d, point: torch.nn.Conv3d,
-                  classify: torch.nn.Conv3d, threads: int) -> tuple[torch.Tensor, torch.Tensor]:
+def octant_labels(
+    parents: torch.Tensor,
+    dims: tuple[int, int, int],
+    up: torch.nn.ConvTranspose3d,
+    point: torch.nn.Conv3d,
+    classify: torch.nn.Conv3d,
+    threads: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """parents (P, C1) of the 1/2 grid `dims`, flat order, on the CPU -> labels, confidence (2X1, 2Y1, 2Z1) uint8,
     on `threads` threads (the kernel must be `available`)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
@@ -46,7 +52,10 @@ def octant_labels(parents: torch.Tensor, dims: tuple[int, int, int], up: torch.n
     x = kernels.array(parents)  # (P, C1)
     up_w = kernels.array(up.weight.flatten(2))  # (C1, C2, 8): octant (kernel offset i, j, k) last
     up_b = kernels.array(up.bias[:, None].expand(c2, 8))  # (C2, 8)
-    point_w, point_b = kernels.array(point.weight[:, :, 0, 0, 0].t()), kernels.array(point.bias)  # (C2 in, C2 out), (C2,)
+    point_w, point_b = (
+        kernels.array(point.weight[:, :, 0, 0, 0].t()),
+        kernels.array(point.bias),
+    )  # (C2 in, C2 out), (C2,)
     cls_w, cls_b = kernels.array(classify.weight[:, :, 0, 0, 0].t()), kernels.array(classify.bias)  # (C2, K), (K,)
     n = x.shape[0]
     x1, y1, z1 = dims

@@ -39,7 +39,9 @@ def warp_theta(neighbour_from_ego: torch.Tensor, grid: GridSpec) -> torch.Tensor
     return theta.to(torch.float32)
 
 
-def warp(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, mode: str = "bilinear") -> torch.Tensor:
+def warp(
+    volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, mode: str = "bilinear"
+) -> torch.Tensor:
     """volume: (B, C, X, Y, Z) in the neighbour's frame -> (B, C, X, Y, Z) resampled on the ego's grid (zeros outside)."""
     theta = warp_theta(neighbour_from_ego, grid).to(volume.device)
     sampling = F.affine_grid(theta, list(volume.shape), align_corners=False)
@@ -59,7 +61,10 @@ def _kernel():
     if lib is None:
         return None
     fn = lib.warp_trilinear
-    fn.argtypes, fn.restype = [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 3, ctypes.c_int64, ctypes.c_int64], None
+    fn.argtypes, fn.restype = (
+        [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 3, ctypes.c_int64, ctypes.c_int64],
+        None,
+    )
     return fn
 
 
@@ -71,10 +76,17 @@ def compiled_available() -> bool:
 def warp_compiled(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, threads: int):
     """`warp_with_mask` for one CPU volume (1, C, X, Y, Z), channels-last out: warped (X, Y, Z, C), warp mask (X, Y, Z)."""
     _, c, nx, ny, nz = volume.shape
-    sampling = F.affine_grid(warp_theta(neighbour_from_ego, grid), [1, c, nx, ny, nz], align_corners=False)  # (1, X, Y, Z, 3)
+    sampling = F.affine_grid(
+        warp_theta(neighbour_from_ego, grid), [1, c, nx, ny, nz], align_corners=False
+    )  # (1, X, Y, Z, 3)
     src = kernels.array(volume[0].permute(1, 2, 3, 0))  # (X, Y, Z, C)
     points = kernels.array(sampling[0]).reshape(-1, 3)
     out, filled = np.empty((nx, ny, nz, c), np.float32), np.empty((nx, ny, nz), np.float32)
     fn = _kernel()
-    kernels.parallel(fn, (src.ctypes.data, nx, ny, nz, c, points.ctypes.data, out.ctypes.data, filled.ctypes.data), len(points), threads)
+    kernels.parallel(
+        fn,
+        (src.ctypes.data, nx, ny, nz, c, points.ctypes.data, out.ctypes.data, filled.ctypes.data),
+        len(points),
+        threads,
+    )
     return torch.from_numpy(out), torch.from_numpy(filled) > 0.5

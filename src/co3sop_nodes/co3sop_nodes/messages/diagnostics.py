@@ -6,9 +6,9 @@ from co3sop_nodes.messages.backend import MessageTypes
 from co3sop_nodes.messages.std import header_msg
 
 
-
-def diagnostics_msg(types: MessageTypes, stamp_ns: int, name: str, hardware_id: str, level: bytes, message: str,
-                    values: dict):
+def diagnostics_msg(
+    types: MessageTypes, stamp_ns: int, name: str, hardware_id: str, level: bytes, message: str, values: dict
+):
     """One DiagnosticStatus (values as strings) in a DiagnosticArray, as /diagnostics carries; level as the
     binding spells it (DiagnosticStatus.OK)."""
     status = types.make(

@@ -18,13 +18,21 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 
 # x, y, z (m), intensity, and the simulator's per-point class (0 where unknown)
 LIDAR_POINTS = np.dtype(
-    {"names": ["x", "y", "z", "intensity", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
-     "offsets": [0, 4, 8, 12, 16], "itemsize": 20}
+    {
+        "names": ["x", "y", "z", "intensity", "label"],
+        "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
+        "offsets": [0, 4, 8, 12, 16],
+        "itemsize": 20,
+    }
 )
 # x, y, z (m), rgb (float32 holding 0x00RRGGBB, the PCL / RViz convention), label
 LABEL_POINTS = np.dtype(
-    {"names": ["x", "y", "z", "rgb", "label"], "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
-     "offsets": [0, 4, 8, 12, 16], "itemsize": 20}
+    {
+        "names": ["x", "y", "z", "rgb", "label"],
+        "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
+        "offsets": [0, 4, 8, 12, 16],
+        "itemsize": 20,
+    }
 )
 
 # sensor_msgs/PointField datatypes -> numpy
@@ -73,8 +81,12 @@ def points_of(msg, names: tuple[str, ...] = ("x", "y", "z")) -> np.ndarray:
     if step <= 0 or len(data) < n * step:
         raise DatasetError(f"point cloud data holds {len(data)} bytes, {n} points of {step} bytes need {n * step}")
     dtype = np.dtype(
-        {"names": list(names), "formats": [layout[a][1] for a in names], "offsets": [layout[a][0] for a in names],
-         "itemsize": step}
+        {
+            "names": list(names),
+            "formats": [layout[a][1] for a in names],
+            "offsets": [layout[a][0] for a in names],
+            "itemsize": step,
+        }
     )
     return np.frombuffer(data, dtype, count=n)
 
@@ -123,8 +135,9 @@ def rgb_of(msg, what: str) -> np.ndarray:
     return image_of(msg, what)
 
 
-def camera_info_msg(types: MessageTypes, intrinsics: np.ndarray, width: int, height: int, *, stamp_ns: int,
-                    frame_id: str):
+def camera_info_msg(
+    types: MessageTypes, intrinsics: np.ndarray, width: int, height: int, *, stamp_ns: int, frame_id: str
+):
     """A pinhole CameraInfo without distortion: K = intrinsics, R = I, P = [K | 0]."""
     p = np.zeros((3, 4))
     p[:, :3] = intrinsics

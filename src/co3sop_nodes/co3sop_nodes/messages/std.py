@@ -48,7 +48,9 @@ def pose_of(msg) -> Pose:
 
 
 def pose_stamped_msg(types: MessageTypes, ns: int, frame_id: str, pose: Pose):
-    return types.make("geometry_msgs/msg/PoseStamped", header=header_msg(types, ns, frame_id), pose=pose_msg(types, pose))
+    return types.make(
+        "geometry_msgs/msg/PoseStamped", header=header_msg(types, ns, frame_id), pose=pose_msg(types, pose)
+    )
 
 
 def transform_msg(types: MessageTypes, ns: int, parent: str, child: str, parent_from_child: np.ndarray):
@@ -61,7 +63,10 @@ def transform_msg(types: MessageTypes, ns: int, parent: str, child: str, parent_
         rotation=quaternion_msg(types, pose.orientation),
     )
     return types.make(
-        "geometry_msgs/msg/TransformStamped", header=header_msg(types, ns, parent), child_frame_id=child, transform=transform
+        "geometry_msgs/msg/TransformStamped",
+        header=header_msg(types, ns, parent),
+        child_frame_id=child,
+        transform=transform,
     )
 
 

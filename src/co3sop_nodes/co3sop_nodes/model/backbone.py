@@ -37,7 +37,9 @@ def deform_conv2d(x, offset, mask, weight, bias, stride: int = 1, padding: int =
     off = offset.view(b, k, 2, ho, wo)
     py = base_y + off[:, :, 0]
     px = base_x + off[:, :, 1]
-    grid = torch.stack([2 * (px + 0.5) / w - 1, 2 * (py + 0.5) / h - 1], dim=-1)  # (B, K, Ho, Wo, 2), align_corners=False
+    grid = torch.stack(
+        [2 * (px + 0.5) / w - 1, 2 * (py + 0.5) / h - 1], dim=-1
+    )  # (B, K, Ho, Wo, 2), align_corners=False
     sampled = F.grid_sample(x, grid.view(b, k * ho, wo, 2), mode="bilinear", padding_mode="zeros", align_corners=False)
     sampled = sampled.view(b, cin, k, ho, wo) * mask.view(b, 1, k, ho, wo)  # (B, Cin, K, Ho, Wo)
     out = torch.einsum("bckhw,ock->bohw", sampled, weight.view(cout, cin, k))
@@ -65,8 +67,12 @@ def deform_conv2d_reference(x, offset, mask, weight, bias, stride: int = 1, padd
                     y0, x0 = math.floor(py), math.floor(px)
                     ly, lx = py - y0, px - x0
                     for c in range(cin):
-                        v = ((1 - ly) * (1 - lx) * pixel(n, c, y0, x0) + (1 - ly) * lx * pixel(n, c, y0, x0 + 1)
-                             + ly * (1 - lx) * pixel(n, c, y0 + 1, x0) + ly * lx * pixel(n, c, y0 + 1, x0 + 1))
+                        v = (
+                            (1 - ly) * (1 - lx) * pixel(n, c, y0, x0)
+                            + (1 - ly) * lx * pixel(n, c, y0, x0 + 1)
+                            + ly * (1 - lx) * pixel(n, c, y0 + 1, x0)
+                            + ly * lx * pixel(n, c, y0 + 1, x0 + 1)
+                        )
                         acc = acc + weight[:, c, t // kw, t % kw] * v * mask[n, t, i, j]
                 out[n, :, i, j] = acc + (0 if bias is None else bias)
     return out
@@ -98,8 +104,11 @@ class BasicBlock(nn.Module):
         super().__init__()
         self.conv1, self.bn1 = _conv3(cin, cout, stride, deform), nn.BatchNorm2d(cout)
         self.conv2, self.bn2 = _conv3(cout, cout, 1, deform), nn.BatchNorm2d(cout)
-        self.skip = (nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
-                     if stride != 1 or cin != cout else nn.Identity())
+        self.skip = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+            if stride != 1 or cin != cout
+            else nn.Identity()
+        )
 
     def forward(self, x):
         y = F.relu(self.bn1(self.conv1(x)))
@@ -113,8 +122,11 @@ class Bottleneck(nn.Module):
         self.conv1, self.bn1 = nn.Conv2d(cin, mid, 1, bias=False), nn.BatchNorm2d(mid)
         self.conv2, self.bn2 = _conv3(mid, mid, stride, deform), nn.BatchNorm2d(mid)
         self.conv3, self.bn3 = nn.Conv2d(mid, cout, 1, bias=False), nn.BatchNorm2d(cout)
-        self.skip = (nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
-                     if stride != 1 or cin != cout else nn.Identity())
+        self.skip = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+            if stride != 1 or cin != cout
+            else nn.Identity()
+        )
 
     def forward(self, x):
         y = F.relu(self.bn1(self.conv1(x)))
@@ -128,12 +140,17 @@ class ResNet(nn.Module):
     def __init__(self, cfg: BackboneConfig):
         super().__init__()
         self.stem = nn.Sequential(
-            nn.Conv2d(3, cfg.stem, 7, 2, 3, bias=False), nn.BatchNorm2d(cfg.stem), nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1)
+            nn.Conv2d(3, cfg.stem, 7, 2, 3, bias=False),
+            nn.BatchNorm2d(cfg.stem),
+            nn.ReLU(inplace=True),
+            nn.MaxPool2d(3, 2, 1),
         )
         block = Bottleneck if cfg.bottleneck else BasicBlock
         stages, cin = [], cfg.stem
         for i, (n, cout, deform) in enumerate(zip(cfg.depth, cfg.channels, cfg.deform_stages)):
-            layers = [block(cin if j == 0 else cout, cout, (1 if i == 0 else 2) if j == 0 else 1, deform) for j in range(n)]
+            layers = [
+                block(cin if j == 0 else cout, cout, (1 if i == 0 else 2) if j == 0 else 1, deform) for j in range(n)
+            ]
             stages.append(nn.Sequential(*layers))
             cin = cout
         self.stages = nn.ModuleList(stages)

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from co3sop_nodes.inference import InferencePath
+from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
 from co3sop_nodes.model.backbone import ResNet
 from co3sop_nodes.model.config import ModelConfig
 from co3sop_nodes.model.fpn import FPN
@@ -26,7 +27,6 @@ from co3sop_nodes.model.head import OccupancyHead
 from co3sop_nodes.model.lidar import LMSCNetEncoder, SSCNetEncoder
 from co3sop_nodes.model.lifting import LiftingLayer, project, voxel_centres
 from co3sop_nodes.model.occformer import OccFormerHead
-from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
 
 # ImageNet-style normalisation of uint8 RGB inputs
 _MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1) * 255
@@ -54,11 +54,17 @@ class VehicleHalf(nn.Module):
             self.to_dims = nn.Conv2d(cfg.fpn_channels, c, 1) if cfg.fpn_channels != c else nn.Identity()
             self.queries = nn.Parameter(torch.randn(fg.num_voxels, c) * 0.02)  # learnable voxel queries
             att = cfg.image_attention
-            self.lifting = nn.ModuleList(LiftingLayer(c, att.heads, cfg.fpn_levels, att.points) for _ in range(att.layers))
+            self.lifting = nn.ModuleList(
+                LiftingLayer(c, att.heads, cfg.fpn_levels, att.points) for _ in range(att.layers)
+            )
             self.register_buffer("centres", voxel_centres(fg), persistent=False)
         elif cfg.modality == "lidar":
             lc = cfg.lidar
-            self.encoder = (LMSCNetEncoder(cfg.grid.dims[2], c, lc.channels) if lc.kind == "lmscnet" else SSCNetEncoder(c, lc.channels))
+            self.encoder = (
+                LMSCNetEncoder(cfg.grid.dims[2], c, lc.channels)
+                if lc.kind == "lmscnet"
+                else SSCNetEncoder(c, lc.channels)
+            )
         else:
             raise ValueError(f"unknown modality {cfg.modality!r}")
         self.confidence = nn.Conv3d(c, 1, 1)
@@ -93,7 +99,9 @@ class EgoHalf(nn.Module):
         super().__init__()
         self.cfg = cfg
         fg = cfg.feature_grid
-        self.fusion = VoxelFusion(cfg.embed_dims, cfg.fusion_attention, cfg.max_collaborators, fg.dims) if cfg.fusion else None
+        self.fusion = (
+            VoxelFusion(cfg.embed_dims, cfg.fusion_attention, cfg.max_collaborators, fg.dims) if cfg.fusion else None
+        )
         if cfg.head == "conv":
             self.head = OccupancyHead(cfg.embed_dims, cfg.head_channels, cfg.num_classes)
         elif cfg.head == "occformer":
@@ -110,7 +118,9 @@ class EgoHalf(nn.Module):
             # inference on the CPU: the compiled warp, channels-last (the attention reads the features so)
             threads = torch.get_num_threads()
             for a, other in enumerate(others):
-                warped, filled = warp_compiled(torch.cat([other.features, other.confidence], 1), neighbour_from_ego[:, a], fg, threads)
+                warped, filled = warp_compiled(
+                    torch.cat([other.features, other.confidence], 1), neighbour_from_ego[:, a], fg, threads
+                )
                 feats.append(warped[..., :-1])
                 confs.append(warped[..., -1])
                 masks.append(filled)
@@ -136,8 +146,13 @@ class EgoHalf(nn.Module):
             fused = self.fusion(ego.features, feats, mask, dense=dense)
         return fused if torch.is_grad_enabled() else fused.float()
 
-    def forward(self, ego: VehicleOutput, others=(), neighbour_from_ego: torch.Tensor | None = None,
-                sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def forward(
+        self,
+        ego: VehicleOutput,
+        others=(),
+        neighbour_from_ego: torch.Tensor | None = None,
+        sample_index: torch.Tensor | None = None,
+    ) -> list[torch.Tensor]:
         """Logits at 1/4, 1/2 and 1 (B, K, X, Y, Z); with sample_index (B, N), full resolution only there (B, K, N).
         OccFormer's head: its decoder's predictions (`OccFormerHead.predict`), which its loss takes."""
         fused = self.fuse(ego, others, neighbour_from_ego)
@@ -168,8 +183,12 @@ class Co3SOP(nn.Module):
                 module.weight.data = module.weight.data.contiguous(memory_format=fmt)
         return self
 
-    def forward(self, agents: list[dict], neighbour_from_ego: torch.Tensor | None = None,
-                sample_index: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def forward(
+        self,
+        agents: list[dict],
+        neighbour_from_ego: torch.Tensor | None = None,
+        sample_index: torch.Tensor | None = None,
+    ) -> list[torch.Tensor]:
         """agents[0] is the ego, the rest its collaborators nearest first; each a dict of VehicleHalf inputs."""
         outs = [self.vehicle(**inputs) for inputs in agents]
         return self.ego(outs[0], outs[1:], neighbour_from_ego, sample_index)

@@ -76,7 +76,9 @@ class ModelConfig:
 
     def __post_init__(self):
         if self.early_fusion and (self.modality != "lidar" or self.fusion):
-            raise Co3sopError(f"{self.name}: early_fusion merges LiDAR scans before a single-agent model (modality lidar, fusion off)")
+            raise Co3sopError(
+                f"{self.name}: early_fusion merges LiDAR scans before a single-agent model (modality lidar, fusion off)"
+            )
 
     @property
     def grid(self) -> GridSpec:
@@ -100,8 +102,13 @@ PRESETS: dict[str, ModelConfig] = {
     "paper": ModelConfig(
         name="paper",
         image_size=(800, 600),
-        backbone=BackboneConfig(depth=(3, 4, 23, 3), channels=(256, 512, 1024, 2048), bottleneck=True,
-                                deform_stages=(False, True, True, True), stem=64),
+        backbone=BackboneConfig(
+            depth=(3, 4, 23, 3),
+            channels=(256, 512, 1024, 2048),
+            bottleneck=True,
+            deform_stages=(False, True, True, True),
+            stem=64,
+        ),
         fpn_channels=256,
         embed_dims=128,
         image_attention=AttentionConfig(layers=3, heads=8, points=4),
@@ -125,31 +132,49 @@ PRESETS["small"] = ModelConfig(
 PRESETS["tiny-single"] = replace(PRESETS["tiny"], name="tiny-single", fusion=False)  # SurroundOcc-style
 PRESETS["surroundocc"] = replace(PRESETS["paper"], name="surroundocc", fusion=False)
 PRESETS["tiny-lmscnet"] = replace(PRESETS["tiny"], name="tiny-lmscnet", modality="lidar", fusion=False)
-PRESETS["tiny-sscnet"] = replace(PRESETS["tiny"], name="tiny-sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 32))
+PRESETS["tiny-sscnet"] = replace(
+    PRESETS["tiny"], name="tiny-sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 32)
+)
 # Collaborative LiDAR Co3SOP-Base: the SSCNet-style LiDAR vehicle half with the same warp, hybrid mask,
 # masked deformable fusion and head, trained in the paper's two stages.
 PRESETS["tiny-lidar"] = replace(PRESETS["tiny-sscnet"], name="tiny-lidar", fusion=True)
 # The same with three fusion layers, the depth of Co3SOP's released voxel fusion (a query that has read its
 # neighbours once chooses where to read them again): tried on `validate` and not taken, its gain there is smaller
 # (results.md, "Choices made on validate").
-PRESETS["tiny-lidar-f3"] = replace(PRESETS["tiny-lidar"], name="tiny-lidar-f3", fusion_attention=AttentionConfig(layers=3))
+PRESETS["tiny-lidar-f3"] = replace(
+    PRESETS["tiny-lidar"], name="tiny-lidar-f3", fusion_attention=AttentionConfig(layers=3)
+)
 # Early fusion with the same SSCNet-style network: what sharing the scans themselves adds, set against tiny-lidar's
 # shared features (the same neighbours' information: each scan as the occupied voxels of its own grid).
 PRESETS["tiny-sscnet-early"] = replace(PRESETS["tiny-sscnet"], name="tiny-sscnet-early", early_fusion=True)
-PRESETS["lmscnet"] = replace(PRESETS["paper"], name="lmscnet", modality="lidar", fusion=False, lidar=LidarConfig("lmscnet", 128))
-PRESETS["sscnet"] = replace(PRESETS["paper"], name="sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 128))
+PRESETS["lmscnet"] = replace(
+    PRESETS["paper"], name="lmscnet", modality="lidar", fusion=False, lidar=LidarConfig("lmscnet", 128)
+)
+PRESETS["sscnet"] = replace(
+    PRESETS["paper"], name="sscnet", modality="lidar", fusion=False, lidar=LidarConfig("sscnet", 128)
+)
 # OccFormer (camera, single agent): the same camera lifting, then its dual-path transformer encoder and mask
 # decoder. The paper-size one follows OccFormer's SemanticKITTI configuration (4 stages of 2 blocks, 128..1024
 # channels, window 7; 100 queries, 9 decoder layers of width 192, 6 heads; 50176 points).
 PRESETS["tiny-occformer"] = replace(PRESETS["tiny"], name="tiny-occformer", fusion=False, head="occformer")
-PRESETS["occformer"] = replace(PRESETS["paper"], name="occformer", fusion=False, head="occformer",
-                               occformer=OccFormerConfig(stages=(128, 256, 512, 1024), queries=100, dims=192, layers=9, heads=6, points=50176))
+PRESETS["occformer"] = replace(
+    PRESETS["paper"],
+    name="occformer",
+    fusion=False,
+    head="occformer",
+    occformer=OccFormerConfig(stages=(128, 256, 512, 1024), queries=100, dims=192, layers=9, heads=6, points=50176),
+)
 
 
 def config_from_dict(data: dict) -> ModelConfig:
     """Inverse of dataclasses.asdict(ModelConfig) (as stored in checkpoints)."""
-    nested = {"backbone": BackboneConfig, "image_attention": AttentionConfig, "fusion_attention": AttentionConfig, "lidar": LidarConfig,
-              "occformer": OccFormerConfig}
+    nested = {
+        "backbone": BackboneConfig,
+        "image_attention": AttentionConfig,
+        "fusion_attention": AttentionConfig,
+        "lidar": LidarConfig,
+        "occformer": OccFormerConfig,
+    }
     kwargs = {}
     for key, value in data.items():
         if key in nested:

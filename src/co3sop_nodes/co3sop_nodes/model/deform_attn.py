@@ -72,7 +72,9 @@ class DeformableAttention3d(nn.Module):
         self.path = InferencePath()  # set by Co3SOP.use
         nn.init.zeros_(self.offsets.weight)
         with torch.no_grad():  # initial offsets: points spread along the axes, 1..P voxels away
-            direction = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32)
+            direction = torch.tensor(
+                [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32
+            )
             init = torch.stack([direction[(i + j) % 6] * (j // 2 + 1) for i in range(heads) for j in range(points)])
             self.offsets.bias.copy_(init.view(heads, 1, points, 3).expand(heads, slots, points, 3).reshape(-1))
 
@@ -90,8 +92,17 @@ class DeformableAttention3d(nn.Module):
         if self.path.kernels(query) and deform_kernel.available(c // h):
             # inference on the CPU: the compiled sampler, from the channels-last volumes (tested equal to sample_3d)
             threads = torch.get_num_threads()
-            return self.output(torch.stack([deform_kernel.sample_3d(v[i], reference[i], offsets[i], self.scale, w[i], threads) for i in range(b)]))
+            return self.output(
+                torch.stack(
+                    [
+                        deform_kernel.sample_3d(v[i], reference[i], offsets[i], self.scale, w[i], threads)
+                        for i in range(b)
+                    ]
+                )
+            )
         v = v.permute(0, 1, 5, 2, 3, 4)  # (B, A, C, X, Y, Z)
         v = v.reshape(b, a, h, c // h, *v.shape[-3:]).transpose(1, 2).reshape(b * h, a, c // h, *v.shape[-3:])
-        loc = reference[:, :, None, None, None, :] + offsets[:, :, :, :a] * self.scale  # (B, Q, H, A, P, 3), voxels -> [0, 1]
+        loc = (
+            reference[:, :, None, None, None, :] + offsets[:, :, :, :a] * self.scale
+        )  # (B, Q, H, A, P, 3), voxels -> [0, 1]
         return self.output(sample_3d(v, loc, w))  # (B, Q, C)

@@ -31,7 +31,9 @@ class OccupancyHead(nn.Module):
         super().__init__()
         c0, c1, c2 = channels
         self.stage0 = nn.Sequential(_block(dims, c0), _block(c0, c0))
-        self.up1 = nn.Sequential(nn.ConvTranspose3d(c0, c1, 2, 2, bias=False), nn.BatchNorm3d(c1), nn.ReLU(inplace=True), _block(c1, c1))
+        self.up1 = nn.Sequential(
+            nn.ConvTranspose3d(c0, c1, 2, 2, bias=False), nn.BatchNorm3d(c1), nn.ReLU(inplace=True), _block(c1, c1)
+        )
         self.up2 = nn.ConvTranspose3d(c1, c2, 2, 2)
         self.point2 = nn.Conv3d(c2, c2, 1)
         self.classify = nn.ModuleList(nn.Conv3d(c, classes, 1) for c in channels)
@@ -78,7 +80,12 @@ class OccupancyHead(nn.Module):
         if compiled is None:
             compiled = self.path.kernels(x) and octant_kernel.available(c1, c2, self.classify[2].out_channels)
         if compiled:
-            pairs = [octant_kernel.octant_labels(p, (x1, y1, z1), self.up2, self.point2, self.classify[2], torch.get_num_threads()) for p in parents]
+            pairs = [
+                octant_kernel.octant_labels(
+                    p, (x1, y1, z1), self.up2, self.point2, self.classify[2], torch.get_num_threads()
+                )
+                for p in parents
+            ]
             return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
         up_w = self.up2.weight.flatten(2).permute(0, 2, 1).reshape(c1, 8 * c2)  # (C1, 8*C2): octant-major
         up_b = self.up2.bias.repeat(8)  # (8*C2,)
@@ -115,7 +122,12 @@ class OccupancyHead(nn.Module):
         octants = torch.einsum("bcn,cdo->bodn", feat, self.up2.weight.flatten(2))  # (B, 8, C2, N)
         octant = ((i % 2) * 4 + (j % 2) * 2 + k % 2)[:, None, None].expand(b, 1, c2, -1)  # (B, 1, C2, N)
         f2 = torch.gather(octants, 1, octant)[:, 0] + self.up2.bias[None, :, None]  # (B, C2, N)
-        f2 = F.relu(torch.einsum("bcn,dc->bdn", F.relu(f2), self.point2.weight[:, :, 0, 0, 0]) + self.point2.bias[None, :, None])
+        f2 = F.relu(
+            torch.einsum("bcn,dc->bdn", F.relu(f2), self.point2.weight[:, :, 0, 0, 0]) + self.point2.bias[None, :, None]
+        )
         cls = self.classify[2]
-        return [self.classify[0](f0), self.classify[1](f1),
-                torch.einsum("bcn,kc->bkn", f2, cls.weight[:, :, 0, 0, 0]) + cls.bias[None, :, None]]
+        return [
+            self.classify[0](f0),
+            self.classify[1](f1),
+            torch.einsum("bcn,kc->bkn", f2, cls.weight[:, :, 0, 0, 0]) + cls.bias[None, :, None],
+        ]

@@ -22,8 +22,14 @@ class LMSCNetEncoder(nn.Module):
         c = channels
 
         def block(cin, cout, stride):
-            return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
-                                 nn.Conv2d(cout, cout, 3, 1, 1), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+            return nn.Sequential(
+                nn.Conv2d(cin, cout, 3, stride, 1),
+                nn.BatchNorm2d(cout),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(cout, cout, 3, 1, 1),
+                nn.BatchNorm2d(cout),
+                nn.ReLU(inplace=True),
+            )
 
         self.enc = nn.Sequential(block(height, c, 1), block(c, 2 * c, 2), block(2 * c, 4 * c, 2))
         self.out = nn.Conv2d(4 * c, dims * self.z, 1)
@@ -41,7 +47,9 @@ class SSCNetEncoder(nn.Module):
         c = channels
 
         def conv(cin, cout, stride=1, dilation=1):
-            return nn.Sequential(nn.Conv3d(cin, cout, 3, stride, dilation, dilation), nn.BatchNorm3d(cout), nn.ReLU(inplace=True))
+            return nn.Sequential(
+                nn.Conv3d(cin, cout, 3, stride, dilation, dilation), nn.BatchNorm3d(cout), nn.ReLU(inplace=True)
+            )
 
         self.down = nn.Sequential(conv(1, c // 2, 2), conv(c // 2, c, 2))
         self.dilated = nn.ModuleList([conv(c, c, 1, 2), conv(c, c, 1, 2), conv(c, c, 1, 3)])

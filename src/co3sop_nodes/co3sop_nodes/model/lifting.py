@@ -19,7 +19,9 @@ from co3sop_nodes.model.deform_attn import sample_2d
 
 def voxel_centres(grid: GridSpec) -> torch.Tensor:
     """(X*Y*Z, 3) voxel centres in metres, flat order x-major (as GridSpec)."""
-    axes = [grid.origin[a] + (torch.arange(n, dtype=torch.float32) + 0.5) * grid.voxel_size for a, n in enumerate(grid.dims)]
+    axes = [
+        grid.origin[a] + (torch.arange(n, dtype=torch.float32) + 0.5) * grid.voxel_size for a, n in enumerate(grid.dims)
+    ]
     return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
 
 
@@ -60,7 +62,9 @@ class ImageCrossAttention(nn.Module):
         # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
         compiled = self.path.kernels(query) and deform_kernel.available(c // h)
         if not compiled:
-            shapes = torch.tensor([[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device)  # (L, 2) W, H
+            shapes = torch.tensor(
+                [[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device
+            )  # (L, 2) W, H
             off = offsets / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
             # per level, every image's value map split by head: L x (B*N) x (H, C/H, Hl, Wl)
             values = [v.permute(0, 3, 1, 2).unflatten(1, (h, c // h)).unbind(0) for v in values]
@@ -69,15 +73,28 @@ class ImageCrossAttention(nn.Module):
             # only the (camera, query) pairs where the camera sees the query, camera-major
             cam, idx = visible[i].nonzero(as_tuple=True)
             if compiled:
-                sampled = [deform_kernel.sample_pairs([v[i * n : (i + 1) * n] for v in values], cam, idx, uv[i, cam, idx], offsets[i], w[i],
-                                                      torch.get_num_threads())]
+                sampled = [
+                    deform_kernel.sample_pairs(
+                        [v[i * n : (i + 1) * n] for v in values],
+                        cam,
+                        idx,
+                        uv[i, cam, idx],
+                        offsets[i],
+                        w[i],
+                        torch.get_num_threads(),
+                    )
+                ]
             else:
                 # one gather for all pairs (a gather per camera would zero-fill a full-size gradient for each), then
                 # split by camera
                 per_cam = torch.bincount(cam, minlength=n).tolist()
                 locs = (uv[i, cam, idx][:, None, None, None, :] + off[i, idx]).split(per_cam)  # N x (Qv, H, L, P, 2)
                 weights = w[i, idx].split(per_cam)  # N x (Qv, H, L, P)
-                sampled = [sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0] for k in range(n) if per_cam[k]]
+                sampled = [
+                    sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0]
+                    for k in range(n)
+                    if per_cam[k]
+                ]
             total = query.new_zeros(q, c)
             if sampled:
                 total = total.index_add(0, idx, torch.cat(sampled))  # (Q, C)

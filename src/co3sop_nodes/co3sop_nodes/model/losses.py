@@ -74,7 +74,9 @@ def downsample_labels(labels: torch.Tensor, factor: int, classes: int) -> torch.
     coarse = blocks.shape[:-1]
     block_id = torch.arange(coarse.numel(), device=labels.device).view(*coarse, 1)
     keys = block_id * (classes + 1) + blocks.clamp(max=classes).long()  # ignore -> the extra, dropped column
-    counts = torch.bincount(keys.flatten(), minlength=coarse.numel() * (classes + 1)).view(*coarse, classes + 1)[..., :classes]
+    counts = torch.bincount(keys.flatten(), minlength=coarse.numel() * (classes + 1)).view(*coarse, classes + 1)[
+        ..., :classes
+    ]
     occupied = counts[..., EMPTY + 1 :]
     label = torch.where(occupied.sum(-1) > 0, occupied.argmax(-1) + EMPTY + 1, torch.full_like(counts[..., 0], EMPTY))
     return torch.where(counts.sum(-1) > 0, label, torch.full_like(label, IGNORE))

@@ -51,8 +51,9 @@ def _dice_cost(m: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return 1 - (2 * p @ gt.T + 1) / (p.sum(1)[:, None] + gt.sum(1)[None] + 1)
 
 
-def mask_classification_loss(preds: list[tuple[torch.Tensor, torch.Tensor]], labels: torch.Tensor, points: int,
-                             rng: np.random.Generator) -> dict[str, torch.Tensor]:
+def mask_classification_loss(
+    preds: list[tuple[torch.Tensor, torch.Tensor]], labels: torch.Tensor, points: int, rng: np.random.Generator
+) -> dict[str, torch.Tensor]:
     """preds: every decoder output (class logits (B, Q, K+1), mask logits (B, Q, x, y, z) at 1/4); labels (B, X, Y, Z)
     with 255 ignored -> the loss terms summed over decoder outputs, mean over the batch."""
     b, k = labels.shape[0], preds[0][0].shape[-1] - 1
@@ -68,7 +69,11 @@ def mask_classification_loss(preds: list[tuple[torch.Tensor, torch.Tensor]], lab
         for logits, masks in preds:
             m = masks_at(masks[s : s + 1], index[None], dims)[0]  # (Q, N)
             with torch.no_grad():
-                cost = (CLASS_WEIGHT * -logits[s].softmax(-1)[:, present] + MASK_WEIGHT * _bce_cost(m, gt) + DICE_WEIGHT * _dice_cost(m, gt))
+                cost = (
+                    CLASS_WEIGHT * -logits[s].softmax(-1)[:, present]
+                    + MASK_WEIGHT * _bce_cost(m, gt)
+                    + DICE_WEIGHT * _dice_cost(m, gt)
+                )
                 rows, cols = (torch.from_numpy(a).to(labels.device) for a in min_cost_assignment(cost.cpu().numpy()))
             target = torch.full((logits.shape[1],), k, dtype=torch.long, device=labels.device)
             target[rows] = present[cols]

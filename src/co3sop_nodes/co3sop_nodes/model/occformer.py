@@ -77,7 +77,9 @@ class WindowBlock(nn.Module):
         for k, (a, b) in enumerate((a, b) for a in cuts for b in cuts):
             region[:, a, b] = k
         ids = self._windows(region)[0, :, :, 0]  # (nW, L)
-        return torch.zeros(ids.shape[0], ids.shape[1], ids.shape[1], device=device).masked_fill(ids[:, None, :] != ids[:, :, None], float("-inf"))
+        return torch.zeros(ids.shape[0], ids.shape[1], ids.shape[1], device=device).masked_fill(
+            ids[:, None, :] != ids[:, :, None], float("-inf")
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, c, h, w = x.shape  # (N, C, H, W)
@@ -88,7 +90,9 @@ class WindowBlock(nn.Module):
             y = torch.roll(y, (-self.shift, -self.shift), (1, 2))
         win = self._windows(y)  # (N, nW, L, C)
         nw, length = win.shape[1:3]
-        q, k, v = self.qkv(win).view(n, nw, length, 3, self.heads, c // self.heads).permute(3, 0, 1, 4, 2, 5)  # (N, nW, h, L, d)
+        q, k, v = (
+            self.qkv(win).view(n, nw, length, 3, self.heads, c // self.heads).permute(3, 0, 1, 4, 2, 5)
+        )  # (N, nW, h, L, d)
         attn = (q * (c // self.heads) ** -0.5) @ k.transpose(-1, -2)  # (N, nW, h, L, L)
         attn = attn + self.bias[self.bias_index].permute(2, 0, 1)  # (h, L, L)
         if self.shift:
@@ -112,7 +116,11 @@ class BottleneckASPP(nn.Module):
         r = max(8, dims // 4)
 
         def conv(cin, cout, k=1, d=1):
-            return nn.Sequential(nn.Conv2d(cin, cout, k, padding=d * (k // 2), dilation=d, bias=False), group_norm(cout), nn.ReLU(inplace=True))
+            return nn.Sequential(
+                nn.Conv2d(cin, cout, k, padding=d * (k // 2), dilation=d, bias=False),
+                group_norm(cout),
+                nn.ReLU(inplace=True),
+            )
 
         self.reduce = conv(dims, r)
         self.branches = nn.ModuleList(conv(r, r, 1 if d == 1 else 3, d) for d in dilations)
@@ -132,9 +140,14 @@ class DualPathBlock(nn.Module):
 
     def __init__(self, cin: int, cout: int, stride: int, window: int, shift: bool):
         super().__init__()
-        self.conv = nn.Sequential(nn.Conv3d(cin, cout, 3, stride, 1, bias=False), group_norm(cout), nn.ReLU(inplace=True))
-        self.shortcut = (nn.Sequential(nn.Conv3d(cin, cout, 1, stride, bias=False), group_norm(cout))
-                         if stride > 1 or cin != cout else nn.Identity())
+        self.conv = nn.Sequential(
+            nn.Conv3d(cin, cout, 3, stride, 1, bias=False), group_norm(cout), nn.ReLU(inplace=True)
+        )
+        self.shortcut = (
+            nn.Sequential(nn.Conv3d(cin, cout, 1, stride, bias=False), group_norm(cout))
+            if stride > 1 or cin != cout
+            else nn.Identity()
+        )
         self.window = WindowBlock(cout, max(1, cout // 32), window, shift)
         self.aspp = BottleneckASPP(cout)
         self.weight = nn.Conv3d(cout, 1, 1)
@@ -175,7 +188,9 @@ class TopDownNeck(nn.Module):
     def __init__(self, stages: tuple[int, ...], dims: int):
         super().__init__()
         self.lateral = nn.ModuleList(nn.Conv3d(c, dims, 1) for c in stages)
-        self.smooth = nn.Sequential(nn.Conv3d(dims, dims, 3, padding=1, bias=False), group_norm(dims), nn.ReLU(inplace=True))
+        self.smooth = nn.Sequential(
+            nn.Conv3d(dims, dims, 3, padding=1, bias=False), group_norm(dims), nn.ReLU(inplace=True)
+        )
         self.mask_features = nn.Conv3d(dims, dims, 1)
 
     def forward(self, feats: list[torch.Tensor]) -> tuple[list[torch.Tensor], torch.Tensor]:
@@ -203,12 +218,20 @@ class MaskDecoder(nn.Module):
         self.level_embed = nn.Embedding(levels, dims)
         self.cross = nn.ModuleList(nn.MultiheadAttention(dims, heads, batch_first=True) for _ in range(layers))
         self.self_attn = nn.ModuleList(nn.MultiheadAttention(dims, heads, batch_first=True) for _ in range(layers))
-        self.ffn = nn.ModuleList(nn.Sequential(nn.Linear(dims, 8 * dims), nn.ReLU(inplace=True), nn.Linear(8 * dims, dims)) for _ in range(layers))
+        self.ffn = nn.ModuleList(
+            nn.Sequential(nn.Linear(dims, 8 * dims), nn.ReLU(inplace=True), nn.Linear(8 * dims, dims))
+            for _ in range(layers)
+        )
         self.norms = nn.ModuleList(nn.ModuleList(nn.LayerNorm(dims) for _ in range(3)) for _ in range(layers))
         self.norm = nn.LayerNorm(dims)
         self.classify = nn.Linear(dims, classes + 1)  # the last: no object
-        self.mask_embed = nn.Sequential(nn.Linear(dims, dims), nn.ReLU(inplace=True), nn.Linear(dims, dims), nn.ReLU(inplace=True),
-                                        nn.Linear(dims, dims))
+        self.mask_embed = nn.Sequential(
+            nn.Linear(dims, dims),
+            nn.ReLU(inplace=True),
+            nn.Linear(dims, dims),
+            nn.ReLU(inplace=True),
+            nn.Linear(dims, dims),
+        )
 
     def predict(self, q: torch.Tensor, mask_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Queries (B, Q, D) -> class logits (B, Q, K+1) and mask logits (B, Q, X, Y, Z) at the mask features' size."""
@@ -223,16 +246,23 @@ class MaskDecoder(nn.Module):
         blocked = blocked & ~blocked.all(-1, keepdim=True)
         return blocked.repeat_interleave(self.heads, 0).detach()
 
-    def forward(self, levels: list[torch.Tensor], mask_features: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    def forward(
+        self, levels: list[torch.Tensor], mask_features: torch.Tensor
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """levels coarse to fine (B, D, x, y, z), mask features (B, D, X, Y, Z) -> (class logits, mask logits) from
         the initial queries and after every layer."""
         b = mask_features.shape[0]
         memory = [lv.flatten(2).transpose(1, 2) for lv in levels]  # (B, N_l, D)
-        pos = [sine_encoding_3d(_positions(lv.shape[2:], lv.device), lv.shape[1]) + self.level_embed.weight[i] for i, lv in enumerate(levels)]
+        pos = [
+            sine_encoding_3d(_positions(lv.shape[2:], lv.device), lv.shape[1]) + self.level_embed.weight[i]
+            for i, lv in enumerate(levels)
+        ]
         q = self.query_feat.weight[None].expand(b, -1, -1)  # (B, Q, D)
         qpos = self.query_pos.weight[None]
         preds = [self.predict(q, mask_features)]
-        for i, (cross, self_attn, ffn, (n1, n2, n3)) in enumerate(zip(self.cross, self.self_attn, self.ffn, self.norms)):
+        for i, (cross, self_attn, ffn, (n1, n2, n3)) in enumerate(
+            zip(self.cross, self.self_attn, self.ffn, self.norms)
+        ):
             lv = i % len(levels)
             blocked = self._attention_mask(preds[-1][1], levels[lv].shape[2:])
             q = n1(q + cross(q + qpos, memory[lv] + pos[lv], memory[lv], attn_mask=blocked, need_weights=False)[0])
@@ -290,7 +320,9 @@ class OccFormerHead(nn.Module):
         return [log_scores(class_scores(logits, masks)), log_scores(fine)]
 
     @torch.no_grad()
-    def labels(self, x: torch.Tensor, chunk: int = 65536, compiled: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def labels(
+        self, x: torch.Tensor, chunk: int = 65536, compiled: bool | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """x: (B, C, X/4, Y/4, Z/4) -> full-resolution labels and round(255 * the label's share of the scores),
         both (B, X, Y, Z) uint8, a chunk of voxels at a time (`compiled` is accepted for the conv head's
         signature: there is no kernel here)."""
@@ -303,6 +335,8 @@ class OccFormerHead(nn.Module):
             scores = class_scores(logits, masks_at(masks, index, self.dims))  # (B, K, n)
             top, label = scores.max(1)
             labels[:, start : start + chunk] = label.to(torch.uint8)
-            share = 1.0 / torch.exp(log_scores(scores) - log_scores(top)[:, None]).sum(1)  # softmax of the log-scores at the label
+            share = 1.0 / torch.exp(log_scores(scores) - log_scores(top)[:, None]).sum(
+                1
+            )  # softmax of the log-scores at the label
             confidence[:, start : start + chunk] = torch.round(share * 255).to(torch.uint8)
         return labels.view(b, *self.dims), confidence.view(b, *self.dims)

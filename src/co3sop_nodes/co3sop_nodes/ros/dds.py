@@ -30,8 +30,12 @@ RELIABILITIES = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": Reliabil
 def features_qos(reliability: str = "reliable", depth: int = 2) -> QoSProfile:
     """The QoS of VoxelFeatures: `reliability` one of RELIABILITIES (a best-effort subscription also matches a
     reliable publisher; a reliable one does not match a best-effort publisher)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=RELIABILITIES[reliability],
-                      durability=DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=RELIABILITIES[reliability],
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 FEATURES_QOS = features_qos()
@@ -43,8 +47,12 @@ OCCUPANCY_QOS = QoSProfile(
 )
 # Request maps: only the newest matters (a vehicle uses the latest of each ego), small, reliable; latched, so a
 # vehicle that joins (or matches late) gets each ego's latest request at once instead of a frame later
-REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+REQUEST_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # /diagnostics: one status per node per frame; reliable so the recorder and benchmarks see every one
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -96,8 +104,10 @@ def subscribe_foreign(node: Node, msg_type, topic: str, callback: Callable, qos,
     def on_raw(data: bytes) -> None:
         try:
             msg = deserialize_message(data, msg_type)
-        except Exception as exc:  # noqa: BLE001 - RMWError, UnicodeDecodeError...: any failure is the sender's
-            return drops(name, "malformed", f"{len(data)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})")
+        except Exception as exc:
+            return drops(
+                name, "malformed", f"{len(data)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})"
+            )
         return callback(msg, data) if raw else callback(msg)
 
     return node.create_subscription(msg_type, topic, on_raw, qos, raw=True)
@@ -111,9 +121,12 @@ def matching_qos(node: Node, topic: str, depth: int) -> QoSProfile | None:
         return None
     reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
     durable = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL if durable else DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if durable else DurabilityPolicy.VOLATILE,
+    )
 
 
 class SensorSubscriptions:

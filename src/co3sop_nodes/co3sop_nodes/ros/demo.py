@@ -33,10 +33,14 @@ from co3sop_nodes.viz.foxglove import write_layout
 # apart, where a 51.2 m grid shares little); chosen by that rule alone, before scoring, and in no split
 DEMO_SEED = 11
 DEMO_FRAMES = 10
-DEMO_SCENARIO = {"splits": ["test=1"], "cavs": "3", "seed": DEMO_SEED, "image_size": "320x240", "lidar_steps": 512,
-                 "workers": 1}
-
-
+DEMO_SCENARIO = {
+    "splits": ["test=1"],
+    "cavs": "3",
+    "seed": DEMO_SEED,
+    "image_size": "320x240",
+    "lidar_steps": 512,
+    "workers": 1,
+}
 
 
 def say(text: str) -> None:
@@ -54,8 +58,14 @@ class Process:
     def __init__(self, label: str, argv: list[str], echo: bool = True, env: dict[str, str] | None = None):
         self.label = label
         self._echo = echo
-        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})},
-                                     start_new_session=True)  # Ctrl-C on the demo reaches the demo only; it stops the children
+        self.proc = subprocess.Popen(
+            argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, **(env or {})},
+            start_new_session=True,
+        )  # Ctrl-C on the demo reaches the demo only; it stops the children
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
@@ -88,8 +98,10 @@ def measured_rate(model, vehicles: int, period: float) -> float:
     cost = pace.frame_cost(model)
     n = pace.cores()
     rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n)) / 100
-    say(f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms; "
-        f"{vehicles} vehicles + ego on {n} cores keep up with rate {rate:g} (a frame every {period / max(rate, 0.01):.2f} s)")
+    say(
+        f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms; "
+        f"{vehicles} vehicles + ego on {n} cores keep up with rate {rate:g} (a frame every {period / max(rate, 0.01):.2f} s)"
+    )
     return max(rate, 0.01)
 
 
@@ -103,8 +115,10 @@ def ensure_scenario(opts) -> Path:
     )
     bag = bags / "test" / scenario_name("test", 0, DEMO_SEED)
     if not (bag / "metadata.yaml").exists():
-        say(f"no demo scenario of {opts.frames} frames yet: generating one (3 CAVs) into {data} and {bags} "
-            f"(about {max(1, round(opts.frames / 10))} minute(s))")
+        say(
+            f"no demo scenario of {opts.frames} frames yet: generating one (3 CAVs) into {data} and {bags} "
+            f"(about {max(1, round(opts.frames / 10))} minute(s))"
+        )
         generate(GenerateOptions(out=data, bags=bags, frames=opts.frames, **DEMO_SCENARIO))
     return bag
 
@@ -133,7 +147,9 @@ class DemoOptions:
 def run_demo(opts: DemoOptions) -> int:
     """The graph on the demo scenario (generated once) or `opts.bag`, recorded and scored; 0 when the recording
     holds every prediction the ego published."""
-    signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
+    signal.signal(
+        signal.SIGTERM, _interrupt
+    )  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = resolve_checkpoint(opts.model, "--model")
     path = inference_path(opts.device, opts.precision, what="--")  # refused here if the machine lacks the device
@@ -155,8 +171,10 @@ def run_demo(opts: DemoOptions) -> int:
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)
         channel = Channel({member: link for member in ["ego", *(f"cav{c}" for c in cavs[1:])]})
         os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
-        say(f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} Mbit/s of real time "
-            f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost")
+        say(
+            f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} Mbit/s of real time "
+            f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
+        )
     with channel or contextlib.nullcontext():
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, t0)
 
@@ -177,17 +195,31 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], frames: int, mcap: Path, channel: Channel | None,
-           t0: float) -> int:
+def _graph(
+    opts,
+    checkpoint: Path,
+    sensors: str,
+    bag: Path,
+    cavs: list[int],
+    frames: int,
+    mcap: Path,
+    channel: Channel | None,
+    t0: float,
+) -> int:
     """The nodes started (inside the channel's namespaces where there is one), the bag played, the recording scored."""
     ego = cavs[0]
 
     echo = not opts.quiet
 
-    common = {"checkpoint": checkpoint, "autostart": False,  # the demo drives the lifecycle
-              "device": opts.device, "precision": opts.precision}
-    graph = describe(bag, cavs, sensors, mcap, opts.rate, common=common, ego_params=opts.ego_params,
-                     vehicle_params=opts.params)
+    common = {
+        "checkpoint": checkpoint,
+        "autostart": False,  # the demo drives the lifecycle
+        "device": opts.device,
+        "precision": opts.precision,
+    }
+    graph = describe(
+        bag, cavs, sensors, mcap, opts.rate, common=common, ego_params=opts.ego_params, vehicle_params=opts.params
+    )
 
     def start(spec: NodeSpec, label: str) -> Process:
         """A node started in its car: on a channel, in that car's namespace with its DDS profile."""
@@ -201,21 +233,33 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
     for spec in graph.vehicles:
         nodes[f"{spec.namespace}/{spec.name}"] = start(spec, f"vehicle {spec.parameters['id']}")
     player = None
-    supervisor = Supervisor("demo", alive=lambda: next((f"{p.label} exited with code {p.proc.returncode}" for p in [recorder, *nodes.values()]
-                                                        if p.proc.poll() is not None), None))
+    supervisor = Supervisor(
+        "demo",
+        alive=lambda: next(
+            (
+                f"{p.label} exited with code {p.proc.returncode}"
+                for p in [recorder, *nodes.values()]
+                if p.proc.poll() is not None
+            ),
+            None,
+        ),
+    )
     try:
         say("configuring the nodes (each loads the model), then activating them")
         supervisor.bring_up(list(nodes))
         for c in cavs:  # the ego knows every neighbour before the first frame, or fuses it alone
             supervisor.wait_subscribed("/ego", topics.voxel_features(c))
-        for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS):  # the nodes' outputs are recorded from their first frame on
+        for topic in (
+            topics.EGO_OCCUPANCY,
+            topics.DIAGNOSTICS,
+        ):  # the nodes' outputs are recorded from their first frame on
             supervisor.wait_subscribed("/recorder", topic)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable(graph.player.executable), *graph.player.ros_arguments()], echo)
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say("bag played; waiting for the ego to fuse the last frames")
-        accounted = lambda: frames_accounted(supervisor, ego) >= frames  # noqa: E731
+        accounted = lambda: frames_accounted(supervisor, ego) >= frames
         supervisor.wait(f"the ego to fuse (or skip) all {frames} frames", accounted, timeout=120)
     finally:
         for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
@@ -237,9 +281,14 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         )
     )
     if channel:  # what crossed the links in time, frame by frame
-        say("neighbours fused per frame: " + " ".join(r.get("neighbours_used", "?") for r in reports) + "; heard but late: " +
-            " ".join(r["neighbours_missing"] or "-" for r in reports) + "; never received: " +
-            " ".join(r["neighbours_silent"] or "-" for r in reports))
+        say(
+            "neighbours fused per frame: "
+            + " ".join(r.get("neighbours_used", "?") for r in reports)
+            + "; heard but late: "
+            + " ".join(r["neighbours_missing"] or "-" for r in reports)
+            + "; never received: "
+            + " ".join(r["neighbours_silent"] or "-" for r in reports)
+        )
     if channel and opts.channel_loss:
         say("packets dropped by the channel: " + ", ".join(f"{m} {channel.dropped(m)}" for m in channel.links))
     code = score_recording(mcap, opts.out)
@@ -251,4 +300,3 @@ def _graph(opts, checkpoint: Path, sensors: str, bag: Path, cavs: list[int], fra
         return 1
     say(f"the recording holds all {published} /ego/occupancy messages; done in {time.monotonic() - t0:.0f} s")
     return code
-

@@ -34,24 +34,18 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
-from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from co3sop_nodes.common import topics
-from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
-from co3sop_nodes.v2x.codec import decode_features, encode_labels, encode_request
-from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.common.errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.inference import PRECISIONS, inference_path
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
-from co3sop_nodes.model.co3sop import VehicleOutput
 from co3sop_nodes.inference.outputs import decoded_output
 from co3sop_nodes.inference.predict import compile_kernels, predict_frame
-from co3sop_nodes.v2x.request_map import request_of
-from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
 from co3sop_nodes.messages import (
     diagnostics_msg,
     features_of,
@@ -61,11 +55,26 @@ from co3sop_nodes.messages import (
     request_msg,
     stamp_ns,
 )
+from co3sop_nodes.model.co3sop import VehicleOutput
+from co3sop_nodes.ros.dds import (
+    DIAGNOSTICS_QOS,
+    OCCUPANCY_QOS,
+    RELIABILITIES,
+    REQUEST_QOS,
+    DropLog,
+    features_qos,
+    spin_node,
+    subscribe_foreign,
+)
+from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
 from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.params import Param, parameters_help
-from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, OCCUPANCY_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, spin_node, subscribe_foreign
-from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
 from co3sop_nodes.ros.worker import Worker
+from co3sop_nodes.v2x.codec import decode_features, encode_labels, encode_request
+from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
+from co3sop_nodes.v2x.neighbours import COMM_RANGE
+from co3sop_nodes.v2x.request_map import request_of
+from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
 
 PARAMS = (
     Param(
@@ -268,7 +277,9 @@ class Ego(ManagedNode):
         # messages wait in DDS only until the executor takes them (fusing runs on its own thread)
         self._qos = features_qos(p["features_reliability"], p["queue_depth"])
         # names relative to the node's namespace: `__ns` and remapping apply
-        self._occupancy = self.create_lifecycle_publisher(SemanticOccupancy, topics.relative(topics.EGO_OCCUPANCY), OCCUPANCY_QOS)
+        self._occupancy = self.create_lifecycle_publisher(
+            SemanticOccupancy, topics.relative(topics.EGO_OCCUPANCY), OCCUPANCY_QOS
+        )
         self._points = self.create_lifecycle_publisher(PointCloud2, topics.relative(topics.EGO_POINTS), OCCUPANCY_QOS)
         self._request = self.create_lifecycle_publisher(RequestMap, topics.relative(topics.EGO_REQUEST), REQUEST_QOS)
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
@@ -311,7 +322,9 @@ class Ego(ManagedNode):
     def _apply(self, values: dict) -> None:
         """Takes the run-time parameters in `values` (at start, and on `ros2 param set`), after checking them."""
         if values.get("max_collaborators", 0) > self.cfg.max_collaborators:
-            raise Co3sopError(f"max_collaborators {values['max_collaborators']} is above the model's {self.cfg.max_collaborators}")
+            raise Co3sopError(
+                f"max_collaborators {values['max_collaborators']} is above the model's {self.cfg.max_collaborators}"
+            )
         cfg = self.pairing.cfg
         self.pairing.cfg = replace(
             cfg,
@@ -436,15 +449,21 @@ class Ego(ManagedNode):
             )
         if stale:
             age_ms, reach_ms = (self.pairing.last_fused - stamp) / 1e6, self.pairing.cfg.reach_ns / 1e6
-            return self.drops(topic, "stale", f"stamp {stamp} is {age_ms:.0f} ms older than the last fused frame, "
-                                              f"more than max_age / tolerance ({reach_ms:.0f} ms)")
+            return self.drops(
+                topic,
+                "stale",
+                f"stamp {stamp} is {age_ms:.0f} ms older than the last fused frame, "
+                f"more than max_age / tolerance ({reach_ms:.0f} ms)",
+            )
         t0 = time.perf_counter()
         try:
             enc = features_of(msg)
             if enc.grid != self.cfg.feature_grid or enc.channels != self.cfg.embed_dims:
-                raise Co3sopError(f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
-                                  f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
-                                  f"{self.cfg.feature_grid.voxel_size:g} m x {self.cfg.embed_dims}")
+                raise Co3sopError(
+                    f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
+                    f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
+                    f"{self.cfg.feature_grid.voxel_size:g} m x {self.cfg.embed_dims}"
+                )
             out = decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes))
         except PayloadTooLargeError as exc:
             return self.drops(topic, "size", str(exc))
@@ -498,8 +517,17 @@ class Ego(ManagedNode):
     ) -> None:
         cpu0, t0 = time.process_time(), time.perf_counter()
         candidates = {a: (r.out, r.world_from_lidar) for a, r in matched.items()}
-        pred = predict_frame(self.model, ego.out, ego.world_from_lidar, candidates, self.comm_range,
-                             self.max_collaborators, self.pose_noise_mu, self.pose_noise_sigma, self.rng)
+        pred = predict_frame(
+            self.model,
+            ego.out,
+            ego.world_from_lidar,
+            candidates,
+            self.comm_range,
+            self.max_collaborators,
+            self.pose_noise_mu,
+            self.pose_noise_sigma,
+            self.rng,
+        )
         chosen, others = pred.collaborators, [matched[a] for a in pred.collaborators]
         t2 = time.perf_counter()
         frame = topics.lidar_frame(self.ego_id)
@@ -511,28 +539,49 @@ class Ego(ManagedNode):
             self._points.publish(point_cloud_msg(RCLPY, cloud, stamp_ns=stamp, frame_id=frame))
         if self.request_maps:  # for the vehicles' next frame: where this one was unsure (v2x/request_map.py)
             need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid)
-            self._request.publish(request_msg(RCLPY, need, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id,
-                                                 pose=Pose.from_matrix(ego.world_from_lidar)))
+            self._request.publish(
+                request_msg(
+                    RCLPY,
+                    need,
+                    stamp_ns=stamp,
+                    frame_id=frame,
+                    agent_id=self.ego_id,
+                    pose=Pose.from_matrix(ego.world_from_lidar),
+                )
+            )
         t3 = time.perf_counter()
         self.published += 1
         out_of_range = [a for a in matched if a not in chosen]
         used = [ego, *others]
         values = {
-            "stamp": stamp, "neighbours_used": len(others), "neighbours": ",".join(map(str, chosen)),
-            "neighbours_missing": ",".join(map(str, missing)), "neighbours_silent": ",".join(silent),
+            "stamp": stamp,
+            "neighbours_used": len(others),
+            "neighbours": ",".join(map(str, chosen)),
+            "neighbours_missing": ",".join(map(str, missing)),
+            "neighbours_silent": ",".join(silent),
             "neighbours_not_chosen": ",".join(map(str, out_of_range)),
             "neighbour_age_ms": ",".join(f"{(stamp - r.stamp) / 1e6:.0f}" for r in others),
             "received_wall_ns": ",".join(f"{a}:{r.received_wall_ns}" for a, r in zip([self.ego_id, *chosen], used)),
-            "bytes_received": sum(r.wire_bytes for r in used), "bytes_per_agent": ",".join(f"{a}:{r.wire_bytes}" for a, r in zip([self.ego_id, *chosen], used)),
-            "decode_ms": f"{sum(r.decode_ms for r in used):.1f}", "fuse_ms": f"{1e3 * pred.fuse_s:.1f}", "head_ms": f"{1e3 * pred.head_s:.1f}",
-            "publish_ms": f"{1e3 * (t3 - t2):.1f}", "total_ms": f"{1e3 * (t3 - t0):.1f}", "published_wall_ns": published_wall,
-            "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
-            "messages_for_other_egos": self.for_other_egos, "skipped": sum(self.skips.counts.values()),
+            "bytes_received": sum(r.wire_bytes for r in used),
+            "bytes_per_agent": ",".join(f"{a}:{r.wire_bytes}" for a, r in zip([self.ego_id, *chosen], used)),
+            "decode_ms": f"{sum(r.decode_ms for r in used):.1f}",
+            "fuse_ms": f"{1e3 * pred.fuse_s:.1f}",
+            "head_ms": f"{1e3 * pred.head_s:.1f}",
+            "publish_ms": f"{1e3 * (t3 - t2):.1f}",
+            "total_ms": f"{1e3 * (t3 - t0):.1f}",
+            "published_wall_ns": published_wall,
+            "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
+            "frames_published": self.published,
+            "messages_for_other_egos": self.for_other_egos,
+            "skipped": sum(self.skips.counts.values()),
             **self.drops.values(),
         }
         level = DiagnosticStatus.WARN if missing or silent else DiagnosticStatus.OK
-        text = (f"{len(others)} neighbours used" + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
-                + (f"; nothing received yet on {', '.join(silent)}" if silent else ""))
+        text = (
+            f"{len(others)} neighbours used"
+            + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
+            + (f"; nothing received yet on {', '.join(silent)}" if silent else "")
+        )
         self._diag.publish(diagnostics_msg(RCLPY, stamp, "ego", frame, level, text, values))
         self.get_logger().info(f"frame {stamp}: published #{self.published}, {text}, {1e3 * (t3 - t0):.0f} ms")
 

@@ -16,7 +16,9 @@ from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.ros.recorder import DEFAULT_TOPICS
 from co3sop_nodes.viz.foxglove import CAMERAS
 
-DEFAULT_MODEL = "tiny-lidar"  # the best collaborative model shipped (checkpoints/tiny-lidar.md); "tiny": the camera model
+DEFAULT_MODEL = (
+    "tiny-lidar"  # the best collaborative model shipped (checkpoints/tiny-lidar.md); "tiny": the camera model
+)
 # the ego's own encoder runs on the ego: its features reach the fusion losslessly
 LOSSLESS = {"codec.dtype": "float32", "codec.selection": "dense", "codec.compression": "none"}
 
@@ -61,8 +63,11 @@ def bag_contents(bag: Path) -> tuple[list[int], int]:
     """(CAV ids, frames) of a bag."""
     reader = open_reader(bag)
     with reader:
-        poses = {cav[0]: c.msgcount for c in reader.connections if (cav := topics.split_cav_topic(c.topic)) is not None
-                 and c.topic == topics.lidar_pose(cav[0])}
+        poses = {
+            cav[0]: c.msgcount
+            for c in reader.connections
+            if (cav := topics.split_cav_topic(c.topic)) is not None and c.topic == topics.lidar_pose(cav[0])
+        }
     if not poses:
         raise Co3sopError(f"{bag}: no /cav_N/lidar/pose topic: not a CAV bag")
     return sorted(poses), max(poses.values())
@@ -82,20 +87,47 @@ def played_topics(cavs: list[int], sensors: str) -> list[str]:
     return played + [t for cam in CAMERAS if (t := topics.camera_image(cavs[0], cam)) not in played]
 
 
-def describe(bag: Path, cavs: list[int], sensors: str, recording: Path, rate: float, *, common: dict | None = None,
-             ego_params: dict | None = None, vehicle_params: dict | None = None) -> Graph:
+def describe(
+    bag: Path,
+    cavs: list[int],
+    sensors: str,
+    recording: Path,
+    rate: float,
+    *,
+    common: dict | None = None,
+    ego_params: dict | None = None,
+    vehicle_params: dict | None = None,
+) -> Graph:
     """The graph for `cavs` of `bag` (the first is the ego). `common`: parameters of the ego and every vehicle (the
     checkpoint, device, ...); `vehicle_params`: the neighbours' (their V2X codec), the ego's own encoder is
     lossless; the recording also keeps the ego's camera images (the Foxglove layout's panels)."""
     common, ego = dict(common or {}), cavs[0]
     shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]
-    recorder = NodeSpec("recorder", "recorder", arguments=("--out", str(recording), "--topics", *DEFAULT_TOPICS, *shown))
+    recorder = NodeSpec(
+        "recorder", "recorder", arguments=("--out", str(recording), "--topics", *DEFAULT_TOPICS, *shown)
+    )
     ego_node = NodeSpec("ego", "ego", parameters={"ego_id": ego, **common, **(ego_params or {})})
     vehicles = tuple(
-        NodeSpec("vehicle", "vehicle", "ego" if c == ego else f"cav{c}", topics.namespace(c),
-                 parameters={"id": c, **common, **(LOSSLESS if c == ego else vehicle_params or {})})
+        NodeSpec(
+            "vehicle",
+            "vehicle",
+            "ego" if c == ego else f"cav{c}",
+            topics.namespace(c),
+            parameters={"id": c, **common, **(LOSSLESS if c == ego else vehicle_params or {})},
+        )
         for c in cavs
     )
-    player = NodeSpec("player", "player", arguments=(str(bag), "--rate", str(rate), "--wait-subscribers", "30", "--topics",
-                                                     *played_topics(cavs, sensors)))
+    player = NodeSpec(
+        "player",
+        "player",
+        arguments=(
+            str(bag),
+            "--rate",
+            str(rate),
+            "--wait-subscribers",
+            "30",
+            "--topics",
+            *played_topics(cavs, sensors),
+        ),
+    )
     return Graph(recorder, ego_node, vehicles, player)

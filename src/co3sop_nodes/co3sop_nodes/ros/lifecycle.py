@@ -31,8 +31,13 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.ros.params import Param, Parameters
 
-AUTOSTART = Param("autostart", bool, "configure and activate on start; false: stay unconfigured until a lifecycle manager "
-                                     "(or `ros2 lifecycle set`) drives the node", True)
+AUTOSTART = Param(
+    "autostart",
+    bool,
+    "configure and activate on start; false: stay unconfigured until a lifecycle manager "
+    "(or `ros2 lifecycle set`) drives the node",
+    True,
+)
 
 
 class ManagedNode(LifecycleNode):

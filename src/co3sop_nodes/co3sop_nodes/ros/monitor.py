@@ -19,16 +19,16 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from rclpy.utilities import remove_ros_args
 
+from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from co3sop_nodes.common.classes import CLASS_NAMES
-from co3sop_nodes.v2x.codec import decode_features, decode_labels
 from co3sop_nodes.common.errors import Co3sopError, exception_line
 from co3sop_nodes.messages import features_of, occupancy_of, stamp_ns
 from co3sop_nodes.ros.dds import OCCUPANCY_QOS, spin_node
+from co3sop_nodes.v2x.codec import decode_features, decode_labels
 
 MONITORED = {
     "co3sop_msgs/msg/VoxelFeatures": VoxelFeatures,
@@ -136,8 +136,10 @@ class Monitor(Node):
         t0 = time.perf_counter()
         try:
             msg = deserialize_message(raw, msg_type)
-        except Exception as exc:  # noqa: BLE001 - malformed CDR: the sender's fault, never the monitor's end
-            return self._error(topic, stats, f"{len(raw)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})")
+        except Exception as exc:
+            return self._error(
+                topic, stats, f"{len(raw)} bytes that are not a valid {msg_type.__name__} ({exception_line(exc)})"
+            )
         try:
             text, raw_size, payload = SUMMARIZERS[msg_type](msg)
         except Co3sopError as exc:
@@ -178,7 +180,9 @@ class Monitor(Node):
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="monitor", description=__doc__.split("\n\n")[1])
-    parser.add_argument("--topics", nargs="*", default=[], help="topics to watch (default: every payload topic discovered)")
+    parser.add_argument(
+        "--topics", nargs="*", default=[], help="topics to watch (default: every payload topic discovered)"
+    )
     parser.add_argument("--period", type=float, default=1.0, help="seconds between reports")
     parser.add_argument("--count", type=int, default=0, help="exit after this many decoded messages in all (0: never)")
     parser.add_argument("--duration", type=float, default=0.0, help="exit after this many seconds (0: never)")

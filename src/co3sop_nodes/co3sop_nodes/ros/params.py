@@ -16,14 +16,23 @@ from dataclasses import dataclass
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException, ParameterUninitializedException
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterUninitializedException,
+)
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from co3sop_nodes.common.errors import Co3sopError, exception_line
 
-_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER, float: ParameterType.PARAMETER_DOUBLE,
-          str: ParameterType.PARAMETER_STRING, list: ParameterType.PARAMETER_STRING_ARRAY}
+_TYPES = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+    list: ParameterType.PARAMETER_STRING_ARRAY,
+}
 
 
 @dataclass(frozen=True)
@@ -37,11 +46,15 @@ class Param:
     choices: tuple[str, ...] = ()
 
     def descriptor(self) -> ParameterDescriptor:
-        d = ParameterDescriptor(name=self.name, type=_TYPES[self.type], description=self.description, read_only=not self.runtime)
+        d = ParameterDescriptor(
+            name=self.name, type=_TYPES[self.type], description=self.description, read_only=not self.runtime
+        )
         if self.range is not None and self.type is int:
             d.integer_range = [IntegerRange(from_value=int(self.range[0]), to_value=int(self.range[1]), step=0)]
         elif self.range is not None:
-            d.floating_point_range = [FloatingPointRange(from_value=float(self.range[0]), to_value=float(self.range[1]), step=0.0)]
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(self.range[0]), to_value=float(self.range[1]), step=0.0)
+            ]
         if self.choices:
             d.additional_constraints = "one of: " + ", ".join(repr(c) for c in self.choices)
         return d
@@ -54,8 +67,13 @@ def parameters_help(params: Sequence[Param]) -> str:
     for p in params:
         default = "required" if p.default is None else f"default {p.default!r}"
         bound = (lambda v: str(int(v))) if p.type is int else (lambda v: f"{v:g}")
-        allowed = (f", one of {', '.join(map(repr, p.choices))}" if p.choices else
-                   f", in [{bound(p.range[0])}, {bound(p.range[1])}]" if p.range else "")
+        allowed = (
+            f", one of {', '.join(map(repr, p.choices))}"
+            if p.choices
+            else f", in [{bound(p.range[0])}, {bound(p.range[1])}]"
+            if p.range
+            else ""
+        )
         lines.append(f"  {p.name}{' *' if p.runtime else ''} ({p.type.__name__}, {default}{allowed})")
         lines.append(f"      {p.description}")
     return "\n".join(lines)
@@ -68,7 +86,9 @@ class Parameters:
         for p in params:
             # a required one is declared by its type alone: unset until -p gives it
             try:
-                node.declare_parameter(p.name, Parameter.Type(_TYPES[p.type]) if p.default is None else p.default, p.descriptor())
+                node.declare_parameter(
+                    p.name, Parameter.Type(_TYPES[p.type]) if p.default is None else p.default, p.descriptor()
+                )
             except (InvalidParameterTypeException, InvalidParameterValueException) as exc:  # a bad -p or params file
                 raise Co3sopError(f"parameter {p.name}: {exc}") from None
             self.check(p.name, self[p.name])
@@ -78,7 +98,9 @@ class Parameters:
         try:
             value = self._node.get_parameter(name).value
         except ParameterUninitializedException:
-            raise Co3sopError(f"parameter {name} is required ({self._params[name].description}): pass -p {name}:=VALUE") from None
+            raise Co3sopError(
+                f"parameter {name} is required ({self._params[name].description}): pass -p {name}:=VALUE"
+            ) from None
         return list(value) if self._params[name].type is list else value
 
     def on_change(self, apply: Callable[[dict[str, Any]], None]) -> None:
@@ -89,7 +111,9 @@ class Parameters:
         p = self._params[name]
         if p.choices and value not in p.choices:
             raise Co3sopError(f"parameter {name}={value!r} is not one of {', '.join(repr(c) for c in p.choices)}")
-        if p.range is not None and not p.range[0] <= value <= p.range[1]:  # also checked by rclpy on set; not on overrides
+        if (
+            p.range is not None and not p.range[0] <= value <= p.range[1]
+        ):  # also checked by rclpy on set; not on overrides
             raise Co3sopError(f"parameter {name}={value!r} is outside [{p.range[0]:g}, {p.range[1]:g}]")
 
     def _on_set(self, changes: list[Parameter]) -> SetParametersResult:
@@ -101,7 +125,7 @@ class Parameters:
                 self._apply(ours)
         except Co3sopError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        except Exception as exc:  # noqa: BLE001 - a value the node cannot take is refused, never the end of the node
+        except Exception as exc:
             self._node.get_logger().error(f"parameters {', '.join(ours)}: refused: {exception_line(exc)}")
             return SetParametersResult(successful=False, reason=f"refused: {exception_line(exc)}")
         return SetParametersResult(successful=True)

@@ -22,11 +22,11 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 
-from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.messages import time_msg
-from co3sop_nodes.ros.message_types import RCLPY, message_class
 from co3sop_nodes.ros.dds import flush_publishers, spin_node
+from co3sop_nodes.ros.message_types import RCLPY, message_class
 
 
 def recorded_qos(connection) -> QoSProfile:
@@ -108,8 +108,12 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--start", type=float, default=0.0, help="seconds of the bag to skip")
     parser.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
     parser.add_argument("--topics", nargs="*", default=[], help="only these topics (default: all)")
-    parser.add_argument("--wait-subscribers", type=float, default=0.0,
-                        help="wait up to this many seconds for every topic to have a subscriber before playing")
+    parser.add_argument(
+        "--wait-subscribers",
+        type=float,
+        default=0.0,
+        help="wait up to this many seconds for every topic to have a subscriber before playing",
+    )
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.rate <= 0:

@@ -29,12 +29,16 @@ from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.data.recording import McapRecorder
 from co3sop_nodes.messages.sensors import POINT_CLOUD
-from co3sop_nodes.viz.truth_points import TruthPoints
-from co3sop_nodes.ros.message_types import message_class
 from co3sop_nodes.ros.dds import DropLog, matching_qos, spin_node
+from co3sop_nodes.ros.message_types import message_class
+from co3sop_nodes.viz.truth_points import TruthPoints
 
-DEFAULT_TOPICS = (re.escape(topics.EGO_OCCUPANCY), re.escape(topics.EGO_POINTS), r"/cav_\d+/ground_truth/occupancy_\w+",
-                  re.escape(topics.DIAGNOSTICS))
+DEFAULT_TOPICS = (
+    re.escape(topics.EGO_OCCUPANCY),
+    re.escape(topics.EGO_POINTS),
+    r"/cav_\d+/ground_truth/occupancy_\w+",
+    re.escape(topics.DIAGNOSTICS),
+)
 # Deep queues: the recorder must keep up with bursts rather than lose messages.
 RECORD_DEPTH = 200
 
@@ -66,14 +70,20 @@ class Recorder(Node):
             except Co3sopError as exc:
                 self.get_logger().warning(f"{topic} not recorded: {exc}")
                 continue
-            self._subs.append(self.create_subscription(cls, topic, lambda raw, t=topic: self._on_message(t, raw), qos, raw=True))
+            self._subs.append(
+                self.create_subscription(cls, topic, lambda raw, t=topic: self._on_message(t, raw), qos, raw=True)
+            )
             self.get_logger().info(f"recording {topic} ({types[0]}, {qos.reliability.name.lower()})")
 
     def _on_message(self, topic: str, raw: bytes) -> None:
         now = time.time_ns()
         self.mcap.write(topic, self._types[topic], raw, now)
         try:
-            clouds = self.truth_points.prediction(raw) if topic == topics.EGO_OCCUPANCY else self.truth_points.truth(topic, raw)
+            clouds = (
+                self.truth_points.prediction(raw)
+                if topic == topics.EGO_OCCUPANCY
+                else self.truth_points.truth(topic, raw)
+            )
         except Co3sopError as exc:  # recorded as it came; only its picture is missing
             return self.drops(topic, "not drawn", str(exc))
         for cloud in clouds:
@@ -83,15 +93,21 @@ class Recorder(Node):
         self.mcap.close()
         counts = ", ".join(f"{t} {n}" for t, n in sorted(self.mcap.counts.items())) or "nothing"
         # after rclpy shut down: plain output
-        print(f"[recorder] finalised {self.mcap.path}: {sum(self.mcap.counts.values())} messages ({counts})", flush=True)
+        print(
+            f"[recorder] finalised {self.mcap.path}: {sum(self.mcap.counts.values())} messages ({counts})", flush=True
+        )
 
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="recorder", description=__doc__.split("\n\n")[1])
     parser.add_argument("--out", type=Path, required=True, help="the MCAP file to write")
     parser.add_argument("--topics", nargs="+", default=list(DEFAULT_TOPICS), help="regular expressions of topic names")
-    parser.add_argument("--chunk-size", type=int, default=256 * 1024, help="bytes per MCAP chunk (what a crash may lose)")
-    parser.add_argument("--flush-period", type=float, default=1.0, help="seconds between flushes of a partly filled chunk")
+    parser.add_argument(
+        "--chunk-size", type=int, default=256 * 1024, help="bytes per MCAP chunk (what a crash may lose)"
+    )
+    parser.add_argument(
+        "--flush-period", type=float, default=1.0, help="seconds between flushes of a partly filled chunk"
+    )
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.chunk_size < 1 or not opts.flush_period > 0:

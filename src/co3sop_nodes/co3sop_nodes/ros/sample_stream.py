@@ -17,16 +17,23 @@ import time
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 
-from co3sop_nodes.data import synthetic
+from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.classes import NUM_CLASSES
-from co3sop_nodes.v2x.codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, encode_features, encode_labels
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.data import synthetic
 from co3sop_nodes.messages import features_msg, occupancy_msg
-from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.dds import FEATURES_QOS, OCCUPANCY_QOS, flush_publishers, spin_node
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from co3sop_nodes.ros.message_types import RCLPY
+from co3sop_nodes.v2x.codec import (
+    CODECS,
+    FEATURE_DTYPES,
+    SELECTIONS,
+    FeatureCodecConfig,
+    encode_features,
+    encode_labels,
+)
 
 
 class SampleStream(Node):
@@ -39,11 +46,16 @@ class SampleStream(Node):
         nx, ny, nz = label_grid.dims
         self._feature_grid = GridSpec(label_grid.origin, label_grid.voxel_size * 4, (nx // 4, ny // 4, nz // 4))
         self._label_grid = label_grid
-        self._features = {a: self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS) for a in opts.agents}
+        self._features = {
+            a: self.create_publisher(VoxelFeatures, topics.voxel_features(a), FEATURES_QOS) for a in opts.agents
+        }
         self._occupancy = self.create_publisher(SemanticOccupancy, topics.EGO_OCCUPANCY, OCCUPANCY_QOS)
         # Synthetic content is costly to make: a few seeded frames, cycled.
         self._frames = [
-            (synthetic.feature_volume(self._feature_grid, opts.channels, seed), synthetic.street_labels(label_grid, seed))
+            (
+                synthetic.feature_volume(self._feature_grid, opts.channels, seed),
+                synthetic.street_labels(label_grid, seed),
+            )
             for seed in range(min(opts.frames, 4))
         ]
         self._sent = 0
@@ -82,14 +94,20 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--agents", type=int, nargs="+", default=[1, 2], help="vehicle ids to publish features for")
     parser.add_argument("--rate", type=float, default=10.0, help="frames per second")
     parser.add_argument("--frames", type=int, default=30, help="frames to publish before exiting")
-    parser.add_argument("--range", choices=sorted(BENCHMARK_RANGES), default="51.2m", help="benchmark grid of the labels")
+    parser.add_argument(
+        "--range", choices=sorted(BENCHMARK_RANGES), default="51.2m", help="benchmark grid of the labels"
+    )
     parser.add_argument("--channels", type=int, default=64, help="feature channels")
     parser.add_argument("--dtype", choices=sorted(FEATURE_DTYPES), default="float16")
     parser.add_argument("--selection", choices=SELECTIONS, default="dense")
     parser.add_argument("--topk", type=int, default=4096)
     parser.add_argument("--codec", choices=CODECS, default="zstd")
-    parser.add_argument("--wait-subscribers", type=float, default=0.0,
-                        help="hold the first frame up to this many seconds until every topic has a subscriber")
+    parser.add_argument(
+        "--wait-subscribers",
+        type=float,
+        default=0.0,
+        help="hold the first frame up to this many seconds until every topic has a subscriber",
+    )
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     for name, value, low in (

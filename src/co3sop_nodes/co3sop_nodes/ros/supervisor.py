@@ -23,14 +23,22 @@ from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, configure_environment
 
+
 def _qualified(namespace: str, name: str) -> str:
     return f"{namespace.rstrip('/')}/{name}"
 
 
-TRANSITIONS = {"configure": Transition.TRANSITION_CONFIGURE, "activate": Transition.TRANSITION_ACTIVATE,
-               "deactivate": Transition.TRANSITION_DEACTIVATE, "cleanup": Transition.TRANSITION_CLEANUP}
-SHUTDOWN = {"unconfigured": Transition.TRANSITION_UNCONFIGURED_SHUTDOWN, "inactive": Transition.TRANSITION_INACTIVE_SHUTDOWN,
-            "active": Transition.TRANSITION_ACTIVE_SHUTDOWN}
+TRANSITIONS = {
+    "configure": Transition.TRANSITION_CONFIGURE,
+    "activate": Transition.TRANSITION_ACTIVATE,
+    "deactivate": Transition.TRANSITION_DEACTIVATE,
+    "cleanup": Transition.TRANSITION_CLEANUP,
+}
+SHUTDOWN = {
+    "unconfigured": Transition.TRANSITION_UNCONFIGURED_SHUTDOWN,
+    "inactive": Transition.TRANSITION_INACTIVE_SHUTDOWN,
+    "active": Transition.TRANSITION_ACTIVE_SHUTDOWN,
+}
 
 
 class Supervisor:
@@ -53,7 +61,7 @@ class Supervisor:
     def _spin(self) -> None:
         try:
             self._executor.spin()
-        except Exception:  # noqa: BLE001 - the context was shut down under it by close()
+        except Exception:
             pass
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
@@ -97,7 +105,11 @@ class Supervisor:
         while True:
             future = client.call_async(request)
             try:
-                self.wait(f"an answer from {service}", future.done, min(resend or timeout, max(0.0, deadline - time.monotonic())))
+                self.wait(
+                    f"an answer from {service}",
+                    future.done,
+                    min(resend or timeout, max(0.0, deadline - time.monotonic())),
+                )
                 return future.result()
             except Co3sopError:
                 client.remove_pending_request(future)
@@ -115,7 +127,9 @@ class Supervisor:
     def change(self, node: str, transition: str, timeout: float = 300) -> bool:
         """Asks `node` for a transition (configure, activate, deactivate, cleanup, shutdown); True when it succeeded."""
         tid = SHUTDOWN[self.state(node, timeout)] if transition == "shutdown" else TRANSITIONS[transition]
-        return self._call(ChangeState, f"{node}/change_state", ChangeState.Request(transition=Transition(id=tid)), timeout).success
+        return self._call(
+            ChangeState, f"{node}/change_state", ChangeState.Request(transition=Transition(id=tid)), timeout
+        ).success
 
     def bring_up(self, nodes: list[str], timeout: float = 300) -> None:
         """Configures every node (all load their models at once), then activates them; Co3SopError naming the first that fails."""
@@ -131,14 +145,20 @@ class Supervisor:
 
     def subscribes(self, node: str, topic: str) -> bool:
         """`node` (fully qualified: /ego, /cav_3/vehicle) has a subscription on `topic`."""
-        return any(_qualified(info.node_namespace, info.node_name) == node for info in self.node.get_subscriptions_info_by_topic(topic))
+        return any(
+            _qualified(info.node_namespace, info.node_name) == node
+            for info in self.node.get_subscriptions_info_by_topic(topic)
+        )
 
     def wait_subscribed(self, node: str, topic: str, timeout: float = 60) -> None:
         self.wait(f"{node} subscribed to {topic}", lambda: self.subscribes(node, topic), timeout)
 
     def publishes(self, node: str, topic: str) -> bool:
         """`node` (fully qualified) has a publisher on `topic`."""
-        return any(_qualified(info.node_namespace, info.node_name) == node for info in self.node.get_publishers_info_by_topic(topic))
+        return any(
+            _qualified(info.node_namespace, info.node_name) == node
+            for info in self.node.get_publishers_info_by_topic(topic)
+        )
 
     def wait_published(self, node: str, topic: str, timeout: float = 60) -> None:
         self.wait(f"{node} publishing on {topic}", lambda: self.publishes(node, topic), timeout)
@@ -150,7 +170,11 @@ class Supervisor:
         with self._lock:
             return list(self._diagnostics[status])
 
-    def wait_reports(self, status: str, n: int, timeout: float, where: Callable[[dict[str, str]], bool] = lambda r: True) -> list[dict]:
+    def wait_reports(
+        self, status: str, n: int, timeout: float, where: Callable[[dict[str, str]], bool] = lambda r: True
+    ) -> list[dict]:
         """At least `n` reports of `status` satisfying `where`; returns all of them."""
-        self.wait(f"{n} /diagnostics reports of {status!r}", lambda: sum(map(where, self.reports(status))) >= n, timeout)
+        self.wait(
+            f"{n} /diagnostics reports of {status!r}", lambda: sum(map(where, self.reports(status))) >= n, timeout
+        )
         return self.reports(status)

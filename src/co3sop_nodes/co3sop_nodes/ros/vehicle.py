@@ -24,28 +24,22 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from co3sop_msgs.msg import RequestMap, VoxelFeatures
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
+from co3sop_msgs.msg import RequestMap, VoxelFeatures
 from co3sop_nodes.common import topics
-from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly
-from co3sop_nodes.v2x.sender_budget import SenderBudgets
-from co3sop_nodes.v2x.neighbours import COMM_RANGE
-from co3sop_nodes.v2x.codec import CODECS, FEATURE_DTYPES, SELECTIONS, FeatureCodecConfig, check_codec_for, decode_request
-from co3sop_nodes.common.errors import CodecError, Co3sopError
+from co3sop_nodes.common.errors import Co3sopError, CodecError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.common.transforms import StaticTransforms
 from co3sop_nodes.inference import PRECISIONS, inference_path
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
-from co3sop_nodes.inference.predict import compile_kernels
 from co3sop_nodes.inference.inputs import sensor_inputs, to_batch
 from co3sop_nodes.inference.outputs import encode_output
-from co3sop_nodes.v2x.request_map import request_for_neighbour
-from co3sop_nodes.v2x.sender_requests import Request, RequestBook
-from co3sop_nodes.common.transforms import StaticTransforms
+from co3sop_nodes.inference.predict import compile_kernels
 from co3sop_nodes.messages import (
     diagnostics_msg,
     features_msg,
@@ -57,11 +51,33 @@ from co3sop_nodes.messages import (
     transforms_of,
     xyz_of,
 )
+from co3sop_nodes.ros.dds import (
+    DIAGNOSTICS_QOS,
+    RELIABILITIES,
+    REQUEST_QOS,
+    DropLog,
+    SensorSubscriptions,
+    features_qos,
+    spin_node,
+    subscribe_foreign,
+)
+from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
 from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.params import Param, parameters_help
-from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, RELIABILITIES, REQUEST_QOS, DropLog, features_qos, SensorSubscriptions, spin_node, subscribe_foreign
-from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
 from co3sop_nodes.ros.worker import Worker
+from co3sop_nodes.v2x.codec import (
+    CODECS,
+    FEATURE_DTYPES,
+    SELECTIONS,
+    FeatureCodecConfig,
+    check_codec_for,
+    decode_request,
+)
+from co3sop_nodes.v2x.neighbours import COMM_RANGE
+from co3sop_nodes.v2x.request_map import request_for_neighbour
+from co3sop_nodes.v2x.sender_budget import SenderBudgets
+from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly
+from co3sop_nodes.v2x.sender_requests import Request, RequestBook
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 
@@ -180,9 +196,17 @@ PARAMS = (
         choices=tuple(RELIABILITIES),
     ),
 )
-CODEC_FIELDS = {"codec.dtype": "dtype", "codec.selection": "selection", "codec.topk": "topk", "codec.threshold": "threshold",
-                "codec.compression": "codec", "codec.level": "level", "codec.max_bytes": "max_bytes",
-                "codec.burst_bytes": "burst_bytes", "codec.rank": "rank"}
+CODEC_FIELDS = {
+    "codec.dtype": "dtype",
+    "codec.selection": "selection",
+    "codec.topk": "topk",
+    "codec.threshold": "threshold",
+    "codec.compression": "codec",
+    "codec.level": "level",
+    "codec.max_bytes": "max_bytes",
+    "codec.burst_bytes": "burst_bytes",
+    "codec.rank": "rank",
+}
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 
 
@@ -216,7 +240,9 @@ class Vehicle(ManagedNode):
         for name, have in (("modality", cfg.modality), ("range", cfg.range)):
             wanted = p[name]
             if wanted and wanted != have:
-                raise Co3sopError(f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it")
+                raise Co3sopError(
+                    f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it"
+                )
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.codec = FeatureCodecConfig()
         self._apply({name: p[name] for name in (*CODEC_FIELDS, "request_timeout", "comm_range", "max_egos")})
@@ -232,14 +258,19 @@ class Vehicle(ManagedNode):
                 self._parts[f"info:{cam}"], self._types[f"info:{cam}"] = topics.camera_info(None, cam), CameraInfo
         else:
             self._parts["points"], self._types["points"] = topics.lidar_points(), PointCloud2
-        self._parts = {k: self.resolve_topic_name(name) for k, name in self._parts.items()}  # full names in logs and drops
-        self._pub = self.create_lifecycle_publisher(VoxelFeatures, topics.voxel_features(), features_qos(p["features_reliability"]))
+        self._parts = {
+            k: self.resolve_topic_name(name) for k, name in self._parts.items()
+        }  # full names in logs and drops
+        self._pub = self.create_lifecycle_publisher(
+            VoxelFeatures, topics.voxel_features(), features_qos(p["features_reliability"])
+        )
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
             f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
             f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}, "
             f"{p['features_reliability']}; inference on {self.model.path.describe()}; "
-            f"compiled kernels: {', '.join(self.kernels) or 'none'}")
+            f"compiled kernels: {', '.join(self.kernels) or 'none'}"
+        )
 
     def activate(self) -> None:
         self._requests = RequestBook(self.comm_range, int(self.request_timeout * 1e9), self.max_egos)
@@ -294,7 +325,9 @@ class Vehicle(ManagedNode):
         try:
             enc = request_of(msg)
             if enc.grid != self.cfg.feature_grid:
-                raise Co3sopError(f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m is not this model's feature grid")
+                raise Co3sopError(
+                    f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m is not this model's feature grid"
+                )
             pose = pose_of(msg.lidar_pose)
             pose.check("lidar_pose")
             need = decode_request(enc)
@@ -365,7 +398,9 @@ class Vehicle(ManagedNode):
 
     def _mounts_known(self, parts: dict) -> bool:
         """The mounts of the frame's cameras are known (topics carry no order between /tf_static and the images)."""
-        return all(parts[f"image:{cam}"].header.frame_id in self._tf for cam in self.cameras if self.cfg.modality == "camera")
+        return all(
+            parts[f"image:{cam}"].header.frame_id in self._tf for cam in self.cameras if self.cfg.modality == "camera"
+        )
 
     def _encode_ready(self) -> None:
         self._handle(*self._frames.ready())
@@ -400,6 +435,7 @@ class Vehicle(ManagedNode):
     def _part(self, key: str):
         def callback(msg) -> None:
             self._handle(*self._frames.add(key, stamp_ns(msg.header.stamp), msg, time.time_ns()))
+
         return callback
 
     def _encode(self, frame: Frame) -> None:
@@ -414,7 +450,14 @@ class Vehicle(ManagedNode):
                 for cam in self.cameras:
                     image, info = entry[f"image:{cam}"], entry[f"info:{cam}"]
                     k = intrinsics_of(info)
-                    cameras.append((cam, rgb_of(image, self._parts[f"image:{cam}"]), k, self._tf.lookup(self.lidar_frame, image.header.frame_id)))
+                    cameras.append(
+                        (
+                            cam,
+                            rgb_of(image, self._parts[f"image:{cam}"]),
+                            k,
+                            self._tf.lookup(self.lidar_frame, image.header.frame_id),
+                        )
+                    )
             else:
                 points = xyz_of(entry["points"])
             inputs = sensor_inputs(self.cfg, world_from_lidar, cameras, points)
@@ -427,26 +470,55 @@ class Vehicle(ManagedNode):
         # one message per requesting ego, its voxels weighed by that ego's request moved into this frame; else one for all
         fg, recipients = self.cfg.feature_grid, self._recipients(world_from_lidar)
         try:
-            messages = [(ego, self._encode_for(out, ego, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
-                        for ego, r in recipients.items()] or [(None, self._encode_for(out, None, None))]
+            messages = [
+                (ego, self._encode_for(out, ego, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
+                for ego, r in recipients.items()
+            ] or [(None, self._encode_for(out, None, None))]
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
             return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
-        msgs = [features_msg(RCLPY, enc, stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose, recipient_id=ego)
-                for ego, enc in messages]
+        msgs = [
+            features_msg(
+                RCLPY,
+                enc,
+                stamp_ns=stamp,
+                frame_id=self.lidar_frame,
+                agent_id=self.agent_id,
+                pose=pose,
+                recipient_id=ego,
+            )
+            for ego, enc in messages
+        ]
         t3 = time.perf_counter()
         for msg in msgs:
             self._pub.publish(msg)
         published_wall = time.time_ns()
         self.published += 1
-        values = {"stamp": stamp, "first_input_wall_ns": frame.first_wall_ns, "published_wall_ns": published_wall,
-                  "inputs_ms": f"{1e3 * (t1 - t0):.1f}", "encoder_ms": f"{1e3 * (t2 - t1):.1f}", "codec_ms": f"{1e3 * (t3 - t2):.1f}",
-                  "payload_bytes": sum(enc.payload_bytes for _, enc in messages),
-                  "recipients": ",".join(f"{ego}:{enc.budget_bytes}" for ego, enc in messages if ego is not None),
-                  "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),
-                  "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}", "frames_published": self.published,
-                  "skipped": sum(self.skips.counts.values()), **self.drops.values()}
-        self._diag.publish(diagnostics_msg(RCLPY, stamp, f"vehicle cav_{self.agent_id}", self.lidar_frame, DiagnosticStatus.OK,
-                                           f"frame {self.published} encoded", values))
+        values = {
+            "stamp": stamp,
+            "first_input_wall_ns": frame.first_wall_ns,
+            "published_wall_ns": published_wall,
+            "inputs_ms": f"{1e3 * (t1 - t0):.1f}",
+            "encoder_ms": f"{1e3 * (t2 - t1):.1f}",
+            "codec_ms": f"{1e3 * (t3 - t2):.1f}",
+            "payload_bytes": sum(enc.payload_bytes for _, enc in messages),
+            "recipients": ",".join(f"{ego}:{enc.budget_bytes}" for ego, enc in messages if ego is not None),
+            "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),
+            "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
+            "frames_published": self.published,
+            "skipped": sum(self.skips.counts.values()),
+            **self.drops.values(),
+        }
+        self._diag.publish(
+            diagnostics_msg(
+                RCLPY,
+                stamp,
+                f"vehicle cav_{self.agent_id}",
+                self.lidar_frame,
+                DiagnosticStatus.OK,
+                f"frame {self.published} encoded",
+                values,
+            )
+        )
 
 
 def main(args: list[str] | None = None) -> int:
@@ -456,7 +528,11 @@ def main(args: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=parameters_help((*PARAMS, AUTOSTART)),
     )
-    parser.add_argument("--id", type=int, help="this vehicle's CAV id: sets parameter id and, unless __ns is given, the namespace /cav_<id>")
+    parser.add_argument(
+        "--id",
+        type=int,
+        help="this vehicle's CAV id: sets parameter id and, unless __ns is given, the namespace /cav_<id>",
+    )
     argv = list(sys.argv if args is None else args)
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.id is not None:  # one source: the parameter (as the launch files set it)

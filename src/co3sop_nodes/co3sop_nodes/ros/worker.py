@@ -56,5 +56,5 @@ class Worker:
                     return
             try:
                 job()
-            except Exception as exc:  # noqa: BLE001 - a failed frame is reported; the next one is tried
+            except Exception as exc:
                 self._logger.error(f"{self._name}: a frame failed: {exception_line(exc)}")

@@ -103,8 +103,15 @@ def shade(scene: RayScene, hits: Hits, directions: np.ndarray) -> np.ndarray:
     return colour
 
 
-def render(scene: RayScene, world_from_camera: np.ndarray, width: int, height: int, k: np.ndarray,
-           compiled: bool | None = None, threads: int = 1) -> CameraImages:
+def render(
+    scene: RayScene,
+    world_from_camera: np.ndarray,
+    width: int,
+    height: int,
+    k: np.ndarray,
+    compiled: bool | None = None,
+    threads: int = 1,
+) -> CameraImages:
     """compiled: rays and shading by the compiled kernel (default: where it compiles; bit-identical) or the reference;
     threads: the kernel's threads for this camera's rays."""
     body = pixel_rays(width, height, k)  # (H*W, 3)
@@ -125,8 +132,15 @@ def render(scene: RayScene, world_from_camera: np.ndarray, width: int, height: i
     return CameraImages(rgb.reshape(height, width, 3), depth, semantic)
 
 
-def render_rig(scene: RayScene, world_from_cameras: Sequence[np.ndarray], width: int, height: int, k: np.ndarray,
-               threads: int = 1, compiled: bool | None = None) -> list[CameraImages]:
+def render_rig(
+    scene: RayScene,
+    world_from_cameras: Sequence[np.ndarray],
+    width: int,
+    height: int,
+    k: np.ndarray,
+    threads: int = 1,
+    compiled: bool | None = None,
+) -> list[CameraImages]:
     """Every camera of a rig in order, on `threads` threads: the kernel splits each camera's rays among them (even
     shares: no camera waits for another), the reference renders `threads` cameras at once (Embree and NumPy release
     the GIL)."""

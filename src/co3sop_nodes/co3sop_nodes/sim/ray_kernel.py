@@ -46,7 +46,14 @@ def _kernel():
 
 
 # Embree 4's constants (include/embree4/rtcore_*.h) for the calls made here
-_SCENE_FLAG_ROBUST, _GEOMETRY_TRIANGLE, _BUFFER_INDEX, _BUFFER_VERTEX, _FORMAT_UINT3, _FORMAT_FLOAT3 = 4, 0, 0, 1, 0x5003, 0x9003
+_SCENE_FLAG_ROBUST, _GEOMETRY_TRIANGLE, _BUFFER_INDEX, _BUFFER_VERTEX, _FORMAT_UINT3, _FORMAT_FLOAT3 = (
+    4,
+    0,
+    0,
+    1,
+    0x5003,
+    0x9003,
+)
 
 
 @cache
@@ -61,13 +68,24 @@ def _embree() -> ctypes.CDLL | None:
     if not paths:
         return None
     lib = ctypes.CDLL(paths[0])
-    for name, args, res in (("rtcNewDevice", [ctypes.c_char_p], _P), ("rtcReleaseDevice", [_P], None),
-                            ("rtcGetDeviceError", [_P], ctypes.c_int), ("rtcNewScene", [_P], _P),
-                            ("rtcSetSceneFlags", [_P, ctypes.c_int], None), ("rtcCommitScene", [_P], None),
-                            ("rtcReleaseScene", [_P], None), ("rtcNewGeometry", [_P, ctypes.c_int], _P),
-                            ("rtcSetNewGeometryBuffer", [_P, ctypes.c_int, ctypes.c_uint, ctypes.c_int, ctypes.c_size_t, ctypes.c_size_t], _P),
-                            ("rtcCommitGeometry", [_P], None), ("rtcAttachGeometry", [_P, _P], ctypes.c_uint),
-                            ("rtcReleaseGeometry", [_P], None)):
+    for name, args, res in (
+        ("rtcNewDevice", [ctypes.c_char_p], _P),
+        ("rtcReleaseDevice", [_P], None),
+        ("rtcGetDeviceError", [_P], ctypes.c_int),
+        ("rtcNewScene", [_P], _P),
+        ("rtcSetSceneFlags", [_P, ctypes.c_int], None),
+        ("rtcCommitScene", [_P], None),
+        ("rtcReleaseScene", [_P], None),
+        ("rtcNewGeometry", [_P, ctypes.c_int], _P),
+        (
+            "rtcSetNewGeometryBuffer",
+            [_P, ctypes.c_int, ctypes.c_uint, ctypes.c_int, ctypes.c_size_t, ctypes.c_size_t],
+            _P,
+        ),
+        ("rtcCommitGeometry", [_P], None),
+        ("rtcAttachGeometry", [_P, _P], ctypes.c_uint),
+        ("rtcReleaseGeometry", [_P], None),
+    ):
         fn = getattr(lib, name)
         fn.argtypes, fn.restype = args, res
     return lib
@@ -109,7 +127,9 @@ class _EmbreeScene:
         """(N,) int32: the triangle each ray (float32 (N, 3) origins and directions in the scene's units) hits
         first, -1 for none."""
         prim = np.empty(len(dir32), np.int32)
-        kernels.interleaved(_kernel().cast, (self.scene, self.intersect, _ptr(org32), _ptr(dir32), _ptr(prim), len(dir32)), threads)
+        kernels.interleaved(
+            _kernel().cast, (self.scene, self.intersect, _ptr(org32), _ptr(dir32), _ptr(prim), len(dir32)), threads
+        )
         return prim
 
 
@@ -152,14 +172,35 @@ class CompiledScene:
         org, stride = _rows(origins)
         dirs = np.ascontiguousarray(directions, np.float64)
         unit, org32, dir32 = np.empty((n, 3)), np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-        kernels.parallel(lib.prepare, (_ptr(org), stride, _ptr(dirs), _ptr(self.shift), self.scale, _ptr(unit), _ptr(org32),
-                                      _ptr(dir32)), n, threads)
+        kernels.parallel(
+            lib.prepare,
+            (_ptr(org), stride, _ptr(dirs), _ptr(self.shift), self.scale, _ptr(unit), _ptr(org32), _ptr(dir32)),
+            n,
+            threads,
+        )
         prim = self.embree.first_triangles(org32, dir32, threads)  # (N,) triangle, -1 for none
         distance, owner = np.empty(n), np.empty(n, np.int64)
         normal, point = np.empty((n, 3)), np.empty((n, 3))
-        kernels.parallel(lib.finish, (_ptr(org), stride, _ptr(dirs), _ptr(unit), _ptr(prim), _ptr(self.plane_origins),
-                                     _ptr(self.plane_normals), _ptr(self.face_owner), float(max_distance), _ptr(distance),
-                                     _ptr(owner), _ptr(normal), _ptr(point)), n, threads)
+        kernels.parallel(
+            lib.finish,
+            (
+                _ptr(org),
+                stride,
+                _ptr(dirs),
+                _ptr(unit),
+                _ptr(prim),
+                _ptr(self.plane_origins),
+                _ptr(self.plane_normals),
+                _ptr(self.face_owner),
+                float(max_distance),
+                _ptr(distance),
+                _ptr(owner),
+                _ptr(normal),
+                _ptr(point),
+            ),
+            n,
+            threads,
+        )
         return distance, owner, normal, point
 
     def camera(self, origin: np.ndarray, directions: np.ndarray, sun: np.ndarray, threads: int = 1):
@@ -171,8 +212,26 @@ class CompiledScene:
         dirs = np.ascontiguousarray(directions, np.float64)
         sun = np.ascontiguousarray(sun, np.float64)
         distance, owner, rgb = np.empty(n), np.empty(n, np.int64), np.empty((n, 3), np.uint8)
-        kernels.interleaved(_kernel().camera, (self.embree.scene, self.embree.intersect, _ptr(origin), _ptr(dirs), _ptr(self.shift),
-                                              self.scale, _ptr(self.plane_origins), _ptr(self.plane_normals), _ptr(self.face_owner),
-                                              _ptr(self.albedo), _ptr(self.kind), _ptr(sun), _ptr(distance), _ptr(owner), _ptr(rgb), n),
-                           threads)
+        kernels.interleaved(
+            _kernel().camera,
+            (
+                self.embree.scene,
+                self.embree.intersect,
+                _ptr(origin),
+                _ptr(dirs),
+                _ptr(self.shift),
+                self.scale,
+                _ptr(self.plane_origins),
+                _ptr(self.plane_normals),
+                _ptr(self.face_owner),
+                _ptr(self.albedo),
+                _ptr(self.kind),
+                _ptr(sun),
+                _ptr(distance),
+                _ptr(owner),
+                _ptr(rgb),
+                n,
+            ),
+            threads,
+        )
         return distance, owner, rgb

@@ -57,8 +57,14 @@ class RayScene:
     def compiled(self) -> ray_kernel.CompiledScene:
         return ray_kernel.CompiledScene(self.mesh, self.face_owner, self.objects)
 
-    def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float = np.inf,
-             compiled: bool | None = None, threads: int = 1) -> Hits:
+    def cast(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        max_distance: float = np.inf,
+        compiled: bool | None = None,
+        threads: int = 1,
+    ) -> Hits:
         """First hits of rays (N, 3) from `origins` along unit `directions`.
 
         compiled: the compiled kernel (default: where it compiles) or trimesh's intersector and NumPy.

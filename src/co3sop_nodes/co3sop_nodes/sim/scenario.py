@@ -80,8 +80,12 @@ def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFram
             vehicle = cav.pose()
             world_lidar = vehicle @ rig.vehicle_from_lidar()
             poses = [vehicle @ mount for mount in rig.vehicle_from_cameras()]
-            cams = [CameraFrame(name_i, pose, k, img.rgb, *((img.depth, img.semantic) if cfg.extra_images else ()))
-                    for name_i, pose, img in zip(rig.CAMERA_NAMES, poses, camera.render_rig(scene, poses, width, height, k, cfg.workers))]
+            cams = [
+                CameraFrame(name_i, pose, k, img.rgb, *((img.depth, img.semantic) if cfg.extra_images else ()))
+                for name_i, pose, img in zip(
+                    rig.CAMERA_NAMES, poses, camera.render_rig(scene, poses, width, height, k, cfg.workers)
+                )
+            ]
             scan = lidar.scan(scene, world_lidar, cfg.lidar, rng)
             predicted = vehicle.copy()
             predicted[:2, 3] += rng.normal(0, cfg.gnss_noise, 2)
@@ -98,7 +102,9 @@ def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFram
                     points=scan.points,
                     intensity=scan.intensity,
                     point_labels=scan.label,
-                    labels={r: annotate(objects, world_lidar, g, cfg.workers, ignore=(cav.id,)) for r, g in grids.items()},
+                    labels={
+                        r: annotate(objects, world_lidar, g, cfg.workers, ignore=(cav.id,)) for r, g in grids.items()
+                    },
                     vehicles=_others(traffic, cav),
                     plan=plan,
                     world_from_predicted=predicted,

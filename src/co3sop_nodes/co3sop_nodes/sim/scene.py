@@ -36,11 +36,14 @@ class SceneObject:
             hit |= p.overlaps(centers, half)
         return hit
 
-    def transformed(self, transform: np.ndarray) -> "SceneObject":
+    def transformed(self, transform: np.ndarray) -> SceneObject:
         """The object moved by a 4x4 rigid transform whose rotation is about z only."""
         return SceneObject(
-            self.id, self.label, tuple(transform_primitive(p, transform) for p in self.primitives),
-            self.colour, self.texture,
+            self.id,
+            self.label,
+            tuple(transform_primitive(p, transform) for p in self.primitives),
+            self.colour,
+            self.texture,
         )
 
 

@@ -77,7 +77,7 @@ class Box:
     rot: np.ndarray
 
     @classmethod
-    def make(cls, center, size, yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> "Box":
+    def make(cls, center, size, yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> Box:
         return cls(np.asarray(center, float), np.asarray(size, float) / 2, rotation(yaw, pitch, roll))
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
@@ -92,8 +92,14 @@ class Box:
         compiled voxel sensor (kernels/voxel_sensor.c) repeats it, so both decide every voxel alike."""
         eye, r = np.eye(3), self.rot
         e, b = np.repeat(eye, 3, axis=0), np.tile(r.T, (3, 1))  # (9, 3): e_i and box axis j, i major
-        edges = np.stack([e[:, 1] * b[:, 2] - e[:, 2] * b[:, 1], e[:, 2] * b[:, 0] - e[:, 0] * b[:, 2],
-                          e[:, 0] * b[:, 1] - e[:, 1] * b[:, 0]], axis=1)  # e_i x b_j, np.cross's formula
+        edges = np.stack(
+            [
+                e[:, 1] * b[:, 2] - e[:, 2] * b[:, 1],
+                e[:, 2] * b[:, 0] - e[:, 0] * b[:, 2],
+                e[:, 0] * b[:, 1] - e[:, 1] * b[:, 0],
+            ],
+            axis=1,
+        )  # e_i x b_j, np.cross's formula
         norm = np.sqrt((edges[:, 0] * edges[:, 0] + edges[:, 1] * edges[:, 1]) + edges[:, 2] * edges[:, 2])
         long = norm > 1e-9
         edges = np.where(long[:, None], edges / np.where(long, norm, 1.0)[:, None], 0.0)
@@ -169,7 +175,10 @@ class Cylinder:
 
     def triangles(self) -> Triangles:
         """trimesh.creation.cylinder(radius, height, sections=12) moved to its place."""
-        return _placed(*_template("cylinder", self.radius, self.z1 - self.z0), _translation([self.x, self.y, (self.z0 + self.z1) / 2]))
+        return _placed(
+            *_template("cylinder", self.radius, self.z1 - self.z0),
+            _translation([self.x, self.y, (self.z0 + self.z1) / 2]),
+        )
 
     def mesh(self) -> trimesh.Trimesh:
         return trimesh.Trimesh(*self.triangles(), process=False)

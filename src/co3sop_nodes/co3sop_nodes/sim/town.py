@@ -111,7 +111,11 @@ def generate_town(cfg: TownConfig, seed: int) -> Town:
     canal_row = int(rng.integers(0, len(ys) - 1)) if cfg.canal and len(ys) > 1 else None
     canal_y = (ys[canal_row] + ys[canal_row + 1]) / 2 if canal_row is not None else None
     # the tram runs along one avenue each way
-    trams = {(0, ys[int(rng.integers(0, len(ys)))]), (1, xs[int(rng.integers(0, len(xs)))])} if cfg.tram and xs and ys else set()
+    trams = (
+        {(0, ys[int(rng.integers(0, len(ys)))]), (1, xs[int(rng.integers(0, len(xs)))])}
+        if cfg.tram and xs and ys
+        else set()
+    )
 
     _terrain_base(town, rng, half)
     for (axis, offset), lanes in widths.items():
@@ -142,7 +146,12 @@ def generate_town(cfg: TownConfig, seed: int) -> Town:
 def _terrain_base(town: Town, rng, half: float) -> None:
     """Everything not covered by something else is terrain, its top just under the road surface."""
     # it reaches 100 m past the streets, so no sensor near the rim looks into a void
-    town.add("terrain", [_box(-half - 100, -half - 100, half + 100, half + 100, -SURFACE_DEPTH, -0.02)], (120, 150, 80), "noise")
+    town.add(
+        "terrain",
+        [_box(-half - 100, -half - 100, half + 100, half + 100, -SURFACE_DEPTH, -0.02)],
+        (120, 150, 80),
+        "noise",
+    )
 
 
 def _road(town: Town, rng, axis, offset, lanes, crossing, widths, half, canal_y, tram: bool) -> None:
@@ -170,9 +179,15 @@ def _road(town: Town, rng, axis, offset, lanes, crossing, widths, half, canal_y,
         # on two-lane roads the outer lanes are parking lanes: parked rows stand there, traffic keeps inside
         for k in range(lanes - (1 if lanes > 1 else 0)):
             across = (k + 0.5) * LANE_WIDTH
-            p, q = _point(axis, offset, a_in, -across if axis == 0 else across), _point(axis, offset, b_in, -across if axis == 0 else across)
+            p, q = (
+                _point(axis, offset, a_in, -across if axis == 0 else across),
+                _point(axis, offset, b_in, -across if axis == 0 else across),
+            )
             town.lanes.append(Lane(p, q, len(town.roads) - 1))
-            p2, q2 = _point(axis, offset, b_in, across if axis == 0 else -across), _point(axis, offset, a_in, across if axis == 0 else -across)
+            p2, q2 = (
+                _point(axis, offset, b_in, across if axis == 0 else -across),
+                _point(axis, offset, a_in, across if axis == 0 else -across),
+            )
             town.lanes.append(Lane(p2, q2, len(town.roads) - 1))
 
 
@@ -187,18 +202,48 @@ def _markings(town: Town, rng, axis, offset, a, b, lanes, tram: bool) -> None:
         town.add("railtrack", [_along(axis, offset, a, b, -0.9, 0.9, -0.05, 0.06)], (110, 95, 80), "stripes")
     else:
         # solid double centre line
-        town.add("roadline", [_along(axis, offset, a, b, -0.25, -0.1, -0.05, 0.02), _along(axis, offset, a, b, 0.1, 0.25, -0.05, 0.02)], colour)
+        town.add(
+            "roadline",
+            [_along(axis, offset, a, b, -0.25, -0.1, -0.05, 0.02), _along(axis, offset, a, b, 0.1, 0.25, -0.05, 0.02)],
+            colour,
+        )
     for k in range(1, lanes):  # dashed lane separators
         dashes = []
         for s in np.arange(a + 1.0, b - 3.0, 9.0):
             for side in (-1, 1):
-                dashes.append(_along(axis, offset, s, s + 3.0, side * k * LANE_WIDTH - 0.075, side * k * LANE_WIDTH + 0.075, -0.05, 0.02))
+                dashes.append(
+                    _along(
+                        axis,
+                        offset,
+                        s,
+                        s + 3.0,
+                        side * k * LANE_WIDTH - 0.075,
+                        side * k * LANE_WIDTH + 0.075,
+                        -0.05,
+                        0.02,
+                    )
+                )
         if dashes:
             town.add("roadline", dashes, colour)
     for end, sign in ((a, 1), (b, -1)):  # stop lines before the intersections
         s0 = end + sign * 0.5
         for side in (-1, 1):
-            town.add("roadline", [_along(axis, offset, min(s0, s0 + sign * 0.4), max(s0, s0 + sign * 0.4), side * 0.3, side * lanes * LANE_WIDTH, -0.05, 0.02)], colour)
+            town.add(
+                "roadline",
+                [
+                    _along(
+                        axis,
+                        offset,
+                        min(s0, s0 + sign * 0.4),
+                        max(s0, s0 + sign * 0.4),
+                        side * 0.3,
+                        side * lanes * LANE_WIDTH,
+                        -0.05,
+                        0.02,
+                    )
+                ],
+                colour,
+            )
 
 
 def _sidewalks(town: Town, rng, axis, offset, a, b, hw, canal_y) -> None:
@@ -210,7 +255,9 @@ def _sidewalks(town: Town, rng, axis, offset, a, b, hw, canal_y) -> None:
         for s0, s1 in spans:
             if s1 - s0 < 1:
                 continue
-            town.add("sidewalk", [_along(axis, offset, s0, s1, lo, hi, -SURFACE_DEPTH, CURB)], (175, 170, 165), "bricks")
+            town.add(
+                "sidewalk", [_along(axis, offset, s0, s1, lo, hi, -SURFACE_DEPTH, CURB)], (175, 170, 165), "bricks"
+            )
             mid = side * (hw + SIDEWALK_WIDTH / 2)
             town.sidewalk_paths.append((_point(axis, offset, s0, mid), _point(axis, offset, s1, mid)))
             _street_furniture(town, rng, axis, offset, s0, s1, side, hw)
@@ -225,15 +272,38 @@ def _street_furniture(town: Town, rng, axis, offset, a, b, side, hw) -> None:
         kind = rng.choice(["light", "sign", "tree", "prop", "bush", "none"], p=[0.25, 0.12, 0.25, 0.15, 0.13, 0.10])
         if kind == "light":
             arm_x, arm_y = _point(axis, offset, s, edge - side * 1.5)
-            town.add("pole", [Cylinder(x, y, 0.12, CURB, 7.5), _box(min(x, arm_x) - 0.08, min(y, arm_y) - 0.08, max(x, arm_x) + 0.08, max(y, arm_y) + 0.08, 7.3, 7.5)], (120, 120, 125))
+            town.add(
+                "pole",
+                [
+                    Cylinder(x, y, 0.12, CURB, 7.5),
+                    _box(
+                        min(x, arm_x) - 0.08, min(y, arm_y) - 0.08, max(x, arm_x) + 0.08, max(y, arm_y) + 0.08, 7.3, 7.5
+                    ),
+                ],
+                (120, 120, 125),
+            )
         elif kind == "sign":
             town.add("pole", [Cylinder(x, y, 0.05, CURB, 2.8)], (140, 140, 145))
-            town.add("trafficsign", [Box.make([x, y, 2.5], [0.08, 0.7, 0.7], yaw=0.0 if axis == 0 else np.pi / 2)], (200, 30, 30))
+            town.add(
+                "trafficsign",
+                [Box.make([x, y, 2.5], [0.08, 0.7, 0.7], yaw=0.0 if axis == 0 else np.pi / 2)],
+                (200, 30, 30),
+            )
         elif kind == "tree":
             h = rng.uniform(3, 5)
-            town.add("vegetation", [Cylinder(x, y, 0.18, CURB, h), Sphere(np.array([x, y, h + 1.0]), rng.uniform(1.5, 2.6))], _vary(rng, (70, 110, 40), 25), "noise")
+            town.add(
+                "vegetation",
+                [Cylinder(x, y, 0.18, CURB, h), Sphere(np.array([x, y, h + 1.0]), rng.uniform(1.5, 2.6))],
+                _vary(rng, (70, 110, 40), 25),
+                "noise",
+            )
         elif kind == "bush":
-            town.add("vegetation", [Sphere(np.array([x, y, CURB + 0.3]), rng.uniform(0.5, 0.9))], _vary(rng, (60, 120, 45), 25), "noise")
+            town.add(
+                "vegetation",
+                [Sphere(np.array([x, y, CURB + 0.3]), rng.uniform(0.5, 0.9))],
+                _vary(rng, (60, 120, 45), 25),
+                "noise",
+            )
         elif kind == "prop":
             _prop(town, rng, axis, offset, s, side * (hw + SIDEWALK_WIDTH - 0.8))
         s += rng.uniform(6, 14)
@@ -252,17 +322,29 @@ def _prop(town: Town, rng, axis, offset, s, across) -> None:
     yaw = 0.0 if axis == 0 else np.pi / 2
     kind = rng.choice(["bench", "hydrant", "bin", "shelter", "cart", "clutter"])
     if kind == "bench":
-        town.add("static", [Box.make([x, y, CURB + 0.45], [1.6, 0.5, 0.1], yaw), Box.make([x, y, CURB + 0.2], [1.4, 0.4, 0.4], yaw)], (120, 80, 50))
+        town.add(
+            "static",
+            [Box.make([x, y, CURB + 0.45], [1.6, 0.5, 0.1], yaw), Box.make([x, y, CURB + 0.2], [1.4, 0.4, 0.4], yaw)],
+            (120, 80, 50),
+        )
     elif kind == "hydrant":
         town.add("static", [Cylinder(x, y, 0.15, CURB, CURB + 0.7)], (200, 40, 30))
     elif kind == "bin":
         town.add("dynamic", [Box.make([x, y, CURB + 0.5], [0.6, 0.6, 1.0], yaw)], _vary(rng, (40, 90, 50)))
     elif kind == "clutter":  # what CARLA leaves untagged (tag 0): construction debris, crates
-        town.add("unlabeled", [Box.make([x, y, CURB + 0.3], [rng.uniform(0.5, 1.5), 0.6, 0.6], yaw + rng.uniform(-0.5, 0.5))], (150, 120, 90))
+        town.add(
+            "unlabeled",
+            [Box.make([x, y, CURB + 0.3], [rng.uniform(0.5, 1.5), 0.6, 0.6], yaw + rng.uniform(-0.5, 0.5))],
+            (150, 120, 90),
+        )
     elif kind == "cart":
         town.add("dynamic", [Box.make([x, y, CURB + 0.5], [0.9, 0.6, 0.7], yaw)], (160, 160, 170))
     else:  # bus shelter: roof and back wall
-        town.add("other", [Box.make([x, y, CURB + 2.5], [3.5, 1.6, 0.1], yaw), Box.make([x, y, CURB + 1.25], [3.5, 0.1, 2.3], yaw)], (90, 120, 130))
+        town.add(
+            "other",
+            [Box.make([x, y, CURB + 2.5], [3.5, 1.6, 0.1], yaw), Box.make([x, y, CURB + 1.25], [3.5, 0.1, 2.3], yaw)],
+            (90, 120, 130),
+        )
 
 
 def _intersection(town: Town, rng, x, y, lanes_x_road, lanes_y_road) -> None:
@@ -272,25 +354,67 @@ def _intersection(town: Town, rng, x, y, lanes_x_road, lanes_y_road) -> None:
     for sx in (-1, 1):
         for sy in (-1, 1):
             cx, cy = x + sx * (hx + SIDEWALK_WIDTH / 2), y + sy * (hy + SIDEWALK_WIDTH / 2)
-            town.add("sidewalk", [_box(cx - SIDEWALK_WIDTH / 2, cy - SIDEWALK_WIDTH / 2, cx + SIDEWALK_WIDTH / 2, cy + SIDEWALK_WIDTH / 2, -SURFACE_DEPTH, CURB)], (175, 170, 165), "bricks")
+            town.add(
+                "sidewalk",
+                [
+                    _box(
+                        cx - SIDEWALK_WIDTH / 2,
+                        cy - SIDEWALK_WIDTH / 2,
+                        cx + SIDEWALK_WIDTH / 2,
+                        cy + SIDEWALK_WIDTH / 2,
+                        -SURFACE_DEPTH,
+                        CURB,
+                    )
+                ],
+                (175, 170, 165),
+                "bricks",
+            )
             px, py = x + sx * (hx + 0.6), y + sy * (hy + 0.6)
             arm_end = px - sx * 2.5  # the arm reaches over the road
-            town.add("pole", [Cylinder(px, py, 0.1, CURB, 5.0), _box(min(px, arm_end) - 0.06, py - 0.06, max(px, arm_end) + 0.06, py + 0.06, 4.8, 5.0)], (60, 60, 65))
+            town.add(
+                "pole",
+                [
+                    Cylinder(px, py, 0.1, CURB, 5.0),
+                    _box(min(px, arm_end) - 0.06, py - 0.06, max(px, arm_end) + 0.06, py + 0.06, 4.8, 5.0),
+                ],
+                (60, 60, 65),
+            )
             hx_arm = px - sx * 2.3
             town.add("trafficlight", [Box.make([hx_arm, py, 4.4], [0.35, 0.35, 1.0])], (40, 40, 40))
 
 
 def _bridge(town: Town, rng, axis, offset, gap, hw) -> None:
     """A road bridge over the canal: deck, guard rails and a pedestrian walkway."""
-    town.add("bridge", [_along(axis, offset, gap[0], gap[1], -hw - SIDEWALK_WIDTH, hw + SIDEWALK_WIDTH, -0.9, 0.0),
-                        _along(axis, offset, gap[0] + 4, gap[0] + 5, -hw - 1, hw + 1, -3.5, -0.9),
-                        _along(axis, offset, gap[1] - 5, gap[1] - 4, -hw - 1, hw + 1, -3.5, -0.9)], (150, 140, 130), "bricks")
+    town.add(
+        "bridge",
+        [
+            _along(axis, offset, gap[0], gap[1], -hw - SIDEWALK_WIDTH, hw + SIDEWALK_WIDTH, -0.9, 0.0),
+            _along(axis, offset, gap[0] + 4, gap[0] + 5, -hw - 1, hw + 1, -3.5, -0.9),
+            _along(axis, offset, gap[1] - 5, gap[1] - 4, -hw - 1, hw + 1, -3.5, -0.9),
+        ],
+        (150, 140, 130),
+        "bricks",
+    )
     for side in (-1, 1):
         rail = side * (hw + 0.2)
-        town.add("guardrail", [_along(axis, offset, gap[0], gap[1], rail - 0.1, rail + 0.1, 0.3, 0.9),
-                               *[_along(axis, offset, s, s + 0.15, rail - 0.08, rail + 0.08, 0.0, 0.3) for s in np.arange(gap[0], gap[1], 2.0)]], (170, 170, 175))
+        town.add(
+            "guardrail",
+            [
+                _along(axis, offset, gap[0], gap[1], rail - 0.1, rail + 0.1, 0.3, 0.9),
+                *[
+                    _along(axis, offset, s, s + 0.15, rail - 0.08, rail + 0.08, 0.0, 0.3)
+                    for s in np.arange(gap[0], gap[1], 2.0)
+                ],
+            ],
+            (170, 170, 175),
+        )
         outer = side * (hw + SIDEWALK_WIDTH - 0.1)
-        town.add("fence", [_along(axis, offset, gap[0], gap[1], outer - 0.05, outer + 0.05, 0.0, 1.1)], (120, 110, 100), "stripes")
+        town.add(
+            "fence",
+            [_along(axis, offset, gap[0], gap[1], outer - 0.05, outer + 0.05, 0.0, 1.1)],
+            (120, 110, 100),
+            "stripes",
+        )
 
 
 def _canal_block(town: Town, rng, x0, y0, x1, y1, canal_y) -> None:
@@ -299,7 +423,12 @@ def _canal_block(town: Town, rng, x0, y0, x1, y1, canal_y) -> None:
     town.add("water", [_box(x0, canal_y - 7, x1, canal_y + 7, -2.5, -0.05)], (40, 70, 110))
     for side in (-1, 1):
         wall_in = canal_y + side * 7
-        town.add("wall", [_box(x0, min(wall_in, wall_in + side * 0.5), x1, max(wall_in, wall_in + side * 0.5), -3.5, 0.3)], (140, 135, 125), "bricks")
+        town.add(
+            "wall",
+            [_box(x0, min(wall_in, wall_in + side * 0.5), x1, max(wall_in, wall_in + side * 0.5), -3.5, 0.3)],
+            (140, 135, 125),
+            "bricks",
+        )
         bank0, bank1 = sorted((wall_in + side * 0.5, (y1 if side > 0 else y0)))
         town.add("terrain", [_box(x0, bank0, x1, bank1, -SURFACE_DEPTH, 0.05)], _vary(rng, (110, 150, 70)), "noise")
         # a guard rail along the top of the bank
@@ -309,21 +438,38 @@ def _canal_block(town: Town, rng, x0, y0, x1, y1, canal_y) -> None:
             ty = (bank0 + bank1) / 2
             if rng.random() < 0.6:
                 h = rng.uniform(3, 6)
-                town.add("vegetation", [Cylinder(tx, ty, 0.2, 0.0, h), Sphere(np.array([tx, ty, h + 1.2]), rng.uniform(1.8, 3.0))], _vary(rng, (70, 110, 40), 25), "noise")
+                town.add(
+                    "vegetation",
+                    [Cylinder(tx, ty, 0.2, 0.0, h), Sphere(np.array([tx, ty, h + 1.2]), rng.uniform(1.8, 3.0))],
+                    _vary(rng, (70, 110, 40), 25),
+                    "noise",
+                )
 
 
 def _block(town: Town, rng, x0, y0, x1, y1) -> None:
     kind = rng.choice(["buildings", "buildings", "buildings", "park", "parking", "plaza"])
     if kind == "park":
         town.add("terrain", [_box(x0, y0, x1, y1, -SURFACE_DEPTH, 0.05)], _vary(rng, (100, 150, 60)), "noise")
-        town.add("fence", [_box(x0, y0, x1, y0 + 0.1, 0, 1.2), _box(x0, y1 - 0.1, x1, y1, 0, 1.2)], (110, 100, 90), "stripes")
+        town.add(
+            "fence", [_box(x0, y0, x1, y0 + 0.1, 0, 1.2), _box(x0, y1 - 0.1, x1, y1, 0, 1.2)], (110, 100, 90), "stripes"
+        )
         for _ in range(int((x1 - x0) * (y1 - y0) / 120)):
             tx, ty = rng.uniform(x0 + 3, x1 - 3), rng.uniform(y0 + 3, y1 - 3)
             if rng.random() < 0.7:
                 h = rng.uniform(3, 7)
-                town.add("vegetation", [Cylinder(tx, ty, 0.25, 0.0, h), Sphere(np.array([tx, ty, h + 1.3]), rng.uniform(1.8, 3.2))], _vary(rng, (65, 105, 40), 25), "noise")
+                town.add(
+                    "vegetation",
+                    [Cylinder(tx, ty, 0.25, 0.0, h), Sphere(np.array([tx, ty, h + 1.3]), rng.uniform(1.8, 3.2))],
+                    _vary(rng, (65, 105, 40), 25),
+                    "noise",
+                )
             else:
-                town.add("vegetation", [Sphere(np.array([tx, ty, 0.4]), rng.uniform(0.6, 1.2))], _vary(rng, (60, 120, 45), 25), "noise")
+                town.add(
+                    "vegetation",
+                    [Sphere(np.array([tx, ty, 0.4]), rng.uniform(0.6, 1.2))],
+                    _vary(rng, (60, 120, 45), 25),
+                    "noise",
+                )
         return
     if kind == "parking":
         town.add("ground", [_box(x0, y0, x1, y1, -SURFACE_DEPTH, 0.02)], (100, 95, 90), "noise")
@@ -336,9 +482,16 @@ def _block(town: Town, rng, x0, y0, x1, y1) -> None:
     if kind == "plaza":
         town.add("ground", [_box(x0, y0, x1, y1, -SURFACE_DEPTH, 0.02)], (160, 150, 140), "bricks")
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-        town.add("static", [Cylinder(cx, cy, 3.0, 0.0, 0.8), Cylinder(cx, cy, 0.4, 0.8, 2.5)], (180, 180, 190))  # fountain
+        town.add(
+            "static", [Cylinder(cx, cy, 3.0, 0.0, 0.8), Cylinder(cx, cy, 0.4, 0.8, 2.5)], (180, 180, 190)
+        )  # fountain
         for _ in range(4):
-            town.add("vegetation", [Sphere(np.array([rng.uniform(x0 + 2, x1 - 2), rng.uniform(y0 + 2, y1 - 2), 0.5]), 0.8)], _vary(rng, (60, 120, 45), 25), "noise")
+            town.add(
+                "vegetation",
+                [Sphere(np.array([rng.uniform(x0 + 2, x1 - 2), rng.uniform(y0 + 2, y1 - 2), 0.5]), 0.8)],
+                _vary(rng, (60, 120, 45), 25),
+                "noise",
+            )
         return
     # perimeter buildings of varied footprint and height around a yard
     town.add("terrain", [_box(x0, y0, x1, y1, -SURFACE_DEPTH, 0.02)], _vary(rng, (105, 140, 70)), "noise")

@@ -26,17 +26,30 @@ VEHICLE_KINDS = {
     "truck": ((8.5, 2.5, 3.4), 0.12),
     "bus": ((11.0, 2.6, 3.2), 0.08),
 }
-VEHICLE_COLOURS = [(200, 30, 30), (30, 60, 160), (220, 220, 220), (30, 30, 30), (150, 150, 155), (20, 110, 60), (230, 180, 20)]
+VEHICLE_COLOURS = [
+    (200, 30, 30),
+    (30, 60, 160),
+    (220, 220, 220),
+    (30, 30, 30),
+    (150, 150, 155),
+    (20, 110, 60),
+    (230, 180, 20),
+]
 
 
 def vehicle_primitives(kind: str, size: tuple[float, float, float]) -> tuple[Box, ...]:
     """Collision/visual primitives in the vehicle frame: body plus cabin (or cab plus box)."""
     length, width, height = size
     if kind == "car":
-        return (Box.make([0, 0, 0.2 + 0.35], [length, width, 0.7]), Box.make([-0.2, 0, 0.9 + (height - 0.9) / 2], [length * 0.55, width * 0.9, height - 0.9]))
+        return (
+            Box.make([0, 0, 0.2 + 0.35], [length, width, 0.7]),
+            Box.make([-0.2, 0, 0.9 + (height - 0.9) / 2], [length * 0.55, width * 0.9, height - 0.9]),
+        )
     if kind == "truck":
-        return (Box.make([length / 2 - 1.1, 0, 0.3 + (height - 0.6) / 2], [2.2, width, height - 0.6]),
-                Box.make([-1.2, 0, 0.3 + (height - 0.3) / 2], [length - 2.4, width, height - 0.3]))
+        return (
+            Box.make([length / 2 - 1.1, 0, 0.3 + (height - 0.6) / 2], [2.2, width, height - 0.6]),
+            Box.make([-1.2, 0, 0.3 + (height - 0.3) / 2], [length - 2.4, width, height - 0.3]),
+        )
     return (Box.make([0, 0, 0.25 + (height - 0.25) / 2], [length, width, height - 0.25]),)
 
 
@@ -96,7 +109,8 @@ class Traffic:
         half = town.config.size / 2 - 1.0
         # only lanes between two intersections: vehicles never reach the town edge
         self.lanes = [
-            i for i, lane in enumerate(town.lanes)
+            i
+            for i, lane in enumerate(town.lanes)
             if all(abs(c) < half - 5 for c in (*lane.start, *lane.end)) and _lane_length(lane) > 10
         ]
         self.vehicles: list[Vehicle] = []
@@ -125,8 +139,17 @@ class Traffic:
                 continue
             yaw = float(np.arctan2(*(end - start)[::-1]))
             colour = VEHICLE_COLOURS[int(self.rng.integers(0, len(VEHICLE_COLOURS)))]
-            v = Vehicle(self._new_id(), kind, size, colour, connected, float(pos[0]), float(pos[1]), yaw,
-                        desired=float(self.rng.uniform(6, 11) if kind in ("car", "van") else self.rng.uniform(5, 8)))
+            v = Vehicle(
+                self._new_id(),
+                kind,
+                size,
+                colour,
+                connected,
+                float(pos[0]),
+                float(pos[1]),
+                yaw,
+                desired=float(self.rng.uniform(6, 11) if kind in ("car", "van") else self.rng.uniform(5, 8)),
+            )
             v.speed = v.desired * self.rng.uniform(0.5, 1.0)
             v.path, v.lane = [end], li
             self.vehicles.append(v)
@@ -136,7 +159,11 @@ class Traffic:
     def _spawn(self, cfg: TrafficConfig) -> None:
         # CAVs: cars near a common centre (an intersection), so they can collaborate
         centre = np.array(self.town.intersections[int(self.rng.integers(0, len(self.town.intersections)))])
-        near = [i for i in self.lanes if np.hypot(*(np.add(self.town.lanes[i].start, self.town.lanes[i].end) / 2 - centre)) < cfg.cav_radius]
+        near = [
+            i
+            for i in self.lanes
+            if np.hypot(*(np.add(self.town.lanes[i].start, self.town.lanes[i].end) / 2 - centre)) < cfg.cav_radius
+        ]
         for _ in range(cfg.cavs):
             if not self._spawn_on_lane("car", True, near or self.lanes):
                 self._spawn_on_lane("car", True, self.lanes)
@@ -149,12 +176,18 @@ class Traffic:
             if self.rng.random() < cfg.parked_fraction and self._free(x, y, 5.0):
                 kind = "car" if self.rng.random() < 0.8 else "van"
                 colour = VEHICLE_COLOURS[int(self.rng.integers(0, len(VEHICLE_COLOURS)))]
-                self.vehicles.append(Vehicle(self._new_id(), kind, VEHICLE_KINDS[kind][0], colour, False, x, y, yaw, parked=True))
+                self.vehicles.append(
+                    Vehicle(self._new_id(), kind, VEHICLE_KINDS[kind][0], colour, False, x, y, yaw, parked=True)
+                )
         paths = self.town.sidewalk_paths
         for i in range(cfg.pedestrians if paths else 0):
             a, b = paths[int(self.rng.integers(0, len(paths)))]
             colour = tuple(int(c) for c in self.rng.integers(30, 230, 3))
-            self.pedestrians.append(Pedestrian(5000 + i, np.array(a), np.array(b), self.rng.uniform(0, 1), self.rng.uniform(0.9, 1.6), colour))
+            self.pedestrians.append(
+                Pedestrian(
+                    5000 + i, np.array(a), np.array(b), self.rng.uniform(0, 1), self.rng.uniform(0.9, 1.6), colour
+                )
+            )
 
     # --- motion ---------------------------------------------------------------------------------
 
@@ -280,7 +313,14 @@ class Traffic:
             out.append(local.transformed(v.pose()))
         for p in self.pedestrians:
             x, y = p.position()
-            out.append(SceneObject(p.id, L["pedestrian"], (Cylinder(x, y, 0.22, 0.15, 1.45), Sphere(np.array([x, y, 1.62]), 0.14)), p.colour))
+            out.append(
+                SceneObject(
+                    p.id,
+                    L["pedestrian"],
+                    (Cylinder(x, y, 0.22, 0.15, 1.45), Sphere(np.array([x, y, 1.62]), 0.14)),
+                    p.colour,
+                )
+            )
         return out
 
     @property

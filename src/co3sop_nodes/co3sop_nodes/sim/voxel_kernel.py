@@ -28,7 +28,10 @@ def _kernel():
     lib = kernels.load("voxel_sensor")
     if lib is None:
         return None
-    lib.annotate_objects.argtypes, lib.annotate_objects.restype = [_P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P], ctypes.c_int
+    lib.annotate_objects.argtypes, lib.annotate_objects.restype = (
+        [_P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P],
+        ctypes.c_int,
+    )
     lib.ranks_to_labels.argtypes, lib.ranks_to_labels.restype = [_P, _P, _I, _I], None
     return lib
 
@@ -43,7 +46,14 @@ def _packed(p: Primitive) -> tuple[int, np.ndarray]:
     out = np.zeros(STRIDE)
     if isinstance(p, Box):
         axes, abs_sum, reach = p.overlap_constants
-        out[0:3], out[3:48], out[48:63], out[63:78], out[78:81], out[81:90] = p.center, axes.ravel(), abs_sum, reach, p.half, p.rot.ravel()
+        out[0:3], out[3:48], out[48:63], out[63:78], out[78:81], out[81:90] = (
+            p.center,
+            axes.ravel(),
+            abs_sum,
+            reach,
+            p.half,
+            p.rot.ravel(),
+        )
         return 0, out
     if isinstance(p, Cylinder):
         out[:7] = (p.x, p.y, *p.overlap_constants, p.radius**2, p.z1)
@@ -52,8 +62,14 @@ def _packed(p: Primitive) -> tuple[int, np.ndarray]:
     return 2, out
 
 
-def ranks(grid: GridSpec, objects: Sequence[SceneObject], rank: np.ndarray, boxes: np.ndarray, primitive_boxes: np.ndarray,
-          threads: int) -> np.ndarray:
+def ranks(
+    grid: GridSpec,
+    objects: Sequence[SceneObject],
+    rank: np.ndarray,
+    boxes: np.ndarray,
+    primitive_boxes: np.ndarray,
+    threads: int,
+) -> np.ndarray:
     """Stages 1 and 2 for every object, and the rank half of stage 3: (num_voxels,) uint8, per voxel the highest
     `rank` (N,) of an object on it, 0 where none is. boxes (N, 6) and primitive_boxes (P, 6): index boxes (lo, hi)
     of the objects and of their primitives, in order, bounding every voxel they may occupy."""
@@ -63,16 +79,23 @@ def ranks(grid: GridSpec, objects: Sequence[SceneObject], rank: np.ndarray, boxe
     param = np.stack(params) if params else np.zeros((0, STRIDE))
     first = np.cumsum([0, *(len(o.primitives) for o in objects)]).astype(np.int64)
     boxes, primitive_boxes = np.ascontiguousarray(boxes, np.int64), np.ascontiguousarray(primitive_boxes, np.int64)
-    order = np.argsort(-np.prod(np.maximum(boxes[:, 3:] - boxes[:, :3], 0), axis=1), kind="stable").astype(np.int64)  # largest first
+    order = np.argsort(-np.prod(np.maximum(boxes[:, 3:] - boxes[:, :3], 0), axis=1), kind="stable").astype(
+        np.int64
+    )  # largest first
     rank = np.ascontiguousarray(rank, np.uint8)
     g = np.array([*grid.origin, grid.voxel_size, EPS])
     dims = np.array(grid.dims, np.int64)
     out = np.zeros(grid.num_voxels, np.uint8)
     queue = np.zeros(1, np.int64)  # the next object to take
-    args = [a.ctypes.data for a in (g, dims)] + [len(objects)] + [a.ctypes.data for a in
-                                                                   (order, first, boxes, rank, kind, param, primitive_boxes, out, queue)]
+    args = (
+        [a.ctypes.data for a in (g, dims)]
+        + [len(objects)]
+        + [a.ctypes.data for a in (order, first, boxes, rank, kind, param, primitive_boxes, out, queue)]
+    )
     if any(kernels.together(lambda: fn(*args), threads)):
-        raise MemoryError(f"voxel sensor: out of memory annotating {len(objects)} objects on {'x'.join(map(str, grid.dims))}")
+        raise MemoryError(
+            f"voxel sensor: out of memory annotating {len(objects)} objects on {'x'.join(map(str, grid.dims))}"
+        )
     return out
 
 

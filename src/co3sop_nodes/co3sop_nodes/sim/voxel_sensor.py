@@ -48,15 +48,34 @@ from co3sop_nodes.sim.scene import SceneObject
 LABEL_PRIORITY: tuple[int, ...] = tuple(
     LABEL_BY_NAME[name]
     for name in (
-        "unlabeled", "terrain", "ground", "water", "road", "sidewalk", "railtrack", "roadline", "bridge",
-        "building", "wall", "fence", "guardrail", "other", "vegetation", "static", "dynamic",
-        "pole", "trafficsign", "trafficlight", "vehicle", "pedestrian",
+        "unlabeled",
+        "terrain",
+        "ground",
+        "water",
+        "road",
+        "sidewalk",
+        "railtrack",
+        "roadline",
+        "bridge",
+        "building",
+        "wall",
+        "fence",
+        "guardrail",
+        "other",
+        "vegetation",
+        "static",
+        "dynamic",
+        "pole",
+        "trafficsign",
+        "trafficlight",
+        "vehicle",
+        "pedestrian",
     )
 )
 _RANK = np.zeros(256, np.int16)
 _RANK[list(LABEL_PRIORITY)] = np.arange(1, len(LABEL_PRIORITY) + 1)
 _LABEL_OF_RANK = np.zeros(256, np.uint8)
-_LABEL_OF_RANK[1:len(LABEL_PRIORITY) + 1] = LABEL_PRIORITY
+_LABEL_OF_RANK[1 : len(LABEL_PRIORITY) + 1] = LABEL_PRIORITY
 _NEIGHBOURS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
 
 
@@ -67,7 +86,9 @@ def in_sensor_frame(objects: Sequence[SceneObject], world_from_sensor: np.ndarra
 
 def _near(objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec) -> list[SceneObject]:
     """The objects whose world bounding box meets the grid's (a conservative cull)."""
-    corners = np.array(np.meshgrid(*[[o, o + n * grid.voxel_size] for o, n in zip(grid.origin, grid.dims)])).reshape(3, -1).T
+    corners = (
+        np.array(np.meshgrid(*[[o, o + n * grid.voxel_size] for o, n in zip(grid.origin, grid.dims)])).reshape(3, -1).T
+    )
     world = corners @ world_from_sensor[:3, :3].T + world_from_sensor[:3, 3]
     lo, hi = world.min(axis=0), world.max(axis=0)
     out = []
@@ -178,6 +199,7 @@ def _kept(objects: Sequence[SceneObject], ignore: Collection[int]) -> list[Scene
 
 def _compiled(grid: GridSpec, local: Sequence[SceneObject], workers: int) -> np.ndarray:
     """The three stages in the compiled kernel (voxel_kernel.py): the same grid as the NumPy path."""
+
     def box(bounds) -> list[int]:
         r = _Region(grid, bounds)
         return [*r.lo, *r.hi]
@@ -190,8 +212,12 @@ def _compiled(grid: GridSpec, local: Sequence[SceneObject], workers: int) -> np.
 
 
 def annotate(
-    objects: Sequence[SceneObject], world_from_sensor: np.ndarray, grid: GridSpec, workers: int = 2,
-    ignore: Collection[int] = (), compiled: bool | None = None,
+    objects: Sequence[SceneObject],
+    world_from_sensor: np.ndarray,
+    grid: GridSpec,
+    workers: int = 2,
+    ignore: Collection[int] = (),
+    compiled: bool | None = None,
 ) -> np.ndarray:
     """The voxel sensor: (nx, ny, nz) uint8 labels of `grid`, axis-aligned in the sensor frame.
 

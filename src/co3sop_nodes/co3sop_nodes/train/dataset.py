@@ -13,12 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from co3sop_nodes.data import opv2v
-from co3sop_nodes.v2x.neighbours import nearest_collaborators
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import GridSpec
-from co3sop_nodes.model.config import ModelConfig
+from co3sop_nodes.data import opv2v
 from co3sop_nodes.inference.inputs import camera_inputs, lidar_occupancy, merged_occupancy
+from co3sop_nodes.model.config import ModelConfig
+from co3sop_nodes.v2x.neighbours import nearest_collaborators
+
 
 @dataclass
 class AgentRecord:
@@ -40,7 +41,9 @@ def early_fused(sample: Sample, grid: GridSpec, scan=lambda record: record.input
     """The sample as an early-fusion model sees it: the ego's scan merged with its collaborators' (`scan`: an
     agent's (1, X, Y, Z) occupancy, its own by default, or an input control's), and no collaborator left to fuse."""
     merged = merged_occupancy(scan(sample.ego), [scan(a) for a in sample.others], sample.neighbour_from_ego, grid)
-    return replace(sample, ego=replace(sample.ego, inputs={"occupancy": merged}), others=[], neighbour_from_ego=np.zeros((0, 4, 4)))
+    return replace(
+        sample, ego=replace(sample.ego, inputs={"occupancy": merged}), others=[], neighbour_from_ego=np.zeros((0, 4, 4))
+    )
 
 
 class OccupancyDataset:
@@ -75,6 +78,13 @@ class OccupancyDataset:
         ego = agents[j]
         by_id = {a.cav_id: a for a in agents if a is not ego}
         k = self.cfg.max_collaborators if max_collaborators is None else max_collaborators
-        others = [by_id[i] for i in nearest_collaborators(ego.world_from_lidar, {i: a.world_from_lidar for i, a in by_id.items()}, k=k)]
-        rel = np.stack([np.linalg.inv(a.world_from_lidar) @ ego.world_from_lidar for a in others]) if others else np.zeros((0, 4, 4))
+        others = [
+            by_id[i]
+            for i in nearest_collaborators(ego.world_from_lidar, {i: a.world_from_lidar for i, a in by_id.items()}, k=k)
+        ]
+        rel = (
+            np.stack([np.linalg.inv(a.world_from_lidar) @ ego.world_from_lidar for a in others])
+            if others
+            else np.zeros((0, 4, 4))
+        )
         return Sample((split, name, ts, ego.cav_id), ego, others, rel)

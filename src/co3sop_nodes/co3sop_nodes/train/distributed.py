@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.cli.device import select_device
+from co3sop_nodes.common.errors import Co3sopError
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,12 @@ def world_from_env(env=os.environ) -> World:
     """This process's place, as torchrun sets it (a world of one without torchrun)."""
     try:
         size = int(env.get("WORLD_SIZE", "1"))
-        return World(int(env.get("RANK", "0")), size, int(env.get("LOCAL_RANK", "0")), int(env.get("LOCAL_WORLD_SIZE", str(size))))
+        return World(
+            int(env.get("RANK", "0")),
+            size,
+            int(env.get("LOCAL_RANK", "0")),
+            int(env.get("LOCAL_WORLD_SIZE", str(size))),
+        )
     except ValueError as exc:
         raise Co3sopError(f"torchrun's environment is malformed: {exc}") from None
 

@@ -40,7 +40,9 @@ def plot_losses(csv_path: Path, png_path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(steps, loss, lw=0.6, alpha=0.4, label="loss")
     window = max(1, len(loss) // 30)
-    ax.plot(steps[window - 1 :], np.convolve(loss, np.ones(window) / window, mode="valid"), lw=2, label=f"mean of {window}")
+    ax.plot(
+        steps[window - 1 :], np.convolve(loss, np.ones(window) / window, mode="valid"), lw=2, label=f"mean of {window}"
+    )
     for stage in sorted({r["stage"] for r in rows}):
         first = next(int(r["step"]) for r in rows if r["stage"] == stage)
         ax.axvline(first, color="grey", ls=":")
@@ -74,4 +76,5 @@ def timing(run: Path) -> str:
         raise Co3sopError(f"{log}: not a log.csv of train ({exc})") from None
     return f"{run}: " + "; ".join(
         f"steps {p[0]['step']}-{p[-1]['step']} in {float(p[-1]['seconds']):.0f} s ({float(p[-1]['seconds']) / len(p):.3f} s/step)"
-        for p in parts)
+        for p in parts
+    )

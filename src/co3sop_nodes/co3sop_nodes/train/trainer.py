@@ -15,16 +15,16 @@ import numpy as np
 import torch
 
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.common.progress import progress
 from co3sop_nodes.inference.checkpoint import export_model, load_model, read_checkpoint, save_training_state
-from co3sop_nodes.model.config import preset
 from co3sop_nodes.inference.inputs import to_batch
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model
+from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupancy_loss
 from co3sop_nodes.model.mask_loss import mask_classification_loss
 from co3sop_nodes.model.occformer import class_scores, log_scores
-from co3sop_nodes.model.co3sop import VehicleOutput, build_model
-from co3sop_nodes.common.progress import progress
-from co3sop_nodes.train.dataset import OccupancyDataset, early_fused
 from co3sop_nodes.train import distributed
+from co3sop_nodes.train.dataset import OccupancyDataset, early_fused
 from co3sop_nodes.train.log import keep_log_until, plot_losses
 
 
@@ -87,7 +87,9 @@ class _Forward(torch.nn.Module):
         return VehicleOutput(out.features.float(), out.confidence.float())
 
     def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
-        early = self.model.cfg.early_fusion  # the collaborators' scans join the ego's before the model: nothing fused after it
+        early = (
+            self.model.cfg.early_fusion
+        )  # the collaborators' scans join the ego's before the model: nothing fused after it
         sample = self.dataset.sample(i, 0 if self.stage == "ego" and not early else None)
         f, _ = self.dataset.index[i]
         if early:
@@ -102,8 +104,16 @@ class Trainer:
     """One optimisation step per global batch of samples (one sample by default), spread over the processes of a
     torchrun world."""
 
-    def __init__(self, model, dataset: OccupancyDataset, stage: str, sample_fraction: float, lr: float,
-                 device: torch.device = torch.device("cpu"), world: distributed.World = distributed.World()):
+    def __init__(
+        self,
+        model,
+        dataset: OccupancyDataset,
+        stage: str,
+        sample_fraction: float,
+        lr: float,
+        device: torch.device = torch.device("cpu"),
+        world: distributed.World = distributed.World(),
+    ):
         self.model, self.stage, self.device, self.world = model, stage, device, world
         self.sample_fraction = sample_fraction
         if stage == "fusion":
@@ -114,9 +124,12 @@ class Trainer:
         params = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
         self.forward = _Forward(model, dataset, stage, device)
-        if world.size > 1:  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
+        if (
+            world.size > 1
+        ):  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
             self.forward = torch.nn.parallel.DistributedDataParallel(
-                self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
+                self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True
+            )
 
     def _loss(self, i: int, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.model.cfg
@@ -125,14 +138,22 @@ class Trainer:
             labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
             parts = mask_classification_loss(preds, labels, cfg.occformer.points, rng)
             if self.stage != "fusion":
-                parts["confidence"] = confidence_loss(confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, cfg.num_classes))
+                parts["confidence"] = confidence_loss(
+                    confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, cfg.num_classes)
+                )
             return sum(parts.values()), parts
         n = cfg.grid.num_voxels
-        index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(self.device)
+        index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(
+            self.device
+        )
         logits, confidence, labels = self.forward(i, index)
         labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
         k = self.model.cfg.num_classes
-        targets = [downsample_labels(labels, 4, k), downsample_labels(labels, 2, k), torch.gather(labels.flatten(1), 1, index)]
+        targets = [
+            downsample_labels(labels, 4, k),
+            downsample_labels(labels, 2, k),
+            torch.gather(labels.flatten(1), 1, index),
+        ]
         parts = occupancy_loss(logits, targets)
         if self.stage != "fusion":
             parts["confidence"] = confidence_loss(confidence, logits[0], targets[0])
@@ -162,12 +183,14 @@ class Trainer:
 def train(opts, command: str) -> int:
     """Trains as `opts` (train's options) says, data-parallel under torchrun; `command` is recorded with the weights."""
     world = distributed.world_from_env()
-    for option, value, ok, needs in (("--steps", opts.steps, opts.steps >= 1, "at least 1"),
-                                     ("--batch", opts.batch, opts.batch >= 1, "at least 1"),
-                                     ("--save-every", opts.save_every, opts.save_every >= 1, "at least 1"),
-                                     ("--lr", opts.lr, opts.lr > 0, "above 0"),
-                                     ("--sample-fraction", opts.sample_fraction, 0 < opts.sample_fraction <= 1, "in (0, 1]"),
-                                     ("--threads", opts.threads, opts.threads is None or opts.threads >= 1, "at least 1")):
+    for option, value, ok, needs in (
+        ("--steps", opts.steps, opts.steps >= 1, "at least 1"),
+        ("--batch", opts.batch, opts.batch >= 1, "at least 1"),
+        ("--save-every", opts.save_every, opts.save_every >= 1, "at least 1"),
+        ("--lr", opts.lr, opts.lr > 0, "above 0"),
+        ("--sample-fraction", opts.sample_fraction, 0 < opts.sample_fraction <= 1, "in (0, 1]"),
+        ("--threads", opts.threads, opts.threads is None or opts.threads >= 1, "at least 1"),
+    ):
         if not ok:  # refused before the dataset is read, which takes minutes
             raise Co3sopError(f"{option} {value}: must be {needs}")
     torch.set_num_threads(opts.threads or (2 if world.size == 1 else max(1, (os.cpu_count() or 1) // world.local_size)))
@@ -199,12 +222,18 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
         model = build_model(preset(opts.preset, **overrides))
     model.to(device)  # before the optimizer exists: a resumed optimizer state follows its parameters' device
     cfg = model.cfg
-    say(f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
-        f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""), flush=True)
+    say(
+        f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
+        f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""),
+        flush=True,
+    )
     dataset = OccupancyDataset(opts.data, opts.splits, cfg)
     batch = opts.batch * world.size  # the global batch: every process's share of each step together
-    say(f"train: {len(dataset)} samples from {len(dataset.frames)} frames; global batch {batch} per step"
-        + (f" ({opts.batch} in each of {world.size} processes)" if world.size > 1 else ""), flush=True)
+    say(
+        f"train: {len(dataset)} samples from {len(dataset.frames)} frames; global batch {batch} per step"
+        + (f" ({opts.batch} in each of {world.size} processes)" if world.size > 1 else ""),
+        flush=True,
+    )
     trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device, world)
     if state is not None:
         trainer.optimizer.load_state_dict(state["optimizer"])
@@ -212,8 +241,18 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
         opts.out.mkdir(parents=True, exist_ok=True)
     # how the weights were made: the commands before this one (the run's own when resumed, else the --init's), then this
     history = previous_history(opts.out, state, opts.init) + [
-        {"command": command, "stage": opts.stage, "from_step": start, "steps": opts.steps, "seed": opts.seed, "data": str(opts.data),
-         "splits": opts.splits, "batch": batch, "processes": world.size}]
+        {
+            "command": command,
+            "stage": opts.stage,
+            "from_step": start,
+            "steps": opts.steps,
+            "seed": opts.seed,
+            "data": str(opts.data),
+            "splits": opts.splits,
+            "batch": batch,
+            "processes": world.size,
+        }
+    ]
     log_path = opts.out / "log.csv"
     if world.main:
         keep_log_until(log_path, start)
@@ -247,13 +286,17 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
             bar.update(1)
             if (step + 1) % opts.save_every == 0 or step + 1 == opts.steps:
                 log.flush()
-                save_training_state(opts.out / "state.pt", model, trainer.optimizer, step + 1, opts.stage,
-                                    {"seed": opts.seed, "history": history})
+                save_training_state(
+                    opts.out / "state.pt",
+                    model,
+                    trainer.optimizer,
+                    step + 1,
+                    opts.stage,
+                    {"seed": opts.seed, "history": history},
+                )
     bar.close()
     if world.main:
         export_model(opts.out / "model.pt", model, {"history": history})
         plot_losses(log_path, opts.out / "loss.png")
         print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
     return 0
-
-

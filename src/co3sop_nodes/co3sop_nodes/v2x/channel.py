@@ -142,8 +142,11 @@ class Channel:
         if not links:
             raise ChannelError("a channel needs at least one member")
         if missing := missing_tools():
-            raise ChannelError("the emulated V2X channel needs " + ", ".join(missing) +
-                               ("; install with: apt-get install nftables iproute2" if os.geteuid() == 0 else ""))
+            raise ChannelError(
+                "the emulated V2X channel needs "
+                + ", ".join(missing)
+                + ("; install with: apt-get install nftables iproute2" if os.geteuid() == 0 else "")
+            )
         for name in links:
             if not re.fullmatch(r"[a-z0-9]{1,12}", name):
                 raise ChannelError(f"member name {name!r}: 1-12 lower-case letters or digits")
@@ -180,9 +183,13 @@ class Channel:
     def _build(self) -> None:
         self._add_namespace(self.hub)
         # the reaper: removes this launcher's namespaces if it dies without unwinding (SIGKILL)
-        self._reaper = subprocess.Popen([sys.executable, "-m", "co3sop_nodes.v2x.channel", "--reap", str(self.pid)],
-                                        start_new_session=True, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                        stderr=subprocess.DEVNULL)
+        self._reaper = subprocess.Popen(
+            [sys.executable, "-m", "co3sop_nodes.v2x.channel", "--reap", str(self.pid)],
+            start_new_session=True,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         prefix = self.subnet.prefixlen
         _run("ip", "link", "add", "br0", "type", "bridge", ns=self.hub)
         _run("ip", "link", "set", "br0", "up", ns=self.hub)
@@ -195,7 +202,22 @@ class Channel:
         for member, link in self.links.items():
             ns = self.namespace(member)
             self._add_namespace(ns)
-            _run("ip", "link", "add", "eth0", "netns", ns, "type", "veth", "peer", "name", member, "netns", self.hub, ns=self.hub)
+            _run(
+                "ip",
+                "link",
+                "add",
+                "eth0",
+                "netns",
+                ns,
+                "type",
+                "veth",
+                "peer",
+                "name",
+                member,
+                "netns",
+                self.hub,
+                ns=self.hub,
+            )
             self._plug(self.hub, member)
             _run("ip", "link", "set", "lo", "up", ns=ns)
             _run("ip", "addr", "add", f"{self.addresses[member]}/{prefix}", "dev", "eth0", ns=ns)
@@ -217,15 +239,33 @@ class Channel:
         rate = f"{link.rate_mbit * 1000:.0f}kbit"
         # bucket: 10 ms of the rate (the kernel refills it per timer tick), at least a few full-size packets
         burst = max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
-        _run("tc", "qdisc", "add", "dev", "eth0", "root", "tbf", "rate", rate, "burst", str(burst),
-             "latency", f"{link.queue_ms:.0f}ms", ns=ns)
+        _run(
+            "tc",
+            "qdisc",
+            "add",
+            "dev",
+            "eth0",
+            "root",
+            "tbf",
+            "rate",
+            rate,
+            "burst",
+            str(burst),
+            "latency",
+            f"{link.queue_ms:.0f}ms",
+            ns=ns,
+        )
         if link.loss > 0:
             per_million = round(link.loss * 1_000_000)
             # on the device's egress, as a radio loses frames: the sender is not told (an output-hook drop would
             # fail its sendto with EPERM)
-            rules = ("table netdev v2x {\n chain out {\n  type filter hook egress device \"eth0\" priority 0; policy accept;\n"
-                     f"  numgen random mod 1000000 < {per_million} counter drop\n }}\n}}\n")
-            done = subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, capture_output=True, text=True)
+            rules = (
+                'table netdev v2x {\n chain out {\n  type filter hook egress device "eth0" priority 0; policy accept;\n'
+                f"  numgen random mod 1000000 < {per_million} counter drop\n }}\n}}\n"
+            )
+            done = subprocess.run(
+                ["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, capture_output=True, text=True
+            )
             if done.returncode != 0:
                 raise ChannelError(f"nftables rule in {ns} failed: {done.stderr.strip()}")
 

@@ -24,12 +24,24 @@ from dataclasses import dataclass
 import numpy as np
 import zstandard
 
-from co3sop_nodes.common.errors import CodecError, CorruptPayloadError, NonFiniteError, PayloadTooLargeError, SizeMismatchError, UnknownCodecError
+from co3sop_nodes.common.errors import (
+    CodecError,
+    CorruptPayloadError,
+    NonFiniteError,
+    PayloadTooLargeError,
+    SizeMismatchError,
+    UnknownCodecError,
+)
 from co3sop_nodes.common.grid import GridSpec
 
 CODECS = ("zstd", "none")
 # element types of the values; int4's are packed two per byte on the wire (low nibble first)
-FEATURE_DTYPES = {"float32": np.dtype("<f4"), "float16": np.dtype("<f2"), "int8": np.dtype("i1"), "int4": np.dtype("i1")}
+FEATURE_DTYPES = {
+    "float32": np.dtype("<f4"),
+    "float16": np.dtype("<f2"),
+    "int8": np.dtype("i1"),
+    "int4": np.dtype("i1"),
+}
 QUANTIZED = ("int8", "int4")  # affine per row: value = q * scale + offset
 SELECTIONS = ("dense", "topk", "threshold", "request")
 # Receivers refuse payloads that declare more uncompressed bytes than this.
@@ -74,13 +86,23 @@ class FeatureCodecConfig:
             raise CodecError(f"max_bytes must be a whole number of bytes >= 0 (0: no budget), got {self.max_bytes!r}")
         if self.max_bytes and self.selection not in ("topk", "request"):
             raise CodecError(f"max_bytes needs selection 'topk' or 'request', not {self.selection!r}")
-        if isinstance(self.burst_bytes, bool) or not isinstance(self.burst_bytes, numbers.Integral) or self.burst_bytes < 0:
-            raise CodecError(f"burst_bytes must be a whole number of bytes >= 0 (0: every message capped at max_bytes), "
-                             f"got {self.burst_bytes!r}")
+        if (
+            isinstance(self.burst_bytes, bool)
+            or not isinstance(self.burst_bytes, numbers.Integral)
+            or self.burst_bytes < 0
+        ):
+            raise CodecError(
+                f"burst_bytes must be a whole number of bytes >= 0 (0: every message capped at max_bytes), "
+                f"got {self.burst_bytes!r}"
+            )
         if self.burst_bytes and (not self.max_bytes or self.burst_bytes < self.max_bytes):
-            raise CodecError(f"burst_bytes {self.burst_bytes} needs a max_bytes budget of at most it (max_bytes {self.max_bytes})")
+            raise CodecError(
+                f"burst_bytes {self.burst_bytes} needs a max_bytes budget of at most it (max_bytes {self.max_bytes})"
+            )
         if isinstance(self.rank, bool) or not isinstance(self.rank, numbers.Integral) or self.rank < 0:
-            raise CodecError(f"rank must be a whole number of components >= 0 (0: the channels as they are), got {self.rank!r}")
+            raise CodecError(
+                f"rank must be a whole number of components >= 0 (0: the channels as they are), got {self.rank!r}"
+            )
 
     @property
     def name(self) -> str:
@@ -88,7 +110,12 @@ class FeatureCodecConfig:
         count = f"{self.max_bytes // 1024}KB" if self.max_bytes else str(self.topk)
         if self.burst_bytes:
             count += f"-burst{self.burst_bytes // 1024}KB"
-        sel = {"dense": "dense", "topk": f"topk{count}", "threshold": f"conf{self.threshold:g}", "request": f"request{count}"}[self.selection]
+        sel = {
+            "dense": "dense",
+            "topk": f"topk{count}",
+            "threshold": f"conf{self.threshold:g}",
+            "request": f"request{count}",
+        }[self.selection]
         return f"{self.dtype}-{sel}{f'-pca{self.rank}' if self.rank else ''}-{self.codec}"
 
 
@@ -133,7 +160,9 @@ class EncodedFeatures:
     @property
     def budget_bytes(self) -> int:
         """What a byte budget counts: the payloads, the quantisation constants and the basis (float32 each)."""
-        return self.payload_bytes + 4 * (len(self.quant_scale) + len(self.quant_offset) + len(self.basis) + len(self.basis_mean))
+        return self.payload_bytes + 4 * (
+            len(self.quant_scale) + len(self.quant_offset) + len(self.basis) + len(self.basis_mean)
+        )
 
 
 @dataclass(frozen=True)
@@ -201,7 +230,9 @@ def _decompress(payload, codec: str, declared: int, expected: int, field: str, m
         # check it before any output is allocated.
         frame = zstandard.get_frame_parameters(payload)
         if frame.content_size != expected:
-            raise CorruptPayloadError(f"{field}: zstd frame declares {frame.content_size} bytes; the grid needs {expected}")
+            raise CorruptPayloadError(
+                f"{field}: zstd frame declares {frame.content_size} bytes; the grid needs {expected}"
+            )
         if not frame.has_checksum:
             raise CorruptPayloadError(f"{field}: zstd frame has no checksum (corruption would go unnoticed)")
         raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected, allow_extra_data=False)
@@ -220,7 +251,9 @@ def _score(features: np.ndarray, confidence: np.ndarray | None, request: np.ndar
     return np.linalg.norm(features.reshape(features.shape[0], -1).astype(np.float64), axis=0)  # float64: no overflow
 
 
-def _select(features: np.ndarray, confidence: np.ndarray | None, cfg: FeatureCodecConfig, request: np.ndarray | None) -> np.ndarray | None:
+def _select(
+    features: np.ndarray, confidence: np.ndarray | None, cfg: FeatureCodecConfig, request: np.ndarray | None
+) -> np.ndarray | None:
     """Flat indices (ascending) of the voxels to send, or None for dense ("topk" / "request" without a budget);
     `request` is None unless the selection is "request"."""
     if cfg.selection == "dense":
@@ -281,7 +314,10 @@ def _confidence_dtype(dtype: str) -> np.dtype:
 
 
 def encode_features(
-    features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec, cfg: FeatureCodecConfig,
+    features: np.ndarray,
+    confidence: np.ndarray | None,
+    grid: GridSpec,
+    cfg: FeatureCodecConfig,
     request: np.ndarray | None = None,
 ) -> EncodedFeatures:
     """Encodes a (C, nx, ny, nz) float volume and optional (nx, ny, nz) confidence in [0, 1].
@@ -292,7 +328,9 @@ def encode_features(
     """
     features = np.asarray(features, dtype=np.float32)
     if features.ndim != 4 or features.shape[1:] != grid.dims or features.shape[0] < 1:
-        raise SizeMismatchError(f"features: shape {features.shape} does not match (C, {', '.join(map(str, grid.dims))})")
+        raise SizeMismatchError(
+            f"features: shape {features.shape} does not match (C, {', '.join(map(str, grid.dims))})"
+        )
     if not np.isfinite(features).all():
         raise CodecError("features: contain NaN or infinite values")
     if cfg.dtype == "float16":
@@ -365,8 +403,14 @@ def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig
     return best
 
 
-def _encode(features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec, cfg: FeatureCodecConfig,
-            keep: np.ndarray | None, basis: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> EncodedFeatures:
+def _encode(
+    features: np.ndarray,
+    confidence: np.ndarray | None,
+    grid: GridSpec,
+    cfg: FeatureCodecConfig,
+    keep: np.ndarray | None,
+    basis: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> EncodedFeatures:
     """keep: flat indices of the voxels sent (None: all); basis: _basis's transform coding, to send the voxels as
     its K coefficients, or None for the channels themselves."""
     channels = features.shape[0]
@@ -427,7 +471,9 @@ def _encode(features: np.ndarray, confidence: np.ndarray | None, grid: GridSpec,
     )
 
 
-def _basis(features: np.ndarray, keep: np.ndarray | None, rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _basis(
+    features: np.ndarray, keep: np.ndarray | None, rank: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The transform coding fitted to the voxels `keep` (None: all): their K = rank principal directions, (C, K)
     float32 with orthonormal columns (largest variance first, each column's largest entry positive), their mean
     (C,) float32, and every voxel's coefficients (K, V) float32, the least-squares ones on the float32 basis the
@@ -447,7 +493,9 @@ def _basis(features: np.ndarray, keep: np.ndarray | None, rank: int) -> tuple[np
     directions = vectors[:, ::-1][:, :rank]  # (C, K)
     directions *= np.where(directions[np.abs(directions).argmax(axis=0), np.arange(rank)] < 0, -1.0, 1.0)
     directions = directions.astype(np.float32)
-    coefficients = np.einsum("ck,cv->kv", directions.astype(np.float64), flat - mean[:, None].astype(np.float64))  # (K, V)
+    coefficients = np.einsum(
+        "ck,cv->kv", directions.astype(np.float64), flat - mean[:, None].astype(np.float64)
+    )  # (K, V)
     return directions, mean, coefficients.astype(np.float32)
 
 
@@ -480,9 +528,13 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
     if not 0 <= enc.basis_rank <= channels:
         raise SizeMismatchError(f"basis_rank: {enc.basis_rank} components for {channels} channels")
     if len(enc.basis) != channels * enc.basis_rank or len(enc.basis_mean) != (channels if enc.basis_rank else 0):
-        raise SizeMismatchError(f"basis/basis_mean: need {channels * enc.basis_rank}/{channels if enc.basis_rank else 0} entries for "
-                                f"basis_rank {enc.basis_rank}, got {len(enc.basis)}/{len(enc.basis_mean)}")
-    raw = _decompress(enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes)
+        raise SizeMismatchError(
+            f"basis/basis_mean: need {channels * enc.basis_rank}/{channels if enc.basis_rank else 0} entries for "
+            f"basis_rank {enc.basis_rank}, got {len(enc.basis)}/{len(enc.basis_mean)}"
+        )
+    raw = _decompress(
+        enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes
+    )
     wire = _unpack_int4(raw, rows * n) if enc.dtype == "int4" else np.frombuffer(raw, FEATURE_DTYPES[enc.dtype])
     values = wire.reshape(rows, n).astype(np.float32)  # (C, N), or (K, N) coefficients
     if enc.dtype in QUANTIZED:
@@ -511,7 +563,9 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
     conf = None  # (N,) float32
     if enc.has_confidence:
         cdtype = _confidence_dtype(enc.dtype)
-        craw = _decompress(enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes)
+        craw = _decompress(
+            enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes
+        )
         conf = np.frombuffer(craw, cdtype).astype(np.float32)
         if enc.dtype in QUANTIZED:
             conf = conf / np.float32(255)
@@ -559,7 +613,9 @@ def encode_labels(
     if confidence is not None:
         confidence = np.asarray(confidence)
         if confidence.shape != grid.dims or confidence.dtype != np.uint8:
-            raise SizeMismatchError(f"confidence: need uint8 of shape {grid.dims}, got {confidence.dtype} {confidence.shape}")
+            raise SizeMismatchError(
+                f"confidence: need uint8 of shape {grid.dims}, got {confidence.dtype} {confidence.shape}"
+            )
         conf_raw = np.ascontiguousarray(confidence).tobytes()
     return EncodedLabels(
         grid=grid,

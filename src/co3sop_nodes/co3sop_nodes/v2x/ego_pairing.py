@@ -110,8 +110,11 @@ class Pairing(Generic[K, T]):
     def live(self, wall_ns: int, has_publisher: Callable[[K], bool]) -> list[K]:
         """Neighbours still waited for: with a publisher, heard from within neighbour_timeout."""
         start = wall_ns if self._first_own_ns is None else self._first_own_ns
-        return [a for a, heard in self._last_heard.items() if a != self.ego and wall_ns - max(heard, start) < self.cfg.neighbour_timeout_ns
-                and has_publisher(a)]
+        return [
+            a
+            for a, heard in self._last_heard.items()
+            if a != self.ego and wall_ns - max(heard, start) < self.cfg.neighbour_timeout_ns and has_publisher(a)
+        ]
 
     def next_due(self, wall_ns: int, monotonic: float, has_publisher: Callable[[K], bool]) -> int | None:
         """The stamp of the newest own frame ready to fuse now, taken off the queue with every own frame not newer

@@ -24,10 +24,14 @@ def request_of(confidence: torch.Tensor) -> np.ndarray:
     return (1.0 - confidence[0, 0].detach().float().cpu().numpy()).clip(0.0, 1.0).astype(np.float32)
 
 
-def request_for_neighbour(request: np.ndarray, world_from_ego: np.ndarray, world_from_neighbour: np.ndarray, grid: GridSpec) -> np.ndarray:
+def request_for_neighbour(
+    request: np.ndarray, world_from_ego: np.ndarray, world_from_neighbour: np.ndarray, grid: GridSpec
+) -> np.ndarray:
     """The ego's request (X, Y, Z) on its feature grid `grid`, made at pose world_from_ego, as the neighbour at
     world_from_neighbour sees it on its own feature grid: (X, Y, Z) float32, 0 where the ego's grid does not reach."""
-    ego_from_neighbour = np.linalg.inv(world_from_ego) @ world_from_neighbour  # samples the ego's grid at the neighbour's voxels
+    ego_from_neighbour = (
+        np.linalg.inv(world_from_ego) @ world_from_neighbour
+    )  # samples the ego's grid at the neighbour's voxels
     volume = torch.from_numpy(np.ascontiguousarray(request, np.float32))[None, None]
     warped, filled = warp_with_mask(volume, torch.from_numpy(ego_from_neighbour).float()[None], grid)
     return (warped[0, 0] * filled[0, 0]).clamp(0.0, 1.0).numpy()

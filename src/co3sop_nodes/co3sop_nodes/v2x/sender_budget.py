@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from co3sop_nodes.v2x.codec import FeatureCodecConfig
 from co3sop_nodes.common.errors import CodecError
+from co3sop_nodes.v2x.codec import FeatureCodecConfig
 
 
 @dataclass

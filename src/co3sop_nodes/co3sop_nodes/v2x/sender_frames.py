@@ -30,8 +30,13 @@ class Frame:
 
 
 class FrameAssembly:
-    def __init__(self, parts: Iterable[str], max_pending: int = 10, complete: Callable[[dict], bool] = lambda parts: True,
-                 requirement: str = "requirement"):
+    def __init__(
+        self,
+        parts: Iterable[str],
+        max_pending: int = 10,
+        complete: Callable[[dict], bool] = lambda parts: True,
+        requirement: str = "requirement",
+    ):
         self.parts = tuple(parts)
         self.requirement = requirement  # what `complete` checks, for the drop reason
         self.max_pending = max_pending
@@ -44,7 +49,9 @@ class FrameAssembly:
         if part not in self.parts:
             raise ValueError(f"unknown part {part!r} (parts: {', '.join(self.parts)})")
         if stamp <= self.last_stamp:
-            return [], [Drop(part, "stale", f"stamp {stamp} is not newer than the last encoded frame {self.last_stamp}")]
+            return [], [
+                Drop(part, "stale", f"stamp {stamp} is not newer than the last encoded frame {self.last_stamp}")
+            ]
         self._pending.setdefault(stamp, Frame(stamp, wall_ns)).parts[part] = msg  # a repeat replaces the earlier copy
         ready, drops = self.ready()
         while len(self._pending) > self.max_pending:  # a frame that never completes must not pile up
@@ -62,7 +69,9 @@ class FrameAssembly:
                 out.append(frame)
                 self.last_stamp = stamp
         for stamp in [s for s in self._pending if s < self.last_stamp]:  # overtaken: can never come out
-            drops.append(self._incomplete(self._pending.pop(stamp), f"when the newer frame {self.last_stamp} was complete"))
+            drops.append(
+                self._incomplete(self._pending.pop(stamp), f"when the newer frame {self.last_stamp} was complete")
+            )
         return out, drops
 
     def _incomplete(self, frame: Frame, when: str) -> Drop:

@@ -8,8 +8,6 @@ from co3sop_nodes.common.classes import EMPTY, IGNORE, PALETTE
 from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.messages.sensors import LABEL_POINTS
 
-
-
 # per label value: shown as a point (neither empty nor ignored), and its packed 0x00RRGGBB colour
 _SHOWN = np.ones(256, bool)
 _SHOWN[[EMPTY, IGNORE]] = False
@@ -49,4 +47,3 @@ def occupancy_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
     cloud["rgb"] = _RGB[lab].view(np.float32)
     cloud["label"] = lab
     return cloud
-

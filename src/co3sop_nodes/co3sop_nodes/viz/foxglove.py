@@ -12,24 +12,50 @@ CAMERAS = ("camera0", "camera1", "camera2", "camera3")  # front, right, left, ba
 
 
 def _points_panel(topic: str, frame: str) -> dict:
-    return {"followTf": frame, "followMode": "follow-pose",
-            "cameraState": {"perspective": True, "distance": 70.0, "phi": 55.0, "thetaOffset": 90.0, "targetOffset": [0, 0, 0]},
-            "topics": {topic: {"visible": True, "colorMode": "rgb", "colorField": "rgb", "pointShape": "square", "pointSize": 3}}}
+    return {
+        "followTf": frame,
+        "followMode": "follow-pose",
+        "cameraState": {
+            "perspective": True,
+            "distance": 70.0,
+            "phi": 55.0,
+            "thetaOffset": 90.0,
+            "targetOffset": [0, 0, 0],
+        },
+        "topics": {
+            topic: {"visible": True, "colorMode": "rgb", "colorField": "rgb", "pointShape": "square", "pointSize": 3}
+        },
+    }
 
 
 def layout(ego_id: int, cameras: tuple[str, ...] = CAMERAS) -> dict:
     """Top: /ego/occupancy/points | /ego/ground_truth/points in the ego's LiDAR frame; bottom: the ego's cameras."""
     frame = topics.lidar_frame(ego_id)
-    config = {"3D!prediction": _points_panel(topics.EGO_POINTS, frame), "3D!ground_truth": _points_panel(topics.EGO_TRUTH_POINTS, frame)}
+    config = {
+        "3D!prediction": _points_panel(topics.EGO_POINTS, frame),
+        "3D!ground_truth": _points_panel(topics.EGO_TRUTH_POINTS, frame),
+    }
     row: str | dict = ""
     for cam in reversed(cameras):  # a right-leaning split tree, equal shares
         key = f"Image!{cam}"
         config[key] = {"imageMode": {"imageTopic": topics.camera_image(ego_id, cam)}}
-        row = key if not row else {"direction": "row", "first": key, "second": row, "splitPercentage": 100 / (1 + _leaves(row))}
-    return {"configById": config, "globalVariables": {}, "userNodes": {}, "playbackConfig": {"speed": 1.0},
-            "layout": {"direction": "column", "splitPercentage": 65,
-                       "first": {"direction": "row", "first": "3D!prediction", "second": "3D!ground_truth", "splitPercentage": 50},
-                       "second": row}}
+        row = (
+            key
+            if not row
+            else {"direction": "row", "first": key, "second": row, "splitPercentage": 100 / (1 + _leaves(row))}
+        )
+    return {
+        "configById": config,
+        "globalVariables": {},
+        "userNodes": {},
+        "playbackConfig": {"speed": 1.0},
+        "layout": {
+            "direction": "column",
+            "splitPercentage": 65,
+            "first": {"direction": "row", "first": "3D!prediction", "second": "3D!ground_truth", "splitPercentage": 50},
+            "second": row,
+        },
+    }
 
 
 def _leaves(tree: str | dict) -> int:

@@ -12,13 +12,12 @@ from __future__ import annotations
 from collections import deque
 
 from co3sop_nodes.common import topics
+from co3sop_nodes.common.errors import DatasetError, exception_line
+from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.data.bags import occupancy_labels, typestore
 from co3sop_nodes.messages import OCCUPANCY, RosbagsTypes, point_cloud_msg, stamp_ns
 from co3sop_nodes.messages.sensors import POINT_CLOUD
 from co3sop_nodes.viz.cloud import occupancy_cloud
-from co3sop_nodes.common.errors import DatasetError, exception_line
-from co3sop_nodes.common.grid import BENCHMARK_RANGES
-
 
 
 def truth_key(topic: str) -> tuple[int, str] | None:
@@ -40,15 +39,21 @@ class TruthPoints:
     def _decode(self, raw: bytes, what: str):
         try:
             return self._store.deserialize_cdr(bytes(raw), OCCUPANCY)
-        except Exception as exc:  # noqa: BLE001 - any failure is the sender's: the raw message is still recorded
+        except Exception as exc:
             raise DatasetError(f"{what}: not a valid SemanticOccupancy ({exception_line(exc)})") from None
 
     def prediction(self, raw: bytes) -> list[bytes]:
         """A /ego/occupancy message: the PointCloud2s (CDR) of the ground truth that waited for it."""
         msg = self._decode(raw, topics.EGO_OCCUPANCY)
         grid = msg.grid
-        key = next(((msg.agent_id, r) for r, g in BENCHMARK_RANGES.items()
-                    if (g.voxel_size, g.dims) == (grid.voxel_size, (grid.nx, grid.ny, grid.nz))), None)
+        key = next(
+            (
+                (msg.agent_id, r)
+                for r, g in BENCHMARK_RANGES.items()
+                if (g.voxel_size, g.dims) == (grid.voxel_size, (grid.nx, grid.ny, grid.nz))
+            ),
+            None,
+        )
         if key is None or key in self._egos:
             return []
         self._egos.add(key)
