@@ -28,14 +28,14 @@ import torch
 from timing import timed
 from torch.utils.flop_counter import FlopCounterMode
 
-from co3sop_nodes.cli.device import add_device_argument, select_device
-from co3sop_nodes.inference import PRECISIONS, InferencePath, cpu_bfloat16_unit, pace
+from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, pace, resolve_device
 
 
 def on(device: torch.device):
@@ -353,7 +353,7 @@ def main() -> None:
     )
     opts = parser.parse_args()
     torch.set_num_threads(opts.threads)
-    device = select_device(opts.device)
+    device = resolve_device(opts.device, "--device")
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {opts.threads} threads"
     precision = (
         [

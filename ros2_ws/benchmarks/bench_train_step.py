@@ -24,10 +24,11 @@ import numpy as np
 import torch
 from timing import timed
 
-from co3sop_nodes.cli.device import add_device_argument, select_device
+from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.path import resolve_device
 from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.train.trainer import Trainer
 
@@ -45,7 +46,7 @@ def main() -> None:
     add_device_argument(parser)
     opts = parser.parse_args()
     torch.set_num_threads(opts.threads)
-    device = select_device(opts.device)
+    device = resolve_device(opts.device, "--device")
     gpu = device.type == "cuda"
     rows = ["| stage | " + " | ".join(opts.ranges) + " |", "|---|" + "---:|" * len(opts.ranges)]
     for stage in opts.stages:

@@ -391,7 +391,7 @@ def test_score_explains_a_malformed_message_and_damaged_recordings(tmp_path):
 
 def test_generate_shards_are_disjoint_parts_of_one_dataset(tmp_path):
     """`generate --shard I/N` on N machines: each writes its share, the shares are disjoint and together the dataset."""
-    from co3sop_nodes.data.generation import scenario_name
+    from co3sop_nodes.sim.generation import scenario_name
 
     common = [
         "--splits",

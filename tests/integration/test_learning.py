@@ -18,13 +18,13 @@ from model_checks import MICRO, assert_labels_equal, reference
 from co3sop_nodes.data import synthetic
 from co3sop_nodes.eval.evaluate import evaluate
 from co3sop_nodes.eval.metrics import Confusion
-from co3sop_nodes.inference import InferencePath
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.inputs import to_batch
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
+from co3sop_nodes.model.path import InferencePath
 from co3sop_nodes.train.dataset import OccupancyDataset
 
 

@@ -1,12 +1,9 @@
-"""Where `train` and `evaluate` run: `--device auto | cpu | cuda | cuda:N` (ROS-free)."""
+"""The `--device auto | cpu | cuda | cuda:N` option of `train`, `evaluate` and the benchmarks (checked by
+co3sop_nodes.model.path.resolve_device)."""
 
 from __future__ import annotations
 
 import argparse
-
-import torch
-
-from co3sop_nodes.inference import resolve_device
 
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
@@ -15,8 +12,3 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="torch device: auto (the first CUDA GPU if torch sees one, else cpu), cpu, cuda, cuda:N",
     )
-
-
-def select_device(name: str) -> torch.device:
-    """The torch device `name` names, checked against what this torch build can use."""
-    return resolve_device(name, "--device")

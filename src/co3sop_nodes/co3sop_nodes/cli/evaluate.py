@@ -31,7 +31,7 @@ from pathlib import Path
 from co3sop_nodes.cli.common import run
 from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.eval.evaluate import ABLATIONS, evaluate_models
-from co3sop_nodes.inference import PRECISIONS
+from co3sop_nodes.model.path import PRECISIONS
 
 
 def main(args: list[str] | None = None) -> int:

@@ -5,7 +5,7 @@
 
 Each scenario is a procedural town with 2..7 CAVs (four cameras and a LiDAR each) and traffic, written in
 the OPV2V folder layout with Co3SOP voxel labels for the three benchmark ranges, and optionally as a
-rosbag2 bag; interrupted runs resume (co3sop_nodes.data.generation).
+rosbag2 bag; interrupted runs resume (co3sop_nodes.sim.generation).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from co3sop_nodes.cli.common import run
 from co3sop_nodes.data import opv2v
-from co3sop_nodes.data.generation import GenerateOptions, generate, read_recipe
+from co3sop_nodes.sim.generation import GenerateOptions, generate, read_recipe
 
 
 def main(args: list[str] | None = None) -> int:

@@ -1,4 +1,4 @@
-"""Topic and frame names of the Co3SOP graph and bags, defined once (documented in README.md)."""
+"""Topic and frame names of the Co3SOP graph and bags, defined once (documented in doc/nodes.md)."""
 
 from __future__ import annotations
 

@@ -17,12 +17,12 @@ from co3sop_nodes.common.progress import progress
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.eval.controls import INPUT_CONTROLS, ControlledInputs
 from co3sop_nodes.eval.metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
-from co3sop_nodes.inference import InferencePath, inference_path
 from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint, shipped_checkpoint
 from co3sop_nodes.inference.inputs import to_batch
 from co3sop_nodes.inference.outputs import through_codec
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
+from co3sop_nodes.model.path import InferencePath, inference_path
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
 from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from co3sop_nodes.inference import InferencePath
 from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
 from co3sop_nodes.model.backbone import ResNet
 from co3sop_nodes.model.config import ModelConfig
@@ -27,6 +26,7 @@ from co3sop_nodes.model.head import OccupancyHead
 from co3sop_nodes.model.lidar import LMSCNetEncoder, SSCNetEncoder
 from co3sop_nodes.model.lifting import LiftingLayer, project, voxel_centres
 from co3sop_nodes.model.occformer import OccFormerHead
+from co3sop_nodes.model.path import InferencePath
 
 # ImageNet-style normalisation of uint8 RGB inputs
 _MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1) * 255

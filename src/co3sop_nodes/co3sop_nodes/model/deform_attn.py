@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from co3sop_nodes.inference import InferencePath
 from co3sop_nodes.kernels import deform as deform_kernel
+from co3sop_nodes.model.path import InferencePath
 
 
 def sample_2d(values: list[torch.Tensor], locations: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

@@ -18,8 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from co3sop_nodes.inference import InferencePath
 from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.model.path import InferencePath
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:

@@ -12,9 +12,9 @@ import torch
 from torch import nn
 
 from co3sop_nodes.common.grid import GridSpec
-from co3sop_nodes.inference import InferencePath
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.model.deform_attn import sample_2d
+from co3sop_nodes.model.path import InferencePath
 
 
 def voxel_centres(grid: GridSpec) -> torch.Tensor:

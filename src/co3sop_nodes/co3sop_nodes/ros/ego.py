@@ -42,7 +42,6 @@ from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from co3sop_nodes.common.geometry import Pose
-from co3sop_nodes.inference import PRECISIONS, inference_path
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
 from co3sop_nodes.inference.outputs import decoded_output
 from co3sop_nodes.inference.predict import compile_kernels, predict_frame
@@ -56,6 +55,7 @@ from co3sop_nodes.messages import (
     stamp_ns,
 )
 from co3sop_nodes.model.co3sop import VehicleOutput
+from co3sop_nodes.model.path import PRECISIONS, inference_path
 from co3sop_nodes.ros.dds import (
     DIAGNOSTICS_QOS,
     OCCUPANCY_QOS,

@@ -35,7 +35,6 @@ from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError, CodecError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.common.transforms import StaticTransforms
-from co3sop_nodes.inference import PRECISIONS, inference_path
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
 from co3sop_nodes.inference.inputs import sensor_inputs, to_batch
 from co3sop_nodes.inference.outputs import encode_output
@@ -51,6 +50,7 @@ from co3sop_nodes.messages import (
     transforms_of,
     xyz_of,
 )
+from co3sop_nodes.model.path import PRECISIONS, inference_path
 from co3sop_nodes.ros.dds import (
     DIAGNOSTICS_QOS,
     RELIABILITIES,

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from co3sop_nodes.cli.device import select_device
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.model.path import resolve_device
 
 
 @dataclass(frozen=True)
@@ -48,11 +48,11 @@ def world_from_env(env=os.environ) -> World:
 
 def device_for(world: World, name: str) -> torch.device:
     """`--device` for this process: under torchrun each process takes the GPU of its local rank."""
-    device = select_device(name)
+    device = resolve_device(name, "--device")
     if world.size > 1 and device.type == "cuda":
         if device.index not in (None, world.local_rank):
             raise Co3sopError(f"--device {name}: under torchrun each process uses cuda:LOCAL_RANK; pass --device cuda")
-        device = select_device(f"cuda:{world.local_rank}")
+        device = resolve_device(f"cuda:{world.local_rank}", "--device")
     return device
 
 

@@ -17,7 +17,7 @@ from co3sop_nodes.ros import ego, vehicle
 from co3sop_nodes.ros.graph import LOSSLESS, describe
 from co3sop_nodes.ros.lifecycle import AUTOSTART
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 PACKAGE = REPO / "src" / "co3sop_nodes"
 LAUNCH_FILES = sorted((PACKAGE / "launch").glob("*.launch.py"))
 
@@ -272,9 +272,9 @@ def test_the_docker_command_keeps_the_results_on_the_host():
 
 def test_the_jazzy_recipe_builds_src_only_and_handles_pep_668():
     """On a Jazzy install the vendored TFMessage-only tf2_msgs must not shadow the system's, and rosdep's pip keys
-    need a way past PEP 668 on Ubuntu 24.04: the README's recipe says both, for every pip key package.xml uses."""
-    readme = (PACKAGE.parents[1] / "README.md").read_text()
-    recipe = readme[readme.index("### On a ROS 2 Jazzy install") : readme.index("## Executables")]
+    need a way past PEP 668 on Ubuntu 24.04: the documented recipe says both, for every pip key package.xml uses."""
+    page = (PACKAGE / "doc" / "jazzy.md").read_text()
+    recipe = page[page.index("### On a ROS 2 Jazzy install") :]
     builds = [line for line in recipe.splitlines() if line.startswith("colcon build")]
     assert builds and all("--base-paths src" in line for line in builds)
     assert "PIP_BREAK_SYSTEM_PACKAGES=1 rosdep install" in recipe
@@ -283,3 +283,18 @@ def test_the_jazzy_recipe_builds_src_only_and_handles_pep_668():
     )
     skip = re.search(r'--skip-keys "([^"]+)"', recipe).group(1).split()
     assert pip_keys and set(skip) == pip_keys
+
+
+def test_the_readme_fits_a_screen_and_links_every_doc_page():
+    readme = (PACKAGE.parents[1] / "README.md").read_text()
+    assert len(readme.splitlines()) <= 60
+    assert "ros2_ws/run_demo.sh" in readme and "ros2_ws/run_tests.sh" in readme
+    for page in ("jazzy", "nodes", "data-and-training", "v2x", "hostile-input", "architecture", "status", "results"):
+        assert f"(src/co3sop_nodes/doc/{page}.md)" in readme, page
+        assert (PACKAGE / "doc" / f"{page}.md").is_file(), page
+
+
+def test_the_architecture_page_names_every_subpackage():
+    page = (PACKAGE / "doc" / "architecture.md").read_text()
+    subpackages = sorted(p.parent.name for p in (PACKAGE / "co3sop_nodes").glob("*/__init__.py"))
+    assert subpackages and all(f"| `{name}/` |" in page for name in subpackages), subpackages

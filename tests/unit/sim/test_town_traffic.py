@@ -330,8 +330,8 @@ def test_dead_end_terminates():
 
 def test_demo_scene_is_the_first_seed_whose_cavs_stay_within_30_m_of_the_ego():
     """The rule demo.DEMO_SEED was chosen by (before any scoring): CAVs that can see each other's surroundings."""
-    from co3sop_nodes.data.generation import scenario_seed
     from co3sop_nodes.ros.demo import DEMO_FRAMES, DEMO_SCENARIO, DEMO_SEED
+    from co3sop_nodes.sim.generation import scenario_seed
     from co3sop_nodes.sim.scenario import ScenarioConfig, world_states
 
     frames = DEMO_FRAMES

@@ -82,7 +82,7 @@ def test_bad_checkpoints_are_explained(tmp_path):
         load_model(tmp_path / "other.pt")
 
 
-SHIPPED = sorted(p.stem for p in (Path(__file__).parents[2] / "src/co3sop_nodes/checkpoints").glob("*.pt"))
+SHIPPED = sorted(p.stem for p in (Path(__file__).parents[3] / "src/co3sop_nodes/checkpoints").glob("*.pt"))
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -103,7 +103,7 @@ def test_every_shipped_checkpoint_is_installed_small_and_loads(name):
 def test_every_shipped_checkpoints_card_lists_the_commands_that_made_it(name):
     from co3sop_nodes.inference.checkpoint import shipped_checkpoint
 
-    card = (Path(__file__).parents[2] / f"src/co3sop_nodes/checkpoints/{name}.md").read_text()
+    card = (Path(__file__).parents[3] / f"src/co3sop_nodes/checkpoints/{name}.md").read_text()
     _, data = load_model(shipped_checkpoint(f"{name}.pt"))
     for step in data["meta"]["history"]:
         assert f"$L/{step['command']}" in card, step["command"]

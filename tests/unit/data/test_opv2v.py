@@ -15,7 +15,7 @@ from co3sop_nodes.sim.lidar import LidarConfig
 from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
 from co3sop_nodes.sim.traffic import TrafficConfig
 
-FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
+FIXTURE = Path(__file__).resolve().parents[2] / "fixtures" / "opv2v"
 SCENARIO = "2021_08_24_21_29_28"
 
 

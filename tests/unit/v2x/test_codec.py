@@ -63,7 +63,7 @@ FLOAT16_ELEMENTS = st.floats(-F16_MAX, F16_MAX, width=32)
 CONF_ELEMENTS = st.floats(0.0, 1.0, width=32)
 
 # VoxelFeatures.msg: the wire fields EncodedFeatures mirrors one to one.
-MSG_DIR = Path(__file__).resolve().parents[2] / "src" / "co3sop_msgs" / "msg"
+MSG_DIR = Path(__file__).resolve().parents[3] / "src" / "co3sop_msgs" / "msg"
 VOXEL_FEATURES_ENVELOPE = {
     "header",
     "agent_id",

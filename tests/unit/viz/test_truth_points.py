@@ -103,7 +103,7 @@ def test_foxglove_layout_shows_prediction_truth_and_the_egos_cameras():
 def test_the_shipped_layout_is_the_generated_one():
     """config/foxglove_layout.json (the demo scene's ego) is what `layout` makes, so it never drifts from the topics."""
     shipped = json.loads(
-        (Path(__file__).resolve().parents[2] / "src/co3sop_nodes/config/foxglove_layout.json").read_text()
+        (Path(__file__).resolve().parents[3] / "src/co3sop_nodes/config/foxglove_layout.json").read_text()
     )
     ego = int(shipped["configById"]["3D!prediction"]["followTf"].split("/")[0].removeprefix("cav_"))
     assert shipped == json.loads(json.dumps(layout(ego)))

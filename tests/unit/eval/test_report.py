@@ -53,7 +53,7 @@ def test_a_short_gain_is_set_against_what_the_collaborators_see(tmp_path):
     assert "building +0.12 points, road +10.00 points, vehicle +3.00 points" in text and "pole" not in text
 
 
-SHIPPED = Path(__file__).resolve().parents[2] / "src/co3sop_nodes/doc/evaluation"
+SHIPPED = Path(__file__).resolve().parents[3] / "src/co3sop_nodes/doc/evaluation"
 
 
 @pytest.mark.parametrize(

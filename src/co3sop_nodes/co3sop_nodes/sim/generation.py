@@ -23,14 +23,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from co3sop_nodes.data import opv2v
-from co3sop_nodes.viz.bev import bev_image
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.frames import CavFrame
+from co3sop_nodes.common.progress import progress
+from co3sop_nodes.data import opv2v
 from co3sop_nodes.sim.scenario import ScenarioConfig, simulate
 from co3sop_nodes.sim.town import TownConfig
 from co3sop_nodes.sim.traffic import TrafficConfig
-from co3sop_nodes.common.progress import progress
+from co3sop_nodes.viz.bev import bev_image
 
 
 def scenario_name(split: str, index: int, seed: int) -> str:
@@ -47,11 +47,24 @@ def scenario_seed(split: str, index: int, seed: int) -> int:
 def data_protocol(cfg: ScenarioConfig, seed: int) -> dict:
     """OpenCDA's scenario record, plus what re-creates the scenario exactly (`co3sop_sim`)."""
     return {
-        "world": {"sync_mode": True, "client_port": 2000, "fixed_delta_seconds": 0.05, "seed": seed,
-                  "weather": {"sun_altitude_angle": 55, "cloudiness": 0, "precipitation": 0, "fog_density": 0}},
-        "vehicle_base": {"sensing": {"lidar": {"channels": cfg.lidar.channels, "range": cfg.lidar.range,
-                                               "upper_fov": cfg.lidar.upper_fov, "lower_fov": cfg.lidar.lower_fov},
-                                     "camera": {"fov": 100, "image_size_x": cfg.image_size[0], "image_size_y": cfg.image_size[1]}}},
+        "world": {
+            "sync_mode": True,
+            "client_port": 2000,
+            "fixed_delta_seconds": 0.05,
+            "seed": seed,
+            "weather": {"sun_altitude_angle": 55, "cloudiness": 0, "precipitation": 0, "fog_density": 0},
+        },
+        "vehicle_base": {
+            "sensing": {
+                "lidar": {
+                    "channels": cfg.lidar.channels,
+                    "range": cfg.lidar.range,
+                    "upper_fov": cfg.lidar.upper_fov,
+                    "lower_fov": cfg.lidar.lower_fov,
+                },
+                "camera": {"fov": 100, "image_size_x": cfg.image_size[0], "image_size_y": cfg.image_size[1]},
+            }
+        },
         "scenario": {"cavs": cfg.traffic.cavs, "background_vehicles": cfg.traffic.vehicles},
         "co3sop_sim": {"seed": seed, "config": dataclasses.asdict(cfg)},
     }
@@ -146,7 +159,7 @@ RECIPE_KEYS = ("splits", "frames", "seed", "cavs", "vehicles", "image_size", "li
 
 
 def parse_shard(text: str) -> tuple[int, int]:
-    """"I/N" -> (I, N), 1 <= I <= N."""
+    """ "I/N" -> (I, N), 1 <= I <= N."""
     i, _, n = text.partition("/")
     try:
         shard, shards = int(i), int(n)
@@ -203,11 +216,19 @@ def generate(opts: GenerateOptions) -> int:
         cav_range = (int(lo), int(hi or lo))
         width, height = (int(v) for v in opts.image_size.lower().split("x"))
     except ValueError:
-        raise DatasetError(f"--cavs {opts.cavs!r} / --image-size {opts.image_size!r}: expected N or MIN-MAX / WIDTHxHEIGHT") from None
+        raise DatasetError(
+            f"--cavs {opts.cavs!r} / --image-size {opts.image_size!r}: expected N or MIN-MAX / WIDTHxHEIGHT"
+        ) from None
     if not 1 <= cav_range[0] <= cav_range[1] <= 7:
         raise DatasetError(f"--cavs {opts.cavs!r}: between 1 and 7 CAVs")
-    for option, value, least in (("--frames", opts.frames, 1), ("--vehicles", opts.vehicles, 0), ("--lidar-steps", opts.lidar_steps, 1),
-                                 ("--image-size width", width, 1), ("--image-size height", height, 1), ("--workers", opts.workers, 1)):
+    for option, value, least in (
+        ("--frames", opts.frames, 1),
+        ("--vehicles", opts.vehicles, 0),
+        ("--lidar-steps", opts.lidar_steps, 1),
+        ("--image-size width", width, 1),
+        ("--image-size height", height, 1),
+        ("--workers", opts.workers, 1),
+    ):
         if value < least:  # e.g. 0 frames would write empty scenarios that every reader then rejects
             raise DatasetError(f"{option} {value}: must be at least {least}")
     shard, shards = parse_shard(opts.shard)
@@ -216,19 +237,35 @@ def generate(opts: GenerateOptions) -> int:
     for split, index in every[shard - 1 :: shards]:  # a scenario's seed and name do not depend on the shard
         seed = scenario_seed(split, index, opts.seed)
         name = scenario_name(split, index, opts.seed)
-        if (opts.out / split / name).is_dir() and (not opts.bags or (opts.bags / split / name / "metadata.yaml").exists()):
+        if (opts.out / split / name).is_dir() and (
+            not opts.bags or (opts.bags / split / name / "metadata.yaml").exists()
+        ):
             skipped += 1
             continue
         cavs = int(np.random.default_rng(seed).integers(cav_range[0], cav_range[1] + 1))
         cfg = ScenarioConfig(
-            town=TownConfig(), traffic=TrafficConfig(cavs=cavs, vehicles=opts.vehicles), frames=opts.frames,
-            image_size=(width, height), lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
-            extra_images=opts.extras, workers=1,
+            town=TownConfig(),
+            traffic=TrafficConfig(cavs=cavs, vehicles=opts.vehicles),
+            frames=opts.frames,
+            image_size=(width, height),
+            lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
+            extra_images=opts.extras,
+            workers=1,
         )
         if (opts.out / split / name).is_dir():  # folder complete, only the bag is missing: redo both
             shutil.rmtree(opts.out / split / name)
-        jobs.append(dict(out=str(opts.out), split=split, name=name, seed=seed, config=cfg, bags=opts.bags and str(opts.bags),
-                         pictures=opts.pictures, picture_range=opts.picture_range))
+        jobs.append(
+            dict(
+                out=str(opts.out),
+                split=split,
+                name=name,
+                seed=seed,
+                config=cfg,
+                bags=opts.bags and str(opts.bags),
+                pictures=opts.pictures,
+                picture_range=opts.picture_range,
+            )
+        )
     print(f"generate: {len(jobs)} scenario(s) to simulate, {skipped} already complete", flush=True)
     if not jobs:
         return 0
@@ -236,7 +273,10 @@ def generate(opts: GenerateOptions) -> int:
     ctx = mp.get_context("spawn")
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        with ctx.Manager() as manager, ctx.Pool(max(1, min(opts.workers, len(jobs))), initializer=_ignore_sigint) as pool:
+        with (
+            ctx.Manager() as manager,
+            ctx.Pool(max(1, min(opts.workers, len(jobs))), initializer=_ignore_sigint) as pool,
+        ):
             events = manager.Queue()
             pending = [pool.apply_async(generate_scenario, (job, events)) for job in jobs]
             bar = progress(sum(j["config"].frames for j in jobs), "frames", "frame")
@@ -255,5 +295,3 @@ def generate(opts: GenerateOptions) -> int:
         signal.signal(signal.SIGTERM, previous)
     print(f"generate: {len(jobs)} scenario(s) written to {opts.out}" + (f", bags in {opts.bags}" if opts.bags else ""))
     return 0
-
-
