@@ -29,8 +29,8 @@ import numpy as np
 from ament_index_python.packages import get_package_prefix
 from bench_graph import measure_diagnostics
 
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
 from co3sop_nodes.ros.dds import RELIABILITIES
-from co3sop_nodes.ros.graph import DEFAULT_MODEL
 
 CODECS = {  # the neighbours' vehicle parameters
     "int8 dense": ["codec.dtype:=int8", "codec.selection:=dense"],

@@ -41,7 +41,7 @@ from ament_index_python.packages import get_package_prefix
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.eval.evaluate import plot_codecs
 from co3sop_nodes.eval.scoring import read_recording
-from co3sop_nodes.ros.graph import DEFAULT_MODEL
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 
 # The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps

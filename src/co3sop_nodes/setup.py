@@ -17,6 +17,7 @@ setup(
         (f"share/{PACKAGE}/checkpoints", glob("checkpoints/*")),
     ],
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # `colcon test` runs pytest (setup.cfg says where the tests are)
     zip_safe=False,  # the C sources are read from the installed package
     maintainer="Co3SOP ROS 2 developers",
     maintainer_email="dev@co3sop.local",

@@ -39,6 +39,7 @@ FRAMES = 4
 # the ego fuses (and vehicles encode) every frame, waiting for every neighbour, whatever the machine keeps up with:
 # the offline comparisons need them all
 EVERY_FRAME = ("-p", "stay_current:=false", "-p", "max_pending:=1000")
+CAMERA = ("-p", "checkpoint:=tiny")  # the camera model, which this file's scenario feeds (its bag's camera topics)
 
 
 class Graph:
@@ -161,6 +162,7 @@ def run_graph(
         "-p",
         "max_wait:=60.0",
         *EVERY_FRAME,
+        *CAMERA,
         *ego_params,
     )
     for c in cavs:
@@ -171,6 +173,7 @@ def run_graph(
             str(c),
             "--ros-args",
             *EVERY_FRAME,
+            *CAMERA,
             *[x for p in vehicle_params for x in ("-p", p)],
         )
     graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
@@ -220,7 +223,7 @@ def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
     )  # collaboration really ran
 
     torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
-    model, _ = load_model(shipped_checkpoint())
+    model, _ = load_model(shipped_checkpoint("tiny.pt"))
     offline = predict_bag(model, bag, cavs[0], codec)
     assert sorted(offline) == sorted(s for _, s in rec.predictions)
     for (agent, stamp), labels in rec.predictions.items():
@@ -265,7 +268,7 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
         "comm_range:=1000.0",
     ]  # every neighbour answers, near or far
     torch.set_num_threads(1)
-    model, _ = load_model(shipped_checkpoint())
+    model, _ = load_model(shipped_checkpoint("tiny.pt"))
     fg = model.cfg.feature_grid
     outputs = vehicle_outputs(model, bag)
     first = min(outputs)
@@ -462,9 +465,10 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
         "neighbour_timeout:=8.0",
         "-p",
         "max_age:=0.0",
+        *CAMERA,
     )
     for c in (ego, neighbour):
-        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c))
+        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *CAMERA)
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
     graph.wait_discovered([neighbour])
     for topic in ("/diagnostics", "/ego/occupancy"):  # recorded from the first frame on, as the demo makes sure
@@ -496,8 +500,10 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
     lidar = tmp_path / "lidar.pt"
     torch.manual_seed(0)
     export_model(lidar, build_model(preset("tiny-lmscnet")), {"made_by": "test: random weights"})
-    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME)
-    graph.start("camera", executable("vehicle"), "--id", str(ego), "--ros-args", *EVERY_FRAME)
+    graph.start(
+        "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *CAMERA
+    )
+    graph.start("camera", executable("vehicle"), "--id", str(ego), "--ros-args", *EVERY_FRAME, *CAMERA)
     graph.start(
         "lidar",
         executable("vehicle"),
@@ -534,10 +540,19 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     ego, neighbour = cavs[0], cavs[-1]
     sup, manual = graph.supervisor, ["-p", "autostart:=false"]
     graph.start(
-        "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *manual
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={ego}",
+        "-p",
+        "max_wait:=60.0",
+        *EVERY_FRAME,
+        *manual,
+        *CAMERA,
     )
     for c in (ego, neighbour):
-        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *manual, *EVERY_FRAME)
+        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *manual, *EVERY_FRAME, *CAMERA)
     graph.start(
         "broken",
         executable("vehicle"),

@@ -37,6 +37,7 @@ from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_l
 from co3sop_nodes.viz.cloud import occupancy_cloud
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+CAMERA = ("-p", "checkpoint:=tiny")  # the camera model, whose feature grid and inputs these tests send
 EGO, OTHER = 1, 7
 T0 = 1_700_000_000_000_000_000
 
@@ -118,6 +119,7 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
         "max_payload_mb:=4.0",
         "-p",
         "publish_points:=false",
+        *CAMERA,
     )
     try:
         wait_ready(sup, "/ego", ego, log)
@@ -186,6 +188,7 @@ def test_the_ego_fuses_each_frame_once_and_refuses_stamps_ahead_of_its_clock(tmp
         "max_wait:=2.0",
         "-p",
         "publish_points:=false",
+        *CAMERA,
     ) as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
@@ -276,7 +279,7 @@ def test_score_and_recover_explain_bad_files(tmp_path):
             ["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:=/nowhere/model.pt"],
             "/nowhere/model.pt: no such checkpoint",
         ),
-        (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=lidar"], "pick a checkpoint trained for it"),
+        (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=camera"], "pick a checkpoint trained for it"),
         (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
         (["vehicle", "--id", "3", "--ros-args", "-p", "codec.level:=99"], "codec.level out of range"),
         (["ego"], "ego: error: parameter ego_id is required"),
@@ -332,6 +335,7 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
         "codec.selection:=topk",
         "-p",
         "codec.topk:=1024",
+        *CAMERA,
     )
     try:
         wait_ready(sup, topics.vehicle_node(3), proc, log)
@@ -423,8 +427,9 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
             "max_wait:=0.5",
             "-p",
             "publish_points:=false",
+            *CAMERA,
         ),
-        "camera": start(tmp_path, "camera", executable("vehicle"), "--id", str(CAMERA_CAV)),
+        "camera": start(tmp_path, "camera", executable("vehicle"), "--id", str(CAMERA_CAV), "--ros-args", *CAMERA),
         "lidar": start(
             tmp_path,
             "lidar",
@@ -543,6 +548,7 @@ def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(
         "neighbour_timeout:=1.0",
         "-p",
         "publish_points:=false",
+        *CAMERA,
     )
     try:
         wait_ready(sup, "/ego", ego, log)
@@ -741,7 +747,7 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
 
     lidar_model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
     procs = {
-        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}"),
+        "ego": start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", *CAMERA),
         "lidar": start(
             tmp_path,
             "lidar",
@@ -973,6 +979,7 @@ def test_an_id_squatter_neither_locks_the_vehicle_out_nor_outlives_its_publisher
         "max_wait:=2.0",
         "-p",
         "publish_points:=false",
+        *CAMERA,
     ) as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, topics.voxel_features(EGO), QOS)
@@ -1023,6 +1030,7 @@ def test_a_flood_of_topics_is_subscribed_up_to_a_bound_and_departed_ones_make_ro
         "max_topics:=8",
         "-p",
         "discovery_period:=0.1",
+        *CAMERA,
     ) as (ego, log):
         wait_ready(sup, "/ego", ego, log)
         flood = [peer.create_publisher(VoxelFeatures, f"/flood_{i}/voxel_features", QOS) for i in range(12)]

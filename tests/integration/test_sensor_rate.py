@@ -12,7 +12,19 @@ from ament_index_python.packages import get_package_share_directory
 from conftest import executable
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
-from test_node_faults import EGO, LIDAR_CAV, OTHER, QOS, T0, features, lidar_frame, start, wait_ready, wait_subscribed
+from test_node_faults import (
+    CAMERA,
+    EGO,
+    LIDAR_CAV,
+    OTHER,
+    QOS,
+    T0,
+    features,
+    lidar_frame,
+    start,
+    wait_ready,
+    wait_subscribed,
+)
 
 from co3sop_msgs.msg import VoxelFeatures
 from co3sop_nodes.common import topics
@@ -29,7 +41,9 @@ def stop(*procs) -> None:
 
 
 def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skipped(tmp_path, peer, sup):
-    ego = start(tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=5.0")
+    ego = start(
+        tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=5.0", *CAMERA
+    )
     try:
         wait_ready(sup, "/ego", *ego)
         pubs = {

@@ -19,7 +19,7 @@ def generate_launch_description() -> LaunchDescription:
                 "checkpoint",
                 default_value="",
                 description="model checkpoint (the vehicles'): a .pt file or a shipped model by name "
-                '(tiny-lidar, tiny, small); "" = tiny',
+                '(tiny-lidar, tiny, small); "" = tiny-lidar',
             ),
             DeclareLaunchArgument(
                 "params_file",

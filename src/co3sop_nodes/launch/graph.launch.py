@@ -17,8 +17,8 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
-from co3sop_nodes.inference.checkpoint import read_checkpoint, resolve_checkpoint
-from co3sop_nodes.ros.graph import DEFAULT_MODEL, NodeSpec, bag_contents, describe
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, read_checkpoint, resolve_checkpoint
+from co3sop_nodes.ros.graph import NodeSpec, bag_contents, describe
 
 CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
 

@@ -35,9 +35,9 @@ import argparse
 from pathlib import Path
 
 from co3sop_nodes.cli.common import run
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
 from co3sop_nodes.model.path import PRECISIONS
 from co3sop_nodes.ros.demo import DEMO_FRAMES, DemoOptions, run_demo
-from co3sop_nodes.ros.graph import DEFAULT_MODEL
 
 
 def _parameters(items: list[str], option: str, parser: argparse.ArgumentParser) -> dict[str, str]:

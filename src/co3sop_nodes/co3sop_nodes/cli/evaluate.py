@@ -42,7 +42,7 @@ def main(args: list[str] | None = None) -> int:
         "--model",
         nargs="+",
         help="checkpoints (model.pt or state.pt, or a shipped model by name: tiny-lidar, tiny, "
-        "small); one column each (default: the shipped tiny one)",
+        "small); one column each (default: the shipped tiny-lidar)",
     )
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["validate"])

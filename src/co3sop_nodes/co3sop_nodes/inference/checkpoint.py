@@ -13,10 +13,12 @@ from co3sop_nodes.common.errors import Co3sopError, exception_line
 from co3sop_nodes.model.co3sop import Co3SOP, build_model
 from co3sop_nodes.model.config import ModelConfig, config_from_dict
 
-SHIPPED = "tiny.pt"  # trained by `train`; how is recorded beside it in checkpoints/tiny.md
+# the model every node, launch file, `demo` and `evaluate` use unless told otherwise: the best collaborative
+# model shipped (how it was trained: checkpoints/tiny-lidar.md); `tiny` and `small` are the camera models
+DEFAULT_MODEL = "tiny-lidar"
 
 
-def shipped_checkpoint(name: str = SHIPPED) -> Path:
+def shipped_checkpoint(name: str = f"{DEFAULT_MODEL}.pt") -> Path:
     """The checkpoint installed with co3sop_nodes (found on AMENT_PREFIX_PATH, as ROS tools find packages)."""
     for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
         candidate = Path(prefix, "share", "co3sop_nodes", "checkpoints", name)

@@ -21,10 +21,10 @@ from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.eval.scoring import message_counts, score_recording
 from co3sop_nodes.inference import pace
-from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros.dds import channel_environment
-from co3sop_nodes.ros.graph import DEFAULT_MODEL, NodeSpec, bag_contents, describe
+from co3sop_nodes.ros.graph import NodeSpec, bag_contents, describe
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
 from co3sop_nodes.v2x.channel import Channel, Link

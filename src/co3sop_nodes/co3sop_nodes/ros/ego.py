@@ -88,7 +88,7 @@ PARAMS = (
         "checkpoint",
         str,
         "model checkpoint, the vehicles' model: a .pt file or a shipped model by name (tiny-lidar, tiny, "
-        "small); empty: tiny",
+        "small); empty: tiny-lidar",
         "",
     ),
     Param(

@@ -16,9 +16,6 @@ from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.ros.recorder import DEFAULT_TOPICS
 from co3sop_nodes.viz.foxglove import CAMERAS
 
-DEFAULT_MODEL = (
-    "tiny-lidar"  # the best collaborative model shipped (checkpoints/tiny-lidar.md); "tiny": the camera model
-)
 # the ego's own encoder runs on the ego: its features reach the fusion losslessly
 LOSSLESS = {"codec.dtype": "float32", "codec.selection": "dense", "codec.compression": "none"}
 

@@ -7,7 +7,7 @@ otherwise; its topics are relative to it, so remapping works), subscribes to
 camera0..3/image_raw + camera_info and lidar/pose (or lidar/points with a
 LiDAR checkpoint) and the camera mounts on /tf_static; groups each frame by
 its header stamp, runs the vehicle half of the checkpoint (default: the
-shipped tiny one), encodes the feature volume and confidence with the codec
+shipped tiny-lidar), encodes the feature volume and confidence with the codec
 parameters and publishes co3sop_msgs/VoxelFeatures on voxel_features
 (reliable), plus its per-frame timings on /diagnostics. Frames are encoded on
 a thread of their own (worker.py); a vehicle slower than its sensors encodes
@@ -92,7 +92,7 @@ PARAMS = (
     Param(
         "checkpoint",
         str,
-        "model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, small); empty: tiny",
+        "model checkpoint: a .pt file or a shipped model by name (tiny-lidar, tiny, small); empty: tiny-lidar",
         "",
     ),
     Param(
