@@ -1,4 +1,4 @@
-"""co3sop_nodes.inference: the inference path chosen from the machine, held by each model, float32 unchanged."""
+"""co3sop_nodes.model.path: the inference path chosen from the machine, held by each model, float32 unchanged."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import torch
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.inference.pace import shaped_inputs
 from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.model import path as path_module
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.path import InferencePath, inference_path
-from co3sop_nodes.model.path import path as path_module
 
 
 def test_auto_takes_bfloat16_only_where_the_cpu_computes_it(monkeypatch):
