@@ -1,7 +1,16 @@
-"""Training benchmark: seconds per optimisation step of each stage at each range, on real samples.
+"""Training benchmark: seconds per optimisation step of each stage at each range, on real samples; with
+--pipeline, the data pipeline's throughput against the training step's.
 
     ros2_ws/benchmarks/bench_train_step.py --data data/tiny [--preset tiny] [--repeats 5] [--stages ego fusion]
         [--ranges 51.2m] [--device cuda]
+    ros2_ws/benchmarks/bench_train_step.py --pipeline --data data/bench --splits train --presets tiny-lidar tiny small
+        [--steps 30] [--workers 2] [--cache /tmp/co3sop-cache]
+
+--pipeline: per preset, `train`'s joint stage for --steps steps of one sample (an ego with its collaborators),
+fed by its DataLoader with --workers processes reading ahead. It reports the samples per second the
+pipeline delivers alone (decoding PNG / PCD and labels; and from the cache, when --cache is given and the
+first pass filled it), the samples per second training takes, and the share of training time spent
+waiting for data.
 
 Run with the workspace environment (`. ros2_ws/env.sh`) on a split written by
 `generate`. Each stage at each benchmark range trains a fresh model (untrained
@@ -18,6 +27,7 @@ two versions of the code, run the script with each on PYTHONPATH (e.g. a
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +40,62 @@ from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.path import resolve_device
 from co3sop_nodes.train.dataset import OccupancyDataset
-from co3sop_nodes.train.trainer import Trainer
+from co3sop_nodes.train.loader import StepSamples, step_loader
+from co3sop_nodes.train.trainer import Trainer, sample_order, training_sample
+
+
+def pipeline(opts, device) -> None:
+    rows = [
+        "| preset | pipeline, decoding (samples/s) | pipeline, cached (samples/s) | training (samples/s) "
+        "| waiting for data |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for name in opts.presets:
+        torch.manual_seed(0)
+        cfg = preset(name)
+        dataset = OccupancyDataset(opts.data, opts.splits, cfg, cache=opts.cache)
+        order = sample_order(len(dataset), 0, opts.steps)
+        steps = StepSamples(dataset, order, 0, opts.steps, 1, 0, 1, training_sample(cfg, "joint"))
+
+        def delivered() -> float:
+            t0 = time.perf_counter()
+            for samples in step_loader(steps, opts.workers):
+                if isinstance(samples, Exception):
+                    raise samples
+            return opts.steps / (time.perf_counter() - t0)
+
+        decoding = delivered()
+        cached = delivered() if opts.cache else None
+        trainer = Trainer(build_model(cfg).to(device), "joint", opts.sample_fraction, 1e-3, device)
+        rng, waited = np.random.default_rng(0), 0.0
+        t0 = time.perf_counter()
+        loaded = iter(step_loader(steps, opts.workers))
+        for _ in range(opts.steps):
+            t_wait = time.perf_counter()
+            samples = next(loaded)
+            waited += time.perf_counter() - t_wait
+            trainer.step(samples, [rng])
+        total = time.perf_counter() - t0
+        row = (
+            f"| {name} | {decoding:.2f} | {f'{cached:.2f}' if cached else '-'} | {opts.steps / total:.2f} "
+            f"| {100 * waited / total:.1f} % |"
+        )
+        print(row, flush=True)
+        rows.append(row)
+    print(
+        f"\n{opts.steps} joint-stage steps of one sample each per preset on {opts.data} ({'+'.join(opts.splits)}), "
+        f"{opts.workers} DataLoader workers, {opts.threads} torch threads, {device}:\n"
+    )
+    print("\n".join(rows))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--pipeline", action="store_true", help="the data pipeline against the training step")
+    parser.add_argument("--presets", nargs="+", default=["tiny-lidar", "tiny", "small"])
+    parser.add_argument("--steps", type=int, default=30, help="--pipeline: steps per preset")
+    parser.add_argument("--workers", type=int, default=2, help="--pipeline: DataLoader workers")
+    parser.add_argument("--cache", type=Path, help="--pipeline: the preprocessed-input cache folder")
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--splits", nargs="+", default=["train"])
     parser.add_argument("--preset", default="tiny")
@@ -47,6 +108,8 @@ def main() -> None:
     opts = parser.parse_args()
     torch.set_num_threads(opts.threads)
     device = resolve_device(opts.device, "--device")
+    if opts.pipeline:
+        return pipeline(opts, device)
     gpu = device.type == "cuda"
     rows = ["| stage | " + " | ".join(opts.ranges) + " |", "|---|" + "---:|" * len(opts.ranges)]
     for stage in opts.stages:
@@ -55,19 +118,13 @@ def main() -> None:
             torch.manual_seed(0)
             cfg = preset(opts.preset, range=name)
             model = build_model(cfg).to(device)
-            trainer = Trainer(
-                model,
-                OccupancyDataset(opts.data, opts.splits, cfg, max_scenarios=1),
-                stage,
-                opts.sample_fraction,
-                1e-3,
-                device,
-            )
+            trainer = Trainer(model, stage, opts.sample_fraction, 1e-3, device)
+            sample = training_sample(cfg, stage)(OccupancyDataset(opts.data, opts.splits, cfg, max_scenarios=1), 0)
             rng = np.random.default_rng(0)
-            trainer.step([0], [rng])  # warm-up (and, for fusion, the cached vehicle outputs)
+            trainer.step([sample], [rng])  # warm-up (and, for fusion, the cached vehicle outputs)
             if gpu:
                 torch.cuda.reset_peak_memory_stats(device)
-            seconds, _ = timed(lambda: trainer.step([0], [rng]), opts.repeats)  # a step ends in .item(): synchronised
+            seconds, _ = timed(lambda: trainer.step([sample], [rng]), opts.repeats)  # ends in .item(): synchronised
             memory = f", {torch.cuda.max_memory_allocated(device) / 2**30:.1f} GiB" if gpu else ""
             cells.append(f"{seconds:.3f}{memory}")
             print(f"{stage} {name}: {seconds:.3f} s/step{memory}", flush=True)

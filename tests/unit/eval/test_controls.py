@@ -2,16 +2,16 @@
 
 import numpy as np
 import pytest
+from memory_dataset import MemoryDataset
 
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.eval.controls import GREY, ControlledInputs
-from co3sop_nodes.train.dataset import AgentRecord, OccupancyDataset
+from co3sop_nodes.train.dataset import AgentRecord
 
 
-def fake_dataset(scenarios: int, frames: int = 2, agents: int = 2, modality: str = "camera") -> OccupancyDataset:
+def fake_dataset(scenarios: int, frames: int = 2, agents: int = 2, modality: str = "camera") -> MemoryDataset:
     """A dataset whose every input is filled with a value naming its scenario, frame and agent."""
-    dataset = OccupancyDataset.__new__(OccupancyDataset)
-    dataset.frames = []
+    stored = []
     for s in range(scenarios):
         for t in range(frames):
             records = []
@@ -25,20 +25,20 @@ def fake_dataset(scenarios: int, frames: int = 2, agents: int = 2, modality: str
                 else:
                     inputs = {"occupancy": np.full((1, 4, 4, 2), tag % 2 + 1, np.uint8)}
                 records.append(AgentRecord(j, np.eye(4), inputs, None))
-            dataset.frames.append((("test", f"s{s}", t), records))
-    return dataset
+            stored.append((("test", f"s{s}", t), records))
+    return MemoryDataset(stored)
 
 
 def test_real_inputs_are_the_agents_own():
     dataset = fake_dataset(2)
-    assert ControlledInputs(dataset, "real")(3, 1) is dataset.frames[3][1][1].inputs
+    assert ControlledInputs(dataset, "real")(3, 1) is dataset.records[3][1].inputs
 
 
 def test_blank_inputs_keep_the_calibration():
     dataset = fake_dataset(2)
     got = ControlledInputs(dataset, "blank")(3, 1)
     assert (got["images"] == GREY).all() and got["images"].dtype == np.uint8
-    np.testing.assert_array_equal(got["lidar2img"], dataset.frames[3][1][1].inputs["lidar2img"])
+    np.testing.assert_array_equal(got["lidar2img"], dataset.records[3][1].inputs["lidar2img"])
     lidar = ControlledInputs(fake_dataset(2, modality="lidar"), "blank")(0, 0)
     assert not lidar["occupancy"].any() and lidar["occupancy"].shape == (1, 4, 4, 2)
 

@@ -6,14 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from memory_dataset import MemoryDataset
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.eval.evaluate import evaluate
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import LidarConfig, preset
-from co3sop_nodes.train.dataset import AgentRecord, OccupancyDataset
-from co3sop_nodes.train.trainer import _Forward
+from co3sop_nodes.train.dataset import AgentRecord
+from co3sop_nodes.train.trainer import _Forward, training_sample
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
 
 GRID = GridSpec((-6.4, -6.4, -2.0), 0.4, (32, 32, 8))
@@ -28,10 +29,9 @@ OWN = {0: (10, 16, 4), 1: (11, 16, 4)}  # each agent's one occupied voxel in its
 MERGED = {0: {(10, 16, 4), (16, 16, 4)}, 1: {(11, 16, 4), (5, 16, 4)}}  # agent 1 is 2 m (5 voxels) ahead of agent 0
 
 
-def dataset(scenarios: int = 2) -> OccupancyDataset:
+def dataset(scenarios: int = 2) -> MemoryDataset:
     """Two agents per frame, agent 1 2 m ahead of agent 0, one frame per scenario."""
-    data = OccupancyDataset.__new__(OccupancyDataset)
-    data.cfg, data.frames = CFG, []
+    frames = []
     for s in range(scenarios):
         records = []
         for j in (0, 1):
@@ -40,10 +40,8 @@ def dataset(scenarios: int = 2) -> OccupancyDataset:
             occupancy = np.zeros((1, *GRID.dims), np.uint8)
             occupancy[(0, *OWN[j])] = 1
             records.append(AgentRecord(j, pose, {"occupancy": occupancy}, np.zeros(GRID.dims, np.uint8)))
-        data.frames.append((("test", f"s{s}", 0), records))
-    data.scenarios = [("test", f"s{s}") for s in range(scenarios)]
-    data.index = [(f, j) for f in range(scenarios) for j in (0, 1)]
-    return data
+        frames.append((("test", f"s{s}", 0), records))
+    return MemoryDataset(frames, CFG)
 
 
 @pytest.fixture
@@ -102,9 +100,9 @@ def test_no_features_to_encode():
 
 def test_training_feeds_the_merged_scans_and_no_collaborator(model_and_scans):
     model, scans = model_and_scans
-    forward = _Forward(model.train(), dataset(1), "ego", torch.device("cpu"))
+    forward, data = _Forward(model.train(), "ego", torch.device("cpu")), dataset(1)
     index = torch.arange(0, GRID.dims[0] * GRID.dims[1] * GRID.dims[2], 97)[None]
     for i in (0, 1):
-        logits, confidence, labels = forward(i, index)
+        logits, confidence, labels = forward(training_sample(CFG, "ego")(data, i), index)
         assert logits[-1].shape[-1] == index.shape[1] and confidence.shape[1] == 1 and labels.shape == GRID.dims
     assert scans == [MERGED[0], MERGED[1]]

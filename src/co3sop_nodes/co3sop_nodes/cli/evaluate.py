@@ -62,6 +62,11 @@ def main(args: list[str] | None = None) -> int:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        help="folder for the preprocessed inputs and labels, shared with `train --cache` (see there)",
+    )
     add_device_argument(parser)
     parser.add_argument(
         "--precision",

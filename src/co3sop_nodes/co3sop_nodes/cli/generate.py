@@ -15,7 +15,7 @@ from pathlib import Path
 
 from co3sop_nodes.cli.common import run
 from co3sop_nodes.data import opv2v
-from co3sop_nodes.sim.generation import GenerateOptions, generate, read_recipe
+from co3sop_nodes.sim.generation import REAL_SIZE, GenerateOptions, generate, read_recipe
 
 
 def main(args: list[str] | None = None) -> int:
@@ -47,18 +47,33 @@ def main(args: list[str] | None = None) -> int:
         "--image-size", default="400x300", help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it"
     )
     parser.add_argument("--lidar-steps", type=int, default=1024, help="LiDAR rays per channel per sweep")
+    parser.add_argument(
+        "--label-margin",
+        default="0,0",
+        metavar="SIDE,TOP",
+        help="write label grids larger than each range's: SIDE voxels more on each side in x and y, TOP layers more "
+        "on top (readers crop them back at the centre, as Co3SOP's LoadOccupancy does)",
+    )
+    parser.add_argument(
+        "--real-size",
+        action="store_true",
+        help="the real dataset's sizes as defaults: 800x600 images, 2048 rays per LiDAR channel (64 channels), "
+        "label grids with a margin of 8,4 (options given explicitly win)",
+    )
     parser.add_argument("--extras", action="store_true", help="also write depth and semantic camera images")
     parser.add_argument("--bags", type=Path, help="also write one rosbag2 (MCAP) bag per scenario under this folder")
     parser.add_argument(
         "--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures"
     )
     parser.add_argument("--picture-range", default="51.2m", choices=list(opv2v.LABEL_FOLDERS))
-    recipe_path = parser.parse_known_args(args)[0].recipe
-    if recipe_path:
-        parser.set_defaults(**read_recipe(recipe_path))
+    known = parser.parse_known_args(args)[0]
+    if known.real_size:
+        parser.set_defaults(**REAL_SIZE)
+    if known.recipe:
+        parser.set_defaults(**read_recipe(known.recipe))
     opts = parser.parse_args(args)
 
-    del opts.recipe
+    del opts.recipe, opts.real_size
     return generate(GenerateOptions(**vars(opts)))
 
 

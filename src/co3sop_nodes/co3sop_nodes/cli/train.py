@@ -74,6 +74,18 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="run folder: state.pt, model.pt, log.csv, loss.png")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/state.pt")
     parser.add_argument("--save-every", type=int, default=200)
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="processes reading the next steps' samples while one trains (0: read in turn, in this process)",
+    )
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        help="folder for the preprocessed inputs (LiDAR occupancy, resized images) and labels: a later epoch or run "
+        "reads them instead of decoding PNG and PCD again (keyed by the preset's sensor settings, range and files)",
+    )
     opts = parser.parse_args(args)
     return train(opts, "train " + shlex.join(sys.argv[1:] if args is None else args))
 

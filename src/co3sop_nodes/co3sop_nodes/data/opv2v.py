@@ -290,6 +290,21 @@ def scenario_timestamps(scenario_dir: Path) -> tuple[list[str], list[int]]:
     return cavs, reference
 
 
+def read_lidar_pose(root: Path, split: str, scenario: str, cav: str, timestamp: int) -> np.ndarray:
+    """A CAV's world_from_lidar (4x4, REP-103) at one timestamp, from its yaml alone (no sensor file is read)."""
+    path = Path(root, split, scenario, cav, f"{timestamp:06d}.yaml")
+    return geo.carla_to_ros_matrix(geo.carla_pose_to_matrix(_numbers(path, read_yaml(path), ("lidar_pose",), (6,))))
+
+
+def cav_frame_files(root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True):
+    """The files `read_cav_frame` reads for these arguments (labels that do not exist left out)."""
+    cav_dir, ts = Path(root, split, scenario, cav), f"{timestamp:06d}"
+    files = [cav_dir / f"{ts}.yaml", *(cav_dir / f"{ts}_{name}.png" for name in CAMERAS)]
+    files += [cav_dir / f"{ts}.pcd"] if points else []
+    labels = [label_path(root, r, split, scenario, int(cav), timestamp) for r in ranges]
+    return files + [p for p in labels if p.exists()]
+
+
 def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True) -> CavFrame:
     """One CAV's files at one timestamp; `points=False` skips the (slow, ASCII) point cloud."""
     cav_dir = Path(root, split, scenario, cav)

@@ -30,15 +30,15 @@ class ControlledInputs:
             raise ValueError(f"input control {mode!r} (known: {', '.join(INPUT_CONTROLS)})")
         self.dataset, self.mode = dataset, mode
         by_scenario: dict[tuple[str, str], list[int]] = {}
-        for f, ((split, name, _), _) in enumerate(dataset.frames):
-            by_scenario.setdefault((split, name), []).append(f)
+        for f, frame in enumerate(dataset.frames):
+            by_scenario.setdefault(frame.key[:2], []).append(f)
         self.scenarios = list(by_scenario.values())  # frame indices per scenario, dataset order
         self.position = {f: (s, i) for s, frames in enumerate(self.scenarios) for i, f in enumerate(frames)}
         if mode == "shuffled" and len(self.scenarios) < 2:
             raise DatasetError("the shuffled input control needs at least two scenarios")
 
     def __call__(self, f: int, j: int) -> dict:
-        inputs = self.dataset.frames[f][1][j].inputs
+        inputs = self.dataset.agent(f, j).inputs
         if self.mode == "real":
             return inputs
         if self.mode == "blank":
@@ -47,6 +47,6 @@ class ControlledInputs:
             }
         s, i = self.position[f]
         donors = self.scenarios[(s + 1) % len(self.scenarios)]
-        agents = self.dataset.frames[donors[i % len(donors)]][1]
-        donor = agents[j % len(agents)].inputs
+        d = donors[i % len(donors)]
+        donor = self.dataset.agent(d, j % len(self.dataset.frames[d].cavs)).inputs
         return {k: (donor[k] if k in SENSOR_KEYS else v) for k, v in inputs.items()}

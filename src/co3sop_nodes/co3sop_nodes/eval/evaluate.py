@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from co3sop_nodes.common.bounded_cache import BoundedCache
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
@@ -30,6 +31,11 @@ from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 
 
+def vehicle_cache(max_bytes: int = 4 << 30) -> BoundedCache:
+    """The vehicle halves' outputs kept between samples and calls, at most `max_bytes` of them."""
+    return BoundedCache(max_bytes, lambda out: out.features.nbytes + out.confidence.nbytes)
+
+
 @torch.no_grad()
 def evaluate(
     model: Co3SOP,
@@ -46,6 +52,7 @@ def evaluate(
     later_frames: dict | None = None,
     path: InferencePath | None = None,
     labels: dict | None = None,
+    indices: list[int] | None = None,
 ) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
@@ -55,7 +62,8 @@ def evaluate(
     filled as the result with the samples whose ego was there the frame before (those a request map reaches:
     every one but the ego's first frame of a scenario). `path`, where given, is the inference path the model
     runs on from now on (`Co3SOP.use`: a cache is valid for one path only); `labels`, where given, is filled with
-    each sample's predicted labels by sample index.
+    each sample's predicted labels by sample index; `indices`, where given, are the samples evaluated (default:
+    every one).
     """
     early = model.cfg.early_fusion
     if early and codec is not None:
@@ -68,38 +76,38 @@ def evaluate(
     device = model.path.torch_device
     confusions, sent = {}, []
     senders: dict[tuple, SenderBudgets] = {}  # (scenario, sender) -> its byte budgets, one per ego
-    cache = {} if cache is None else cache
+    cache = vehicle_cache() if cache is None else cache
     controlled = ControlledInputs(dataset, inputs)
-    bar = progress(len(dataset), desc, "sample")
-    for i in range(len(dataset)):
+    indices = range(len(dataset)) if indices is None else indices
+    bar = progress(len(indices), desc, "sample")
+    for i in indices:
         if where is not None and not where(dataset.sample(i)):
             bar.update(1)
             continue
         sample = dataset.sample(i, collaborators)
         f, _ = dataset.index[i]
-        position = {a.cav_id: j for j, a in enumerate(dataset.frames[f][1])}
+        position = {cav: j for j, cav in enumerate(dataset.frames[f].cav_ids)}
 
-        def vehicle(record, frame: int = f, j: int | None = None) -> VehicleOutput:
-            key = (frame, record.cav_id, inputs)
-            if key not in cache:
-                cache[key] = model.vehicle(
-                    **to_batch(controlled(frame, position[record.cav_id] if j is None else j), device)
-                )
-            return cache[key]
+        def vehicle(cav: int, frame: int = f, j: int | None = None) -> VehicleOutput:
+            key = (frame, cav, inputs)
+            out = cache.get(key)
+            if out is None:
+                out = model.vehicle(**to_batch(controlled(frame, position[cav] if j is None else j), device))
+                cache[key] = out  # kept while the cache has room
+            return out
 
         def previous_frame(frame: int, cav: int) -> int | None:
             """`cav`'s index among the agents one frame before `frame` in the same scenario, if it was there."""
-            if frame == 0 or dataset.frames[frame - 1][0][:2] != dataset.frames[frame][0][:2]:
+            if frame == 0 or dataset.frames[frame - 1].key[:2] != dataset.frames[frame].key[:2]:
                 return None
-            return next((k for k, a in enumerate(dataset.frames[frame - 1][1]) if a.cav_id == cav), None)
+            return next((k for k, c in enumerate(dataset.frames[frame - 1].cav_ids) if c == cav), None)
 
         def previous_request(frame: int, cav: int) -> tuple[np.ndarray, np.ndarray] | None:
             """(request, world_from_ego) of `cav` one frame before `frame` in the same scenario, if it was there."""
             j = previous_frame(frame, cav)
             if j is None:
                 return None
-            agent = dataset.frames[frame - 1][1][j]
-            return request_of(vehicle(agent, frame - 1, j).confidence), agent.world_from_lidar
+            return request_of(vehicle(cav, frame - 1, j).confidence), dataset.frames[frame - 1].poses[j]
 
         others = sample.others
         if (
@@ -121,13 +129,13 @@ def evaluate(
                     cache[key] = ego
             others = []
         else:
-            ego = vehicle(sample.ego)
+            ego = vehicle(sample.ego.cav_id)
         # a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on a
         # scenario's first frame: the neighbour then weighs by its own confidence alone)
         request = previous_request(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
         candidates = {}
         for record in others:
-            out = vehicle(record)
+            out = vehicle(record.cav_id)
             if codec is not None:
                 wanted = (
                     None
@@ -482,9 +490,9 @@ def evaluate_models(opts) -> int:
         )  # the train commands behind the weights, in the JSON
         model.use(opts.inference)
         cfg = model.cfg
-        dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+        dataset = OccupancyDataset(opts.data, opts.splits, cfg, cache=opts.cache)
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
-        shared: dict = {}
+        shared = vehicle_cache()
 
         boot = Bootstrap(["/".join(k) for k in dataset.scenarios], seed=opts.seed)
 

@@ -155,6 +155,9 @@ def parse_splits(items: list[str]) -> dict[str, int]:
     return splits
 
 
+# the real dataset's sizes (OPV2V's cameras and 64-channel LiDAR at about 130 k points per sweep; labels larger
+# than the range's grid, as Co3SOP's may be), for `generate --real-size`
+REAL_SIZE = {"image_size": "800x600", "lidar_steps": 2048, "label_margin": "8,4"}
 RECIPE_KEYS = ("splits", "frames", "seed", "cavs", "vehicles", "image_size", "lidar_steps")
 
 
@@ -201,6 +204,7 @@ class GenerateOptions:
     vehicles: int = 30
     image_size: str = "400x300"
     lidar_steps: int = 1024
+    label_margin: str = "0,0"
     extras: bool = False
     bags: Path | None = None
     pictures: bool = False
@@ -221,7 +225,12 @@ def generate(opts: GenerateOptions) -> int:
         ) from None
     if not 1 <= cav_range[0] <= cav_range[1] <= 7:
         raise DatasetError(f"--cavs {opts.cavs!r}: between 1 and 7 CAVs")
+    try:
+        side, top = (int(v) for v in opts.label_margin.split(","))
+    except ValueError:
+        raise DatasetError(f"--label-margin {opts.label_margin!r}: expected SIDE,TOP voxels, e.g. 8,4") from None
     for option, value, least in (
+        ("--label-margin", min(side, top), 0),
         ("--frames", opts.frames, 1),
         ("--vehicles", opts.vehicles, 0),
         ("--lidar-steps", opts.lidar_steps, 1),
@@ -250,6 +259,7 @@ def generate(opts: GenerateOptions) -> int:
             image_size=(width, height),
             lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
             extra_images=opts.extras,
+            label_margin=(side, top),
             workers=1,
         )
         if (opts.out / split / name).is_dir():  # folder complete, only the bag is missing: redo both

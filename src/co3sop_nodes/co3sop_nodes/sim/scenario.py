@@ -28,6 +28,9 @@ class ScenarioConfig:
     image_size: tuple[int, int] = (400, 300)  # width, height; OPV2V's are 800 x 600 (intrinsics scale with it)
     lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
     ranges: tuple[str, ...] = tuple(BENCHMARK_RANGES)  # benchmark grids to annotate per CAV
+    # label grids larger than the range's, as Co3SOP's sensor may write them: (voxels added on each side in x and
+    # y, layers added on top); readers crop them back as Co3SOP's LoadOccupancy does (data/opv2v.read_labels)
+    label_margin: tuple[int, int] = (0, 0)
     extra_images: bool = False  # also keep depth and semantic camera images
     gnss_noise: float = 0.2  # m, std of the predicted_ego_pos error
     workers: int = 2  # threads of the voxel sensor and of the cameras
@@ -63,12 +66,25 @@ def world_states(cfg: ScenarioConfig, seed: int) -> Iterator[tuple[int, Town, Tr
         traffic.step()
 
 
+def labelled_grid(grid: GridSpec, margin: tuple[int, int]) -> GridSpec:
+    """`grid` with `margin[0]` voxels more on each side in x and y and `margin[1]` layers more on top: the centre
+    crop in x and y and the bottom layers in z give `grid` back."""
+    side, top = margin
+    x, y, z = grid.origin
+    nx, ny, nz = grid.dims
+    return GridSpec(
+        (x - side * grid.voxel_size, y - side * grid.voxel_size, z),
+        grid.voxel_size,
+        (nx + 2 * side, ny + 2 * side, nz + top),
+    )
+
+
 def simulate(cfg: ScenarioConfig, seed: int, name: str) -> Iterator[list[CavFrame]]:
     """Yields, per frame, one CavFrame for every CAV (REP-103 frames)."""
     rng = np.random.default_rng(seed)
     width, height = cfg.image_size
     k = rig.intrinsics(width, height)
-    grids: dict[str, GridSpec] = {r: BENCHMARK_RANGES[r] for r in cfg.ranges}
+    grids: dict[str, GridSpec] = {r: labelled_grid(BENCHMARK_RANGES[r], cfg.label_margin) for r in cfg.ranges}
     static = None
     for timestamp, town, traffic, dynamic in world_states(cfg, seed):
         if static is None:  # the static world is meshed once

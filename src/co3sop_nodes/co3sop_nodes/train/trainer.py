@@ -9,12 +9,14 @@ import math
 import os
 import random
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.common.bounded_cache import BoundedCache
+from co3sop_nodes.common.errors import Co3sopError, DatasetError
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.inference.checkpoint import export_model, load_model, read_checkpoint, save_training_state
 from co3sop_nodes.inference.inputs import to_batch
@@ -24,7 +26,8 @@ from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupa
 from co3sop_nodes.model.mask_loss import mask_classification_loss
 from co3sop_nodes.model.occformer import class_scores, log_scores
 from co3sop_nodes.train import distributed
-from co3sop_nodes.train.dataset import OccupancyDataset, early_fused
+from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
+from co3sop_nodes.train.loader import StepSamples, step_loader
 from co3sop_nodes.train.log import keep_log_until, plot_losses
 
 
@@ -66,36 +69,43 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def training_sample(cfg, stage: str) -> Callable[[OccupancyDataset, int], Sample]:
+    """How sample i is read for a stage: the ego alone in the ego stage, and for an early-fusion model its
+    collaborators' scans merged into its own (nothing is fused after the model)."""
+
+    def prepare(dataset: OccupancyDataset, i: int) -> Sample:
+        if cfg.early_fusion:
+            return early_fused(dataset.sample(i), cfg.grid)
+        return dataset.sample(i, 0 if stage == "ego" else None)
+
+    return prepare
+
+
 class _Forward(torch.nn.Module):
     """One sample's training forward (its vehicle halves, then the ego half) as one module call, so that
-    DistributedDataParallel sees every parameter a step uses; the frozen vehicle half's outputs are cached in
-    the fusion stage."""
+    DistributedDataParallel sees every parameter a step uses. In the fusion stage the frozen vehicle half's
+    outputs are float16 (as a float32 output rounds there), kept while they fit `cache_bytes`."""
 
-    def __init__(self, model, dataset: OccupancyDataset, stage: str, device: torch.device):
+    def __init__(self, model, stage: str, device: torch.device, cache_bytes: int = 4 << 30):
         super().__init__()
-        self.model, self.dataset, self.stage, self.device = model, dataset, stage, device
-        self.cache: dict[tuple[int, int], VehicleOutput] = {}
+        self.model, self.stage, self.device = model, stage, device
+        self.cache = BoundedCache(cache_bytes, lambda out: out.features.nbytes + out.confidence.nbytes)
 
     def _vehicle(self, record_key, inputs) -> VehicleOutput:
         if self.stage != "fusion":
             return self.model.vehicle(**to_batch(inputs, self.device))
-        if record_key not in self.cache:  # frozen: computed once, in eval mode
+        out = self.cache.get(record_key)
+        if out is None:  # frozen: computed in eval mode, rounded to float16 whether kept or not
             with torch.no_grad():
                 out = self.model.vehicle.eval()(**to_batch(inputs, self.device))
-            self.cache[record_key] = VehicleOutput(out.features.half(), out.confidence.half())
-        out = self.cache[record_key]
+            out = VehicleOutput(out.features.half(), out.confidence.half())
+            self.cache[record_key] = out
         return VehicleOutput(out.features.float(), out.confidence.float())
 
-    def forward(self, i: int, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
-        early = (
-            self.model.cfg.early_fusion
-        )  # the collaborators' scans join the ego's before the model: nothing fused after it
-        sample = self.dataset.sample(i, 0 if self.stage == "ego" and not early else None)
-        f, _ = self.dataset.index[i]
-        if early:
-            sample = early_fused(sample, self.model.cfg.grid)
-        ego = self._vehicle((f, sample.ego.cav_id), sample.ego.inputs)
-        others = [self._vehicle((f, a.cav_id), a.inputs) for a in sample.others]
+    def forward(self, sample: Sample, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
+        frame = sample.key[:3]
+        ego = self._vehicle((frame, sample.ego.cav_id), sample.ego.inputs)
+        others = [self._vehicle((frame, a.cav_id), a.inputs) for a in sample.others]
         rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None
         return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels
 
@@ -107,7 +117,6 @@ class Trainer:
     def __init__(
         self,
         model,
-        dataset: OccupancyDataset,
         stage: str,
         sample_fraction: float,
         lr: float,
@@ -123,7 +132,7 @@ class Trainer:
                 p.requires_grad_(False)
         params = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
-        self.forward = _Forward(model, dataset, stage, device)
+        self.forward = _Forward(model, stage, device)
         if (
             world.size > 1
         ):  # a parameter unused by one sample (the fusion, alone) is averaged as a zero gradient, as one process does
@@ -131,10 +140,10 @@ class Trainer:
                 self.forward, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True
             )
 
-    def _loss(self, i: int, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    def _loss(self, sample: Sample, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.model.cfg
         if cfg.head == "occformer":  # mask classification on class-guided points (model/mask_loss.py)
-            preds, confidence, labels = self.forward(i, None)
+            preds, confidence, labels = self.forward(sample, None)
             labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
             parts = mask_classification_loss(preds, labels, cfg.occformer.points, rng)
             if self.stage != "fusion":
@@ -146,7 +155,7 @@ class Trainer:
         index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(
             self.device
         )
-        logits, confidence, labels = self.forward(i, index)
+        logits, confidence, labels = self.forward(sample, index)
         labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
         k = self.model.cfg.num_classes
         targets = [
@@ -159,7 +168,7 @@ class Trainer:
             parts["confidence"] = confidence_loss(confidence, logits[0], targets[0])
         return sum(parts.values()), parts
 
-    def step(self, samples: list[int], rngs: list[np.random.Generator]) -> dict[str, float]:
+    def step(self, samples: list[Sample], rngs: list[np.random.Generator]) -> dict[str, float]:
         """One optimisation step on this process's share of the global batch (samples[j] drawing its loss voxels
         with rngs[j]); the gradient is the mean over the global batch. Returns the batch's mean losses."""
         self.model.train()
@@ -167,11 +176,11 @@ class Trainer:
             self.model.vehicle.eval()
         self.optimizer.zero_grad(set_to_none=True)
         logged: dict[str, float] = {}
-        for j, (i, rng) in enumerate(zip(samples, rngs)):
+        for j, (sample, rng) in enumerate(zip(samples, rngs)):
             last = j == len(samples) - 1  # DDP averages over processes once, after a process's last sample
             sync = self.forward.no_sync() if self.world.size > 1 and not last else contextlib.nullcontext()
             with sync:
-                loss, parts = self._loss(i, rng)
+                loss, parts = self._loss(sample, rng)
                 (loss / len(samples)).backward()
             for k, v in {"loss": loss, **parts}.items():
                 logged[k] = logged.get(k, 0.0) + v.item() / len(samples)
@@ -190,6 +199,7 @@ def train(opts, command: str) -> int:
         ("--lr", opts.lr, opts.lr > 0, "above 0"),
         ("--sample-fraction", opts.sample_fraction, 0 < opts.sample_fraction <= 1, "in (0, 1]"),
         ("--threads", opts.threads, opts.threads is None or opts.threads >= 1, "at least 1"),
+        ("--workers", opts.workers, opts.workers >= 0, "0 or more"),
     ):
         if not ok:  # refused before the dataset is read, which takes minutes
             raise Co3sopError(f"{option} {value}: must be {needs}")
@@ -227,14 +237,14 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
         f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""),
         flush=True,
     )
-    dataset = OccupancyDataset(opts.data, opts.splits, cfg)
+    dataset = OccupancyDataset(opts.data, opts.splits, cfg, cache=opts.cache)
     batch = opts.batch * world.size  # the global batch: every process's share of each step together
     say(
         f"train: {len(dataset)} samples from {len(dataset.frames)} frames; global batch {batch} per step"
         + (f" ({opts.batch} in each of {world.size} processes)" if world.size > 1 else ""),
         flush=True,
     )
-    trainer = Trainer(model, dataset, opts.stage, opts.sample_fraction, opts.lr, device, world)
+    trainer = Trainer(model, opts.stage, opts.sample_fraction, opts.lr, device, world)
     if state is not None:
         trainer.optimizer.load_state_dict(state["optimizer"])
     if world.main:
@@ -262,20 +272,35 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
     rng = np.random.default_rng(opts.seed + start)
     share = opts.batch  # this process's samples of each step
     order = sample_order(len(dataset), opts.seed, opts.steps * batch)
+    steps = StepSamples(dataset, order, start, opts.steps, batch, world.rank, share, training_sample(cfg, opts.stage))
     bar = progress(opts.steps, f"train {opts.stage}", "step", disable=not world.main)
     bar.update(start)
     t0 = time.time()
+    waited = 0.0  # seconds the step waited for its samples
     with open(log_path, "a", newline="") if world.main else contextlib.nullcontext() as log:
+        loaded = iter(step_loader(steps, opts.workers))
         for step in range(start, opts.steps):
             lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
             for group in trainer.optimizer.param_groups:
                 group["lr"] = lr
-            places = range(step * batch + world.rank * share, step * batch + (world.rank + 1) * share)
+            t_wait = time.perf_counter()
+            samples = next(loaded)
+            waited += time.perf_counter() - t_wait
+            if isinstance(samples, DatasetError):
+                raise samples
+            places = steps.places(step)
             rngs = [rng] if batch == 1 else [np.random.default_rng([opts.seed, p]) for p in places]
-            parts = trainer.step([int(order[p]) for p in places], rngs)
+            parts = trainer.step(samples, rngs)
             if not world.main:
                 continue
-            row = {"step": step + 1, "stage": opts.stage, **parts, "lr": lr, "seconds": round(time.time() - t0, 2)}
+            row = {
+                "step": step + 1,
+                "stage": opts.stage,
+                **parts,
+                "lr": lr,
+                "seconds": round(time.time() - t0, 2),
+                "data_wait_seconds": round(waited, 2),
+            }
             if fields is None:
                 fields = list(row)
                 writer = csv.DictWriter(log, fieldnames=fields, extrasaction="ignore")
@@ -298,5 +323,9 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
     if world.main:
         export_model(opts.out / "model.pt", model, {"history": history})
         plot_losses(log_path, opts.out / "loss.png")
-        print(f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}")
+        elapsed = max(time.time() - t0, 1e-9)
+        print(
+            f"train: done; model {opts.out / 'model.pt'}, log {log_path}, plot {opts.out / 'loss.png'}; "
+            f"{100 * waited / elapsed:.1f} % of the time waiting for data ({opts.workers} workers)"
+        )
     return 0
