@@ -13,8 +13,8 @@ from __future__ import annotations
 import os
 import shutil
 from collections import defaultdict
-from contextlib import contextmanager
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,11 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.classes import NUM_CLASSES
+from co3sop_nodes.common.errors import Co3sopError, DatasetError, exception_line
+from co3sop_nodes.common.frames import CavFrame
+from co3sop_nodes.common.geometry import OPTICAL_FROM_BODY, Pose
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
+from co3sop_nodes.common.transforms import StaticTransforms
 from co3sop_nodes.messages import (
     OCCUPANCY,
     RosbagsTypes,
@@ -46,17 +51,23 @@ from co3sop_nodes.messages import (
 from co3sop_nodes.messages.co3sop import TYPES as CO3SOP_TYPES
 from co3sop_nodes.messages.sensors import CAMERA_INFO, IMAGE, LIDAR_POINTS, POINT_CLOUD
 from co3sop_nodes.v2x.codec import decode_labels, encode_labels
-from co3sop_nodes.common.errors import Co3sopError, DatasetError, exception_line
-from co3sop_nodes.common.frames import CavFrame
-from co3sop_nodes.common.geometry import OPTICAL_FROM_BODY, Pose
-from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
-from co3sop_nodes.common.transforms import StaticTransforms
 
 TF = "tf2_msgs/msg/TFMessage"
 _RANGE_OF_SUFFIX = {suffix: name for name, suffix in topics.RANGE_SUFFIX.items()}
 _NEVER = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)
-_LATCHED = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _NEVER, _NEVER,
-                QosLiveliness.AUTOMATIC, _NEVER, False)]
+_LATCHED = [
+    Qos(
+        QosHistory.KEEP_LAST,
+        1,
+        QosReliability.RELIABLE,
+        QosDurability.TRANSIENT_LOCAL,
+        _NEVER,
+        _NEVER,
+        QosLiveliness.AUTOMATIC,
+        _NEVER,
+        False,
+    )
+]
 
 
 def msg_dir() -> Path:
@@ -96,7 +107,7 @@ class BagWriter:
         self._static_sent: set[int] = set()
         self.messages = 0
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         self._writer.open()
         return self
 
@@ -119,8 +130,9 @@ class BagWriter:
 
     def _occupancy(self, stamp_ns: int, frame: CavFrame, range_name: str):
         enc = encode_labels(frame.labels[range_name], BENCHMARK_RANGES[range_name], NUM_CLASSES)
-        return occupancy_msg(self.types, enc, stamp_ns=stamp_ns, frame_id=topics.lidar_frame(frame.cav_id),
-                             agent_id=frame.cav_id)
+        return occupancy_msg(
+            self.types, enc, stamp_ns=stamp_ns, frame_id=topics.lidar_frame(frame.cav_id), agent_id=frame.cav_id
+        )
 
     # --- writing -----------------------------------------------------------------------------------
 
@@ -140,7 +152,9 @@ class BagWriter:
             if cav not in self._static_sent:
                 self._write(topics.TF_STATIC, TF, stamp, tf_msg(types, self._mounts(frame)), latched=True)
                 self._static_sent.add(cav)
-            tfs.append(transform_msg(types, stamp, topics.WORLD_FRAME, topics.base_frame(cav), frame.world_from_vehicle))
+            tfs.append(
+                transform_msg(types, stamp, topics.WORLD_FRAME, topics.base_frame(cav), frame.world_from_vehicle)
+            )
             pose = pose_stamped_msg(types, stamp, topics.WORLD_FRAME, Pose.from_matrix(frame.world_from_lidar))
             self._write(topics.lidar_pose(cav), "geometry_msgs/msg/PoseStamped", stamp, pose)
             self._write(topics.lidar_points(cav), POINT_CLOUD, stamp, self._points(stamp, frame))
@@ -149,17 +163,27 @@ class BagWriter:
                 at = {"stamp_ns": stamp, "frame_id": optical}
                 h, w = cam.rgb.shape[:2]
                 self._write(topics.camera_image(cav, cam.name), IMAGE, stamp, image_msg(types, cam.rgb, "rgb8", **at))
-                self._write(topics.camera_info(cav, cam.name), CAMERA_INFO, stamp,
-                            camera_info_msg(types, cam.intrinsics, w, h, **at))
+                self._write(
+                    topics.camera_info(cav, cam.name),
+                    CAMERA_INFO,
+                    stamp,
+                    camera_info_msg(types, cam.intrinsics, w, h, **at),
+                )
                 if cam.depth is not None:
-                    self._write(topics.camera_depth(cav, cam.name), IMAGE, stamp,
-                                image_msg(types, cam.depth, "32FC1", **at))
+                    self._write(
+                        topics.camera_depth(cav, cam.name), IMAGE, stamp, image_msg(types, cam.depth, "32FC1", **at)
+                    )
                 if cam.semantic is not None:
-                    self._write(topics.camera_semantic(cav, cam.name), IMAGE, stamp,
-                                image_msg(types, cam.semantic, "mono8", **at))
+                    self._write(
+                        topics.camera_semantic(cav, cam.name),
+                        IMAGE,
+                        stamp,
+                        image_msg(types, cam.semantic, "mono8", **at),
+                    )
             for range_name in frame.labels:
-                self._write(topics.ground_truth(cav, range_name), OCCUPANCY, stamp,
-                            self._occupancy(stamp, frame, range_name))
+                self._write(
+                    topics.ground_truth(cav, range_name), OCCUPANCY, stamp, self._occupancy(stamp, frame, range_name)
+                )
         if tfs:
             self._write(topics.TF, TF, frames[0].stamp_ns, tf_msg(types, tfs))
 
@@ -171,7 +195,9 @@ class BagWriter:
         out = [transform_msg(types, stamp, topics.base_frame(cav), topics.lidar_frame(cav), base_from_lidar)]
         for cam in frame.cameras:
             body, optical = topics.camera_frame(cav, cam.name), topics.camera_optical_frame(cav, cam.name)
-            out.append(transform_msg(types, stamp, topics.lidar_frame(cav), body, lidar_from_world @ cam.world_from_camera))
+            out.append(
+                transform_msg(types, stamp, topics.lidar_frame(cav), body, lidar_from_world @ cam.world_from_camera)
+            )
             out.append(transform_msg(types, stamp, body, optical, np.linalg.inv(OPTICAL_FROM_BODY)))
         return out
 
@@ -198,7 +224,7 @@ class BagReader:
         self.path, self._what, self._hint = Path(path), what, hint
         try:
             self._reader = AnyReader([self.path], default_typestore=store or get_typestore(Stores.ROS2_JAZZY))
-        except Exception as exc:  # noqa: BLE001 - see the class docstring
+        except Exception as exc:  # see the class docstring
             raise self._damaged(exc) from None
 
     def _damaged(self, exc: BaseException) -> DatasetError:
@@ -207,7 +233,7 @@ class BagReader:
     def open(self) -> None:
         try:
             self._reader.open()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             raise self._damaged(exc) from None
 
     def close(self) -> None:
@@ -247,7 +273,7 @@ class BagReader:
                 item = next(it)
             except StopIteration:
                 return
-            except Exception as exc:  # noqa: BLE001 - a chunk that does not decompress, a truncated record...
+            except Exception as exc:  # a chunk that does not decompress, a truncated record...
                 raise self._damaged(exc) from None
             yield item
 
@@ -255,9 +281,10 @@ class BagReader:
         """The message, or a DatasetError naming its topic and log time."""
         try:
             return self._reader.deserialize(raw, conn.msgtype)
-        except Exception as exc:  # noqa: BLE001
-            raise DatasetError(f"{self.path}: {conn.topic} at {stamp} ns: not a valid {conn.msgtype} ({exception_line(exc)})") from None
-
+        except Exception as exc:
+            raise DatasetError(
+                f"{self.path}: {conn.topic} at {stamp} ns: not a valid {conn.msgtype} ({exception_line(exc)})"
+            ) from None
 
     @contextmanager
     def about(self, conn, stamp: int):
@@ -290,7 +317,9 @@ def read_static_transforms(path: Path) -> StaticTransforms:
     """Every /tf_static transform of a bag (the sensor mounts)."""
     tree = StaticTransforms()
     with open_reader(path) as reader:
-        for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topics.TF_STATIC]):
+        for conn, stamp, raw in reader.messages(
+            connections=[c for c in reader.connections if c.topic == topics.TF_STATIC]
+        ):
             for parent, child, parent_from_child in transforms_of(reader.deserialize(raw, conn, stamp)):
                 tree.add(parent, child, parent_from_child)
     return tree

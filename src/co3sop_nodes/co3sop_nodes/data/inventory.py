@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from co3sop_nodes.data import opv2v
 from co3sop_nodes.common import topics
-from co3sop_nodes.data.bags import occupancy_labels, open_reader, open_recording
 from co3sop_nodes.common.classes import CLASS_NAMES, NUM_CLASSES
 from co3sop_nodes.common.errors import DatasetError
-from co3sop_nodes.messages import OCCUPANCY
 from co3sop_nodes.common.progress import progress
+from co3sop_nodes.data import opv2v
+from co3sop_nodes.data.bags import occupancy_labels, open_reader, open_recording
+from co3sop_nodes.messages import OCCUPANCY
 
 
 def class_table(counts: dict[str, np.ndarray]) -> str:
@@ -48,7 +48,9 @@ def bag_info(path: Path, counts: bool) -> str:
                 cavs.add(cav[0])
         messages = reader.message_count
         duration = (reader.end_time - reader.start_time) / 1e9 if messages else 0.0
-        for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.topic.endswith("/lidar/pose")]):
+        for _, stamp, _ in reader.messages(
+            connections=[c for c in reader.connections if c.topic.endswith("/lidar/pose")]
+        ):
             stamps.add(stamp)
         if counts:
             # ground-truth grids only: a recording also holds their point clouds (/ego/ground_truth/points)
@@ -59,8 +61,14 @@ def bag_info(path: Path, counts: bool) -> str:
                     labels, grid = occupancy_labels(msg)
                 class_counts[f"{grid.extent[0]:.1f}m"] += _count(labels)
     frames = f"; {len(stamps)} frames" if stamps or not recording else ""  # a recording has no sensor poses
-    out = [f"# {path}", f"{'MCAP file' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}{frames}", "",
-           "| topic | type | messages |", "|---|---|---:|", *rows]
+    out = [
+        f"# {path}",
+        f"{'MCAP file' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}{frames}",
+        "",
+        "| topic | type | messages |",
+        "|---|---|---:|",
+        *rows,
+    ]
     if class_counts:
         out += ["", "Ground-truth voxels per class:", "", class_table(class_counts)]
     return "\n".join(out)
@@ -68,15 +76,22 @@ def bag_info(path: Path, counts: bool) -> str:
 
 def folder_info(root: Path, counts: bool) -> str:
     scenarios = opv2v.find_scenarios(root)
-    out = [f"# {root}", f"{len(scenarios)} scenario(s): " + ", ".join(f"{s} {n}" for s, n in Counter(s for s, _ in scenarios).items()), "",
-           "| split | scenario | CAVs (ego first) | frames | label ranges |", "|---|---|---|---:|---|"]
+    out = [
+        f"# {root}",
+        f"{len(scenarios)} scenario(s): " + ", ".join(f"{s} {n}" for s, n in Counter(s for s, _ in scenarios).items()),
+        "",
+        "| split | scenario | CAVs (ego first) | frames | label ranges |",
+        "|---|---|---|---:|---|",
+    ]
     class_counts: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(NUM_CLASSES + 1, np.int64))
     files = []
     for split, name in scenarios:
         cavs, timestamps = opv2v.scenario_timestamps(root / split / name)
         ranges = [r for r, folder in opv2v.LABEL_FOLDERS.items() if (root / folder / split / name).is_dir()]
         out.append(f"| {split} | {name} | {' '.join(cavs)} | {len(timestamps)} | {' '.join(ranges) or '-'} |")
-        files += [(r, opv2v.label_path(root, r, split, name, int(c), t)) for r in ranges for c in cavs for t in timestamps]
+        files += [
+            (r, opv2v.label_path(root, r, split, name, int(c), t)) for r in ranges for c in cavs for t in timestamps
+        ]
     if counts and files:
         bar = progress(len(files), "label files", "file")
         for range_name, path in files:

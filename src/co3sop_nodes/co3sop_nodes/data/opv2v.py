@@ -127,7 +127,9 @@ def write_frame(root: Path, split: str, frame: CavFrame, scenario_dir: str | Non
     for cam in frame.cameras:
         write_png(cav_dir / f"{ts}_{cam.name}.png", cam.rgb)
         if cam.depth is not None:  # extras OpenCOOD ignores: depth in mm (16 bit), semantic labels
-            write_png(cav_dir / f"{ts}_{cam.name}_depth.png", np.clip(np.rint(cam.depth * 1000), 0, 65535).astype(np.uint16))
+            write_png(
+                cav_dir / f"{ts}_{cam.name}_depth.png", np.clip(np.rint(cam.depth * 1000), 0, 65535).astype(np.uint16)
+            )
         if cam.semantic is not None:
             write_png(cav_dir / f"{ts}_{cam.name}_semantic.png", cam.semantic)
     for range_name, labels in frame.labels.items():
@@ -219,7 +221,9 @@ def read_pcd(path: Path) -> tuple[np.ndarray, np.ndarray]:
     except ValueError:
         raise DatasetError(f"{path}: PCD data holds something that is not a number") from None
     if values.size != n * len(fields):
-        raise DatasetError(f"{path}: PCD declares {n} points of {len(fields)} fields but holds {values.size} values (truncated?)")
+        raise DatasetError(
+            f"{path}: PCD declares {n} points of {len(fields)} fields but holds {values.size} values (truncated?)"
+        )
     table = values.reshape(n, len(fields))
     xyz = table[:, [fields.index(c) for c in "xyz"]].astype(np.float32)
     if "intensity" in fields:
@@ -305,7 +309,9 @@ def cav_frame_files(root: Path, split: str, scenario: str, cav: str, timestamp: 
     return files + [p for p in labels if p.exists()]
 
 
-def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True) -> CavFrame:
+def read_cav_frame(
+    root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True
+) -> CavFrame:
     """One CAV's files at one timestamp; `points=False` skips the (slow, ASCII) point cloud."""
     cav_dir = Path(root, split, scenario, cav)
     ts = f"{timestamp:06d}"
@@ -320,9 +326,11 @@ def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: i
         world_from_camera = geo.carla_to_ros_matrix(lidar_carla @ np.linalg.inv(extrinsic))
         intrinsic = _numbers(path, data, (name, "intrinsic"), (3, 3))
         cameras.append(CameraFrame(name, world_from_camera, intrinsic, read_png(cav_dir / f"{ts}_{name}.png")))
-    xyz, intensity = read_pcd(cav_dir / f"{ts}.pcd") if points else (np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+    xyz, intensity = (
+        read_pcd(cav_dir / f"{ts}.pcd") if points else (np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+    )
     vehicles = []
-    for vid, v in (data.get("vehicles") or {}).items():
+    for vid in data.get("vehicles") or {}:
         location = _numbers(path, data, ("vehicles", vid, "location"), (3,))
         angle = _numbers(path, data, ("vehicles", vid, "angle"), (3,))
         vehicles.append(
@@ -347,7 +355,9 @@ def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: i
         scenario=scenario,
         cav_id=int(cav),
         timestamp=timestamp,
-        world_from_vehicle=geo.carla_to_ros_matrix(geo.carla_pose_to_matrix(_numbers(path, data, ("true_ego_pos",), (6,)))),
+        world_from_vehicle=geo.carla_to_ros_matrix(
+            geo.carla_pose_to_matrix(_numbers(path, data, ("true_ego_pos",), (6,)))
+        ),
         world_from_lidar=geo.carla_to_ros_matrix(lidar_carla),
         speed=float(_numbers(path, data, ("ego_speed",), ())) / KMH,
         cameras=cameras,
@@ -356,7 +366,9 @@ def read_cav_frame(root: Path, split: str, scenario: str, cav: str, timestamp: i
         labels=labels,
         vehicles=vehicles,
         plan=plan,
-        world_from_predicted=geo.carla_to_ros_matrix(geo.carla_pose_to_matrix(_numbers(path, data, ("predicted_ego_pos",), (6,)))),
+        world_from_predicted=geo.carla_to_ros_matrix(
+            geo.carla_pose_to_matrix(_numbers(path, data, ("predicted_ego_pos",), (6,)))
+        ),
     )
 
 
@@ -368,7 +380,9 @@ def find_scenarios(root: Path) -> list[tuple[str, str]]:
     out = []
     for split in SPLITS:
         if (root / split).is_dir():
-            out += [(split, s.name) for s in sorted((root / split).iterdir()) if s.is_dir() and not s.name.startswith(".")]
+            out += [
+                (split, s.name) for s in sorted((root / split).iterdir()) if s.is_dir() and not s.name.startswith(".")
+            ]
     if not out:
         raise DatasetError(f"{root}: no OPV2V split folders ({', '.join(SPLITS)}) with scenarios")
     return out

@@ -18,8 +18,8 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from co3sop_nodes.data.bags import typestore
 from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.data.bags import typestore
 
 LIBRARY = "co3sop_nodes recorder"
 
@@ -39,7 +39,7 @@ class McapRecorder:
         self.counts: Counter[str] = Counter()
         self._closed = False
 
-    def __enter__(self) -> "McapRecorder":
+    def __enter__(self) -> McapRecorder:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -53,13 +53,24 @@ class McapRecorder:
             self._schemas[msgtype] = self._writer.register_schema(msgtype, "ros2msg", definition)
         return self._schemas[msgtype]
 
-    def write(self, topic: str, msgtype: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None,
-              definition: bytes | None = None) -> None:
+    def write(
+        self,
+        topic: str,
+        msgtype: str,
+        data: bytes,
+        log_time_ns: int,
+        publish_time_ns: int | None = None,
+        definition: bytes | None = None,
+    ) -> None:
         """One serialized message of type 'pkg/msg/Type' (its definition comes from the installed types unless given)."""
         if topic not in self._channels:
             self._channels[topic] = self._writer.register_channel(topic, "cdr", self._schema(msgtype, definition))
-        self._writer.add_message(self._channels[topic], log_time=log_time_ns, data=bytes(data),
-                                 publish_time=log_time_ns if publish_time_ns is None else publish_time_ns)
+        self._writer.add_message(
+            self._channels[topic],
+            log_time=log_time_ns,
+            data=bytes(data),
+            publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
+        )
         self.counts[topic] += 1
 
     def flush(self) -> None:
@@ -106,9 +117,11 @@ def recover(source: Path, target: Path | None = None) -> Recovered:
                     elif isinstance(record, Message) and record.channel_id in channels:
                         channel = channels[record.channel_id]
                         schema = schemas[channel.schema_id]
-                        out.write(channel.topic, schema.name, record.data, record.log_time, record.publish_time, schema.data)
+                        out.write(
+                            channel.topic, schema.name, record.data, record.log_time, record.publish_time, schema.data
+                        )
                 complete = True
-            except Exception as exc:  # noqa: BLE001 - a damaged record fails in many ways; the scan stops at the first
+            except Exception as exc:  # a damaged record fails in many ways; the scan stops at the first
                 problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
             if not out.counts and not schemas:
                 raise DatasetError(f"{source}: not an MCAP file or nothing recoverable ({problem})")
