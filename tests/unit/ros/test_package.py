@@ -289,7 +289,8 @@ def test_the_readme_fits_a_screen_and_links_every_doc_page():
     readme = (PACKAGE.parents[1] / "README.md").read_text()
     assert len(readme.splitlines()) <= 60
     assert "ros2_ws/run_demo.sh" in readme and "ros2_ws/run_tests.sh" in readme
-    for page in ("jazzy", "nodes", "data-and-training", "v2x", "hostile-input", "architecture", "status", "results"):
+    pages = ("jazzy", "nodes", "data-and-training", "real-dataset", "v2x", "hostile-input", "architecture", "status")
+    for page in (*pages, "results"):
         assert f"(src/co3sop_nodes/doc/{page}.md)" in readme, page
         assert (PACKAGE / "doc" / f"{page}.md").is_file(), page
 
