@@ -79,11 +79,11 @@ def test_a_changed_preset_range_or_file_never_reads_a_stale_entry(root, tmp_path
     reads = counting_reads(monkeypatch)
     OccupancyDataset(root, ["test"], preset("tiny", image_size=(32, 24)), cache=cache).sample(0)
     OccupancyDataset(root, ["test"], preset("tiny", image_size=(64, 48), range="25.6m"), cache=cache).sample(0)
-    assert len(reads) == 2 and len(list(cache.iterdir())) == 3  # one folder per setting
+    assert len(reads) == 4 and len(list(cache.iterdir())) == 3  # each sample's two agents; one folder per setting
     png = root / "test" / SCENARIO / "4805" / "000069_camera0.png"
     os.utime(png, ns=(png.stat().st_atime_ns, png.stat().st_mtime_ns + 10**9))  # the image was replaced
     OccupancyDataset(root, ["test"], CAMERA, cache=cache).sample(0)
-    assert len(reads) == 3
+    assert reads[4:] == [("4805", 69)]  # only the agent whose file changed is read again
 
 
 def test_each_step_gets_its_samples_in_the_run_order_whatever_the_workers(root):

@@ -31,6 +31,13 @@ from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 
 
+def data_origin(root: Path) -> dict:
+    """The evaluated data as the results page names it: its root, and whether this project's simulator wrote
+    it (every scenario's data_protocol.yaml carries the simulator's settings)."""
+    protocols = list(Path(root).glob("*/*/data_protocol.yaml"))
+    return {"root": str(root), "generated": bool(protocols) and all("co3sop_sim:" in p.read_text() for p in protocols)}
+
+
 def vehicle_cache(max_bytes: int = 4 << 30) -> BoundedCache:
     """The vehicle halves' outputs kept between samples and calls, at most `max_bytes` of them."""
     return BoundedCache(max_bytes, lambda out: out.features.nbytes + out.confidence.nbytes)
@@ -225,6 +232,7 @@ def _compare(
         {
             "title": title,
             "command": opts.command,
+            "data": opts.data_origin,
             "trained": opts.trained,
             "reference": reference,
             **summaries,
@@ -324,7 +332,10 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
         "last column leaves those first frames out.\n\n" + "\n".join(rows)
     )
     _write(
-        opts.out, f"{stem}_codec", text, {"title": title, "command": opts.command, "trained": opts.trained, **results}
+        opts.out,
+        f"{stem}_codec",
+        text,
+        {"title": title, "command": opts.command, "data": opts.data_origin, "trained": opts.trained, **results},
     )
     plot_codecs(opts.out / f"{stem}_codec.png", {name: r for name, r in results.items() if name != "alone"}, title)
 
@@ -415,7 +426,7 @@ def _distance(opts, cfg, stem, title, measure, boot) -> None:
         opts.out,
         f"{stem}_distance",
         text,
-        {"title": title, "command": opts.command, "trained": opts.trained, "bins": results},
+        {"title": title, "command": opts.command, "data": opts.data_origin, "trained": opts.trained, "bins": results},
     )
 
 
@@ -481,6 +492,7 @@ ABLATIONS = {
 def evaluate_models(opts) -> int:
     """Every model of `opts` (evaluate's options) on its splits, or its ablations; tables written under opts.out."""
     torch.set_num_threads(opts.threads)
+    opts.data_origin = data_origin(opts.data)
     opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
     table: dict[str, dict] = {}
     for path in [resolve_checkpoint(m, "--model") for m in opts.model] if opts.model else [shipped_checkpoint()]:
@@ -520,6 +532,6 @@ def evaluate_models(opts) -> int:
             opts.out,
             "evaluation",
             f"### Per-class IoU (%) and mIoU on {splits} (95 % intervals over scenarios)\n\n" + markdown_table(table),
-            {"splits": opts.splits, "command": opts.command, **table},
+            {"splits": opts.splits, "command": opts.command, "data": opts.data_origin, **table},
         )
     return 0
