@@ -120,7 +120,7 @@ for step in "${STEPS[@]}"; do
         fi
       done ;;
     report)
-      "$LIB/report" "$RESULTS" --out src/co3sop_nodes/doc/results.md ;;
+      "$LIB/report" "$RESULTS" --out src/co3sop_nodes/doc/results.md --goals src/co3sop_nodes/config/benchmark.yaml ;;
     *) echo "run_protocol: unknown step '$step' (data, train, evaluate, report)" >&2; exit 2 ;;
   esac
 done

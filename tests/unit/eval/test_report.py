@@ -18,6 +18,7 @@ from co3sop_nodes.eval.report import (
     goals,
     levers_section,
     method,
+    read_goals,
     render,
     table2_section,
     training,
@@ -25,6 +26,8 @@ from co3sop_nodes.eval.report import (
     write_report,
 )
 from co3sop_nodes.model.config import PRESETS
+
+GOALS = read_goals(Path(__file__).resolve().parents[3] / "src/co3sop_nodes/config/benchmark.yaml")
 
 
 def test_a_short_gain_is_set_against_what_the_collaborators_see(tmp_path):
@@ -91,7 +94,7 @@ def test_a_damaged_evaluation_is_named_not_a_traceback(tmp_path, name, text, say
 def test_the_lidar_gain_goal_is_judged_only_where_the_issue_sets_it(tmp_path):
     for run in ("tiny-lidar-25.6m-s1", "tiny-lidar-76.8m-s1"):
         shutil.copytree(SHIPPED / run, tmp_path / run)
-    lines = goals(collect(tmp_path), tmp_path)
+    lines = goals(collect(tmp_path), tmp_path, GOALS)
     near, far = (next(line for line in lines if f", {rng}, " in line) for rng in ("25.6m", "76.8m"))
     assert "no goal at this range (the project sets +3.00 at 51.2m and 76.8m)" in near and "**" not in near
     assert "against the goal of +3.00" in far and ("**met**" in far or "**not met" in far)
@@ -120,7 +123,7 @@ def test_the_early_fusion_reference_has_no_goal_and_is_set_beside_a_short_lidar_
     gain = json.loads((tmp_path / "tiny-sscnet-early-76.8m-s1/tiny-lidar_76.8m_collaboration.json").read_text())[
         "differences"
     ]["on"]["co3sop-code"]
-    lines = goals(collect(tmp_path), tmp_path)
+    lines = goals(collect(tmp_path), tmp_path, GOALS)
     assert not any(line.startswith("- tiny-sscnet-early") for line in lines)  # a reference, judged against no goal
     near, far = (next(line for line in lines if line.startswith(f"- tiny-lidar, {rng}")) for rng in ("25.6m", "76.8m"))
     said = f"gains {100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}] (seed 1) over its own scan alone."
@@ -205,16 +208,18 @@ def test_the_shipped_results_page_is_what_report_makes_of_the_shipped_evaluation
     root = SHIPPED.parents[3]
     monkeypatch.chdir(root)
     results, page = Path("src/co3sop_nodes/doc/evaluation"), Path("src/co3sop_nodes/doc/results.md")
-    assert render(results, f"report {results} --out {page}") + "\n" == page.read_text()
+    recipe = Path("src/co3sop_nodes/config/benchmark.yaml")
+    command = f"report {results} --out {page} --goals {recipe}"
+    assert render(results, command, read_goals(recipe)) + "\n" == page.read_text()
 
 
 def test_a_goal_met_at_51_2_m_with_fewer_than_3_seeds_says_so(tmp_path):
     shutil.copytree(SHIPPED / "small-51.2m-s1", tmp_path / "small-51.2m-s1")
-    (line,) = goals(collect(tmp_path), tmp_path)
+    (line,) = goals(collect(tmp_path), tmp_path, GOALS)
     assert "**met on 1 seed; a headline model at 51.2m needs 3**" in line
     for seed in (2, 3):  # the same evidence under three seeds: the goal is met outright
         shutil.copytree(SHIPPED / "small-51.2m-s1", tmp_path / f"small-51.2m-s{seed}")
-    (line,) = goals(collect(tmp_path), tmp_path)
+    (line,) = goals(collect(tmp_path), tmp_path, GOALS)
     assert "(3 seeds)" in line and line.endswith("**met**.")
 
 
@@ -270,3 +275,14 @@ def test_ego_stages_scored_alone_on_validate_are_paired_row_by_row(tmp_path):
     assert low <= above <= high
     shutil.rmtree(tmp_path / "validate")
     assert levers_section(tmp_path) == []  # none evaluated: no section
+
+
+def test_goals_come_from_the_protocol_recipe_and_a_bad_one_is_named(tmp_path):
+    assert (GOALS.lidar_gain, GOALS.lidar_gain_ranges, GOALS.camera_miou) == (0.03, ("51.2m", "76.8m"), 0.15)
+    assert (GOALS.headline_range, GOALS.headline_seeds) == ("51.2m", 3)
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text("goals:\n  lidar_gain: {points: 3.0}\n")
+    with pytest.raises(Co3sopError, match=r"recipe.yaml: 'goals' needs .*ranges"):
+        read_goals(recipe)
+    shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", tmp_path / "tiny-lidar-76.8m-s1")
+    assert "protocol's goals" not in render(tmp_path, "report")  # no recipe given: no goals section

@@ -1,6 +1,7 @@
 """`report`: the benchmark page (markdown) from `evaluate`'s JSON, so no figure is ever typed by hand.
 
-    ros2 run co3sop_nodes report src/co3sop_nodes/doc/evaluation --out src/co3sop_nodes/doc/results.md
+    ros2 run co3sop_nodes report src/co3sop_nodes/doc/evaluation --out src/co3sop_nodes/doc/results.md \
+        --goals src/co3sop_nodes/config/benchmark.yaml
 
 RESULTS holds one folder per trained run, named <preset>-<range>-s<seed> (as
 ros2_ws/run_protocol.sh writes them), each with the ablation JSON files of
@@ -31,8 +32,14 @@ def main(args: list[str] | None = None) -> int:
     )
     parser.add_argument("results", type=Path, help="folder of <preset>-<range>-s<seed> evaluation folders")
     parser.add_argument("--out", type=Path, required=True, help="markdown page to write")
+    parser.add_argument(
+        "--goals",
+        type=Path,
+        metavar="RECIPE",
+        help="a protocol recipe whose 'goals' section each model is set against (e.g. config/benchmark.yaml)",
+    )
     opts = parser.parse_args(args)
-    return write_report(opts.results, opts.out)
+    return write_report(opts.results, opts.out, opts.goals)
 
 
 entry = run(main)

@@ -7,9 +7,11 @@ import json
 import re
 from collections import Counter
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
@@ -206,19 +208,44 @@ def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
 
 
 # the project's goal: a collaborative LiDAR gain of at least +3 mIoU points (1..23), every interval above zero
-GAIN_GOAL = 0.03
-GAIN_GOAL_RANGES = ("51.2m", "76.8m")  # ... at these ranges; none at 25.6 m (the paper's own gain there: +0.68)
-CAMERA_GOAL = (
-    0.15  # the project's goal: the camera model at least 15 mIoU (1..23) at 51.2 m, its gain's interval above zero
-)
-HEADLINE = ("51.2m", 3)  # a headline model at 51.2 m is trained with at least 3 seeds
+@dataclass(frozen=True)
+class Goals:
+    """What the page sets each model against (a protocol's `goals` section, e.g. config/benchmark.yaml)."""
+
+    lidar_gain: float  # the LiDAR models' mean collaboration gain (fraction: 0.03 = 3 points) ...
+    lidar_gain_ranges: tuple[str, ...]  # ... at these ranges
+    camera_miou: float  # the camera models' mIoU (1..23, with collaboration) at 51.2 m
+    headline_range: str  # a headline model at this range ...
+    headline_seeds: int  # ... is trained with at least this many seeds
 
 
-def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> list[str]:
-    """Per model and range, against its goal: the LiDAR model's mean gain (at GAIN_GOAL_RANGES), the camera model's
-    mIoU at 51.2 m; and whether every seed's gain interval excludes zero. A goal reached at 51.2 m with fewer seeds than
-    a headline model needs (HEADLINE) is met on those seeds only, and says so. A LiDAR gain short of its goal, or at a
-    range without one, is set against what the collaborators' LiDAR adds there (observed-<range>.json), where
+def read_goals(path: Path) -> Goals:
+    """The `goals` section of a protocol recipe (YAML), in points as written there; a missing or wrong field named."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise Co3sopError(f"{path}: not a readable YAML recipe ({exc})") from None
+    section = data.get("goals") if isinstance(data, dict) else None
+    try:
+        return Goals(
+            lidar_gain=float(section["lidar_gain"]["points"]) / 100,
+            lidar_gain_ranges=tuple(str(r) for r in section["lidar_gain"]["ranges"]),
+            camera_miou=float(section["camera_miou"]["points"]) / 100,
+            headline_range=str(section["headline"]["range"]),
+            headline_seeds=int(section["headline"]["seeds"]),
+        )
+    except (TypeError, KeyError, ValueError) as exc:
+        raise Co3sopError(
+            f"{path}: 'goals' needs lidar_gain {{points, ranges}}, camera_miou {{points}}, headline {{range, seeds}} "
+            f"(missing or wrong: {exc})"
+        ) from None
+
+
+def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path, target: Goals) -> list[str]:
+    """Per model and range, against its goal: the LiDAR model's mean gain (at the goal's ranges), the camera model's
+    mIoU at 51.2 m; and whether every seed's gain interval excludes zero. A goal reached at the headline range with
+    fewer seeds than a headline model needs is met on those seeds only, and says so. A LiDAR gain short of its goal,
+    or at a range without one, is set against what the collaborators' LiDAR adds there (observed-<range>.json), where
     it was measured."""
     lines = []
     for (name, rng, steps), seeds in runs.items():
@@ -235,27 +262,30 @@ def goals(runs: dict[tuple[str, str, str], dict[int, Path]], results: Path) -> l
                 continue
             score, goal, what = (
                 float(np.mean([point(r["on"], "co3sop-code") for r in reports])),
-                CAMERA_GOAL,
+                target.camera_miou,
                 "mIoU 1..23 with collaboration",
             )
-        elif rng not in GAIN_GOAL_RANGES:
+        elif rng not in target.lidar_gain_ranges:
             lines.append(
                 about + f"mean gain {pct(mean)}; {intervals}; no goal at this range "
-                f"(the project sets +{pct(GAIN_GOAL)} at "
-                f"{' and '.join(GAIN_GOAL_RANGES)})."
+                f"(the project sets +{pct(target.lidar_gain)} at "
+                f"{' and '.join(target.lidar_gain_ranges)})."
                 + why_short(results / f"observed-{rng}.json")
                 + early_reference(runs, rng)
             )
             continue
         else:
-            score, goal, what = mean, GAIN_GOAL, "mean gain"
+            score, goal, what = mean, target.lidar_gain, "mean gain"
         verdict = (
             ("met" if above else "not met: an interval reaches zero")
             if score >= goal
             else f"not met: short by {pct(goal - score)} points"
         )
-        if verdict == "met" and rng == HEADLINE[0] and len(seeds) < HEADLINE[1]:
-            verdict = f"met on {len(seeds)} seed{'s' * (len(seeds) > 1)}; a headline model at {rng} needs {HEADLINE[1]}"
+        if verdict == "met" and rng == target.headline_range and len(seeds) < target.headline_seeds:
+            verdict = (
+                f"met on {len(seeds)} seed{'s' * (len(seeds) > 1)}; a headline model at {rng} needs "
+                f"{target.headline_seeds}"
+            )
         lines.append(
             about
             + f"{what} {pct(score)} against the goal of {'+' * (what == 'mean gain')}{pct(goal)}"
@@ -686,7 +716,7 @@ def data_origin(results: Path) -> str:
     )
 
 
-def render(results: Path, command: str) -> str:
+def render(results: Path, command: str, target: Goals | None = None) -> str:
     runs = collect(results)
     out = [
         "# Benchmark results (test split)",
@@ -714,10 +744,11 @@ def render(results: Path, command: str) -> str:
         "",
         *headline(runs),
         "",
-        "Against the project's goals (computed from the table above):",
-        "",
-        *goals(runs, results),
-        "",
+        *(
+            ["Against the protocol's goals (computed from the table above):", "", *goals(runs, results, target), ""]
+            if target is not None
+            else []
+        ),
         *table2_section(results, runs),
         *across_ranges(
             runs,
@@ -768,11 +799,14 @@ def render(results: Path, command: str) -> str:
     return "\n".join(out)
 
 
-def write_report(results: Path, out: Path) -> int:
-    """The page for the evaluation folders under `results`, written atomically to `out`."""
+def write_report(results: Path, out: Path, goals_from: Path | None = None) -> int:
+    """The page for the evaluation folders under `results`, written atomically to `out`; with `goals_from` (a
+    protocol recipe), each model set against the recipe's goals."""
     if not results.is_dir():
         raise Co3sopError(f"{results}: not a folder")
-    text = render(results, f"report {results} --out {out}")
+    target = read_goals(goals_from) if goals_from is not None else None
+    command = f"report {results} --out {out}" + (f" --goals {goals_from}" if goals_from is not None else "")
+    text = render(results, command, target)
     tmp = out.with_name(f".{out.name}.tmp")
     tmp.write_text(text + "\n")
     tmp.replace(out)  # atomic: a failed run leaves the previous page
