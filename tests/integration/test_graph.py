@@ -246,7 +246,11 @@ def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[st
 
 @pytest.mark.parametrize(
     "dtype, rank, budget, burst",
-    [("int8", 0, 20000, 0), ("int8", 8, 20000, 0), ("int4", 8, 4000, 16000)],
+    [  # the last takes every path the others do (transform coding, a budget) and the int4 and burst ones besides
+        pytest.param("int8", 0, 20000, 0, marks=pytest.mark.heavy),
+        pytest.param("int8", 8, 20000, 0, marks=pytest.mark.heavy),
+        ("int4", 8, 4000, 16000),
+    ],
     ids=["channels", "rank8", "rank8-int4-burst"],
 )
 def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dtype, rank, budget, burst):
