@@ -299,3 +299,18 @@ def test_the_architecture_page_names_every_subpackage():
     page = (PACKAGE / "doc" / "architecture.md").read_text()
     subpackages = sorted(p.parent.name for p in (PACKAGE / "co3sop_nodes").glob("*/__init__.py"))
     assert subpackages and all(f"| `{name}/` |" in page for name in subpackages), subpackages
+
+
+def test_colcon_test_runs_the_suite():
+    """`colcon test` runs pytest in the package's folder (colcon-core does, for a setup.py whose 'test' extra has
+    pytest): its settings must point at the repository's tests, and the workspace's defaults at the package."""
+    import configparser
+
+    cfg = configparser.ConfigParser()
+    cfg.read(PACKAGE / "setup.cfg")
+    paths = [(PACKAGE / p).resolve() for p in cfg["tool:pytest"]["testpaths"].split()]
+    assert paths == [REPO / "tests" / "unit", REPO / "tests" / "integration"]
+    assert '-m "not heavy"' in cfg["tool:pytest"]["addopts"]
+    assert re.search(r'extras_require=\{"test": \["pytest"\]\}', (PACKAGE / "setup.py").read_text())
+    defaults = yaml.safe_load((REPO / "ros2_ws" / "colcon_defaults.yaml").read_text())
+    assert defaults["test"]["base-paths"] == defaults["build"]["base-paths"] == ["../src"]
