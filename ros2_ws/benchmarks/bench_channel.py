@@ -55,27 +55,32 @@ def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str
     out = (
         opts.out
         / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}{f'-run{run}' if run else ''}"
+        f"{'-shared' if opts.shared else ''}"
     )
     qos = f"features_reliability:={reliability}"
-    argv = [
-        demo,
-        "--out",
-        str(out),
-        "--quiet",
-        "--model",
-        opts.model,
-        "--rate",
-        f"{opts.play_rate:g}",
-        "--channel-rate",
-        f"{link:g}",
-        "--channel-loss",
-        f"{loss:g}",
-        "--params",
-        *CODECS[codec],
-        qos,
-        "--ego-params",
-        qos,
-    ] + (["--bag", str(opts.bag)] if opts.bag else [])
+    argv = (
+        [
+            demo,
+            "--out",
+            str(out),
+            "--quiet",
+            "--model",
+            opts.model,
+            "--rate",
+            f"{opts.play_rate:g}",
+            "--channel-rate",
+            f"{link:g}",
+            "--channel-loss",
+            f"{loss:g}",
+            "--params",
+            *CODECS[codec],
+            qos,
+            "--ego-params",
+            qos,
+        ]
+        + (["--bag", str(opts.bag)] if opts.bag else [])
+        + (["--channel-shared"] if opts.shared else [])
+    )
     print(f"[bench_channel] {link:g} Mbit/s, {loss:g} % loss, {codec}, {reliability}", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
     if done.returncode != 0:
@@ -88,6 +93,7 @@ def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str
     measured = measure_diagnostics(diagnostics)
     score = json.loads((out / "score.json").read_text())
     lost = re.search(r"packets dropped by the channel: (.*)", done.stdout)
+    medium = re.search(r"packets the shared medium dropped [^:]*: (\d+)", done.stdout)
     return {
         "link": link,
         "loss": loss,
@@ -99,7 +105,8 @@ def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str
         "latency_p95": measured["latency_ms_p95"],
         "miou24": score["co3sop-readme"]["miou"],
         "miou23": score["co3sop-code"]["miou"],
-        "lost": lost.group(1) if lost else "-",
+        "lost": ", ".join([*([lost.group(1)] if lost else []), *([f"medium {medium.group(1)}"] if medium else [])])
+        or "-",
         "frames": len(ego),
     }
 
@@ -115,6 +122,11 @@ def main() -> int:
     )
     parser.add_argument("--play-rate", type=float, default=0.25, help="the bag's play rate (the link is scaled by it)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each cell (a row each, then their median)")
+    parser.add_argument(
+        "--shared",
+        action="store_true",
+        help="every CAV on one shared medium of the link's rate (demo --channel-shared)",
+    )
     parser.add_argument("--out", type=Path, default=Path("results/bench_channel"))
     parser.add_argument(
         "--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)"
@@ -122,7 +134,12 @@ def main() -> int:
     opts = parser.parse_args()
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
     rows = [
-        f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); 3 vehicles + ego.",
+        f"Play rate {opts.play_rate:g} (the link is LINK x {opts.play_rate:g} Mbit/s); 3 vehicles + ego"
+        + (
+            "; every CAV on one shared medium of the link's rate."
+            if opts.shared
+            else ", each CAV on a link of its own."
+        ),
         "",
         "| link (Mbit/s, real time) | loss (%) | neighbours' codec | features QoS | neighbour-frames fused (%) | bytes per neighbour-frame | "
         "latency p50 / p95 (ms) | mIoU 24 classes | mIoU 1..23 | packets lost by the channel |",

@@ -96,6 +96,25 @@ def test_channel_shapes_rate_and_loss_and_removes_everything():
     assert host_if not in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
 
 
+def test_a_shared_medium_limits_the_members_together_and_is_removed():
+    """Two members sending at once share one 8 Mbit/s medium: together they get through at about its rate, the
+    rest is dropped and counted; each member's own link is far faster."""
+    with Channel({m: Link(50.0) for m in ("ego", "cav1", "cav2")}, shared=Link(8.0)) as channel:
+        receiver = in_namespace(channel, "ego", RECEIVE)
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        senders = [in_namespace(channel, m, SEND.format(address=channel.addresses["ego"])) for m in ("cav1", "cav2")]
+        assert all(s.wait(60) == 0 for s in senders)
+        seconds = time.monotonic() - t0
+        received, dropped = int(receiver.communicate(timeout=30)[0]), channel.dropped_by_medium()
+        # 8 Mbit/s passes about 1000 packets of 1000 B (plus headers) per second of the senders' ~1.2 s
+        assert 0.5 * 1000 * seconds < received < 1.3 * 1000 * seconds + 50, (received, seconds)
+        assert received + dropped >= 3900 and dropped > 1500, (received, dropped)  # 4000 sent
+        rules = subprocess.run(channel.wrap("hub", ["nft", "list", "ruleset"]), capture_output=True, text=True).stdout
+        assert 'limit name "air"' in rules and '"cav1"' in rules and '"ego"' in rules
+    assert ours(os.getpid()) == []
+
+
 def test_channel_is_removed_when_its_user_fails():
     with pytest.raises(RuntimeError):
         with Channel({"ego": Link(10.0)}):

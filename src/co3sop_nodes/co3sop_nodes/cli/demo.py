@@ -106,9 +106,15 @@ def main(args: list[str] | None = None) -> int:
         metavar="PERCENT",
         help="with --channel-rate: share of each CAV's packets dropped at random (default 0)",
     )
+    parser.add_argument(
+        "--channel-shared",
+        action="store_true",
+        help="with --channel-rate: every CAV transmits on one shared medium of that rate (together, as on one radio "
+        "channel), not each on a link of its own",
+    )
     opts = parser.parse_args(args)
-    if opts.channel_rate is None and opts.channel_loss:
-        parser.error("--channel-loss needs --channel-rate")
+    if opts.channel_rate is None and (opts.channel_loss or opts.channel_shared):
+        parser.error("--channel-loss and --channel-shared need --channel-rate")
     if opts.rate is not None and not opts.rate > 0:
         parser.error(f"--rate {opts.rate}: must be above 0")
     if opts.frames < 1:

@@ -143,6 +143,7 @@ class DemoOptions:
     quiet: bool = False
     channel_rate: float | None = None
     channel_loss: float = 0.0
+    channel_shared: bool = False
 
 
 def run_demo(opts: DemoOptions) -> int:
@@ -170,11 +171,13 @@ def run_demo(opts: DemoOptions) -> int:
     channel = None
     if opts.channel_rate is not None:
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)
-        channel = Channel({member: link for member in ["ego", *(f"cav{c}" for c in cavs[1:])]})
+        members = ["ego", *(f"cav{c}" for c in cavs[1:])]
+        channel = Channel({m: link for m in members}, shared=link if opts.channel_shared else None)
         os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
         say(
             f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} Mbit/s of real time "
             f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
+            + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
         )
     with channel or contextlib.nullcontext():
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, t0)
@@ -292,6 +295,10 @@ def _graph(
         )
     if channel and opts.channel_loss:
         say("packets dropped by the channel: " + ", ".join(f"{m} {channel.dropped(m)}" for m in channel.links))
+    if channel and opts.channel_shared:
+        say(
+            f"packets the shared medium dropped (its rate exceeded by the CAVs together): {channel.dropped_by_medium()}"
+        )
     code = score_recording(mcap, opts.out)
     layout = write_layout(opts.out / "foxglove_layout.json", ego)
     say(f"to see it in 3D: open {mcap} in Foxglove and import the layout {layout} (prediction | ground truth, cameras)")

@@ -6,7 +6,10 @@ hub namespace; the machine's own namespace (the simulator: player, launcher)
 joins the bridge unshaped. A CAV's radio is its namespace's transmit side:
 rate-limited by a token bucket (tc `tbf`) and, where a loss rate is given,
 thinned by an nftables rule on its device's egress dropping that share of its
-packets at random (`numgen random`). Every byte between CAVs then crosses a shaped link, over UDP:
+packets at random (`numgen random`). With a shared medium, every CAV's transmissions also count against
+one rate for all of them together, as on one radio channel: a single nftables limit (a named `limit` object)
+on what the hub's bridge forwards from any CAV drops what exceeds it, as frames lost on a crowded channel.
+Every byte between CAVs then crosses a shaped link, over UDP:
 the processes use a Fast DDS profile without shared memory (which would bypass
 the link, /dev/shm being shared by all namespaces).
 
@@ -138,7 +141,8 @@ class Channel:
     """Namespaces for `links` (member name -> its Link) joined through a bridge; the machine's namespace joins
     unshaped. Use as a context manager; `wrap(member, argv)` runs a command inside a member."""
 
-    def __init__(self, links: dict[str, Link], subnet: str | None = None):
+    def __init__(self, links: dict[str, Link], subnet: str | None = None, shared: Link | None = None):
+        """`shared`: one medium all members transmit on together (its rate; its loss is each member's own)."""
         if not links:
             raise ChannelError("a channel needs at least one member")
         if missing := missing_tools():
@@ -150,7 +154,7 @@ class Channel:
         for name in links:
             if not re.fullmatch(r"[a-z0-9]{1,12}", name):
                 raise ChannelError(f"member name {name!r}: 1-12 lower-case letters or digits")
-        self.links = dict(links)
+        self.links, self.shared = dict(links), shared
         self.pid = os.getpid()
         self.hub = f"{PREFIX}{self.pid}-hub"
         # a /24 per launcher, so that channels of concurrent launchers never share addresses
@@ -224,6 +228,8 @@ class Channel:
             _run("ip", "link", "set", "eth0", "up", ns=ns)
             _run("ip", "route", "add", "default", "dev", "eth0", ns=ns)  # multicast discovery needs a route
             self._shape(ns, link)
+        if self.shared is not None:
+            self._share(self.shared)
 
     def _add_namespace(self, ns: str) -> None:
         _run("ip", "netns", "add", ns)
@@ -263,17 +269,28 @@ class Channel:
                 'table netdev v2x {\n chain out {\n  type filter hook egress device "eth0" priority 0; policy accept;\n'
                 f"  numgen random mod 1000000 < {per_million} counter drop\n }}\n}}\n"
             )
-            done = subprocess.run(
-                ["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, capture_output=True, text=True
-            )
-            if done.returncode != 0:
-                raise ChannelError(f"nftables rule in {ns} failed: {done.stderr.strip()}")
+            _nft(ns, rules)
+
+    def _share(self, medium: Link) -> None:
+        """One token bucket for every member's transmissions, on the hub's bridge (the machine's side unshaped)."""
+        rate = medium.rate_mbit * 1e6 / 8  # bytes/s
+        burst = max(4096, int(rate * 0.01))  # 10 ms of the rate, as each member's own bucket
+        members = ", ".join(f'"{m}"' for m in self.links)
+        rules = (
+            "table bridge medium {\n"
+            f" limit air {{ rate over {round(rate)} bytes/second burst {burst} bytes }}\n"
+            " chain forward {\n  type filter hook forward priority 0; policy accept;\n"
+            f'  iifname {{ {members} }} limit name "air" counter drop\n }}\n}}\n'
+        )
+        _nft(self.hub, rules)
+
+    def dropped_by_medium(self) -> int:
+        """Packets the shared medium dropped so far (its rate exceeded by the members together)."""
+        return _counted(self.hub, "bridge", "medium", "forward")
 
     def dropped(self, member: str) -> int:
         """Packets the loss rule dropped on `member`'s transmit side so far."""
-        done = _run("nft", "list", "chain", "netdev", "v2x", "out", ns=self.namespace(member), check=False)
-        m = re.search(r"counter packets (\d+)", done.stdout)
-        return int(m.group(1)) if m else 0
+        return _counted(self.namespace(member), "netdev", "v2x", "out")
 
     def close(self) -> None:
         """Remove every namespace and link this channel made (idempotent)."""
@@ -285,6 +302,19 @@ class Channel:
             self._reaper.terminate()
             self._reaper.wait(5)
         self._reaper = None
+
+
+def _nft(ns: str, rules: str) -> None:
+    done = subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise ChannelError(f"nftables rules in {ns} failed: {done.stderr.strip()}")
+
+
+def _counted(ns: str, family: str, table: str, chain: str) -> int:
+    """Packets the counter of an nftables chain's rule has counted (0 where there is none)."""
+    done = _run("nft", "list", "chain", family, table, chain, ns=ns, check=False)
+    m = re.search(r"counter packets (\d+)", done.stdout)
+    return int(m.group(1)) if m else 0
 
 
 def _reap(pid: int) -> None:
