@@ -225,7 +225,8 @@ def test_train_stages_resume_and_evaluate(small_split):
     choice.mkdir(parents=True)
     shutil.copy(bench / "tiny_51.2m_collaboration.json", choice)
     page = out / "benchmark.md"
-    result = tool("report", str(out / "bench"), "--out", str(page))
+    recipe = Path(__file__).resolve().parents[2] / "src/co3sop_nodes/config/benchmark.yaml"
+    result = tool("report", str(out / "bench"), "--out", str(page), "--goals", str(recipe))
     assert result.returncode == 0, result.stderr
     text = page.read_text()
     gain = report["differences"]["on"]["co3sop-code"]
