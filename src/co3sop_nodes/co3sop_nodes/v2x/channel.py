@@ -272,7 +272,9 @@ class Channel:
             _nft(ns, rules)
 
     def _share(self, medium: Link) -> None:
-        """One token bucket for every member's transmissions, on the hub's bridge (the machine's side unshaped)."""
+        """One token bucket for every member's transmissions, on the hub's bridge (the machine's side unshaped).
+        nftables' bucket holds one second of the rate besides the burst: the medium's rate holds over windows of
+        a second, within which a frame's burst can pass faster (each member's own link still paces it)."""
         rate = medium.rate_mbit * 1e6 / 8  # bytes/s
         burst = max(4096, int(rate * 0.01))  # 10 ms of the rate, as each member's own bucket
         members = ", ".join(f'"{m}"' for m in self.links)
