@@ -53,8 +53,8 @@ CODECS = {  # the neighbours' vehicle parameters
 
 def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str, run: int = 0) -> dict:
     out = (
-        opts.out
-        / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}{f'-run{run}' if run else ''}"
+        opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}"
+        f"{f'-run{run}' if run else ''}"
         f"{'-shared' if opts.shared else ''}"
     )
     qos = f"features_reliability:={reliability}"
@@ -141,7 +141,8 @@ def main() -> int:
             else ", each CAV on a link of its own."
         ),
         "",
-        "| link (Mbit/s, real time) | loss (%) | neighbours' codec | features QoS | neighbour-frames fused (%) | bytes per neighbour-frame | "
+        "| link (Mbit/s, real time) | loss (%) | neighbours' codec | features QoS | neighbour-frames fused "
+        "(%) | bytes per neighbour-frame | "
         "latency p50 / p95 (ms) | mIoU 24 classes | mIoU 1..23 | packets lost by the channel |",
         "|---:|---:|---|---|---:|---:|---:|---:|---:|---|",
     ]
@@ -163,8 +164,10 @@ def main() -> int:
                         }
                         labelled.append((f"{codec} (median of {opts.repeats})", {**median, "lost": "-"}))
                     rows += [
-                        f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | {100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
-                        f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | {100 * r['miou23']:.2f} | {r['lost']} |"
+                        f"| {link:g} | {loss:g} | {label} | {reliability.replace('_', ' ')} | "
+                        f"{100 * r['fused']:.0f} | {r['bytes']:,.0f} | "
+                        f"{r['latency_p50']:.0f} / {r['latency_p95']:.0f} | {100 * r['miou24']:.2f} | "
+                        f"{100 * r['miou23']:.2f} | {r['lost']} |"
                         for label, r in labelled
                     ]
     text = "\n".join(rows)

@@ -236,14 +236,17 @@ def main() -> int:
     for r in results.values():
         r["gain_kept"] = (r["miou_code"] - alone["miou_code"]) / gain if alone and gain > 0 else float("nan")
     print(
-        f"\n| V2X feature codec (neighbours) | bytes per neighbour-frame | vs {opts.settings[0]} | mIoU co3sop-readme | change (points) | "
+        f"\n| V2X feature codec (neighbours) | bytes per neighbour-frame | vs {opts.settings[0]} | mIoU "
+        f"co3sop-readme | change (points) | "
         "mIoU co3sop-code | gain kept (%) | latency p50 / p95 (ms) | DDS share p50 |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, r in results.items():
         print(
-            f"| {name} | {r['bytes_per_agent_frame']:,.0f} | {r['bytes_per_agent_frame'] / ref['bytes_per_agent_frame'] if ref['bytes_per_agent_frame'] else 0:.3f} | "
-            f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {100 * r['miou_code']:.2f} | {100 * r['gain_kept']:.0f} | "
+            f"| {name} | {r['bytes_per_agent_frame']:,.0f} | "
+            f"{r['bytes_per_agent_frame'] / ref['bytes_per_agent_frame'] if ref['bytes_per_agent_frame'] else 0:.3f} | "
+            f"{100 * r['miou']:.2f} | {100 * (r['miou'] - ref['miou']):+.2f} | {100 * r['miou_code']:.2f} | "
+            f"{100 * r['gain_kept']:.0f} | "
             f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {100 * r['dds_share_p50']:.1f} % |"
         )
     opts.out.mkdir(parents=True, exist_ok=True)

@@ -58,7 +58,8 @@ def on(device: torch.device):
 @torch.no_grad()
 def stage_table(name: str, repeats: int, device: torch.device) -> str:
     rows = [
-        "| range | feature grid | vehicle half s/agent | warp s/neighbour | fusion s | head s | total s (ego + 2 collaborators) |",
+        "| range | feature grid | vehicle half s/agent | warp s/neighbour | fusion s | head s | total s (ego "
+        "+ 2 collaborators) |",
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     for range_name in ("25.6m", "51.2m", "76.8m"):
@@ -82,7 +83,8 @@ def stage_table(name: str, repeats: int, device: torch.device) -> str:
         t_head, _ = timed_on(lambda: model.ego.head.labels(fused), repeats)
         total = 3 * t_vehicle + 2 * t_warp + t_fuse + t_head
         rows.append(
-            f"| {range_name} | {'x'.join(map(str, cfg.feature_grid.dims))} | {t_vehicle:.3f} | {t_warp:.4f} | {t_fuse:.3f} | {t_head:.3f} | {total:.2f} |"
+            f"| {range_name} | {'x'.join(map(str, cfg.feature_grid.dims))} | {t_vehicle:.3f} | {t_warp:.4f} | "
+            f"{t_fuse:.3f} | {t_head:.3f} | {total:.2f} |"
         )
         print(f"  {range_name}: vehicle {t_vehicle:.3f} s, fusion {t_fuse:.3f} s, head {t_head:.3f} s", flush=True)
     return "\n".join(rows)
@@ -95,7 +97,8 @@ def head_table(name: str, repeats: int, device: torch.device) -> str:
     if device.type == "cuda":
         return gpu_head_table(name, repeats, device)
     rows = [
-        "| range | label grid | reference s (dense logits, softmax, argmax) | PyTorch loop s | compiled s | reference / compiled "
+        "| range | label grid | reference s (dense logits, softmax, argmax) | PyTorch loop s | compiled s | "
+        "reference / compiled "
         "| loop / compiled | labels differing (loop, compiled) |",
         "|---|---|---:|---:|---:|---:|---:|---|",
     ]
@@ -108,7 +111,8 @@ def head_table(name: str, repeats: int, device: torch.device) -> str:
         t_fast, (fast, _) = timed(lambda: head.labels(fused, compiled=True), repeats)
         differ = [int((t[0].numpy() != ref_labels).sum()) for t in (loop, fast)]
         rows.append(
-            f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_loop:.3f} | {t_fast:.3f} | {t_ref / t_fast:.1f}x "
+            f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.3f} | {t_loop:.3f} | "
+            f"{t_fast:.3f} | {t_ref / t_fast:.1f}x "
             f"| {t_loop / t_fast:.1f}x | {differ[0]}, {differ[1]} of {ref_labels.size:,} |"
         )
         print(f"  head {range_name}: reference {t_ref:.3f} s, loop {t_loop:.3f} s, compiled {t_fast:.3f} s", flush=True)
@@ -120,7 +124,8 @@ def frame_table(repeats: int) -> str:
     51.2 m: timing depends on shapes only), on the PyTorch paths and with the compiled kernels, same run; and the
     playback rate 2 cores keep up with for 3 vehicles + ego."""
     rows = [
-        "| model | range | vehicle ms (model + codec): PyTorch / compiled | ratio | ego ms (2 neighbours, labels, encoding, cloud): "
+        "| model | range | vehicle ms (model + codec): PyTorch / compiled | ratio | ego ms (2 neighbours, "
+        "labels, encoding, cloud): "
         "PyTorch / compiled | ratio | rate kept up with (3 vehicles, 2 cores): PyTorch / compiled |",
         "|---|---|---:|---:|---:|---:|---:|",
     ]
@@ -139,8 +144,10 @@ def frame_table(repeats: int) -> str:
             ref, fast = costs
             rates = [pace.sustainable_rate(c, 3, 0.1, 2) for c in costs]
             rows.append(
-                f"| {name} | {range_name} | {1e3 * ref.vehicle_s:.0f} / {1e3 * fast.vehicle_s:.0f} | {ref.vehicle_s / fast.vehicle_s:.1f}x | "
-                f"{1e3 * ref.ego_s:.0f} / {1e3 * fast.ego_s:.0f} | {ref.ego_s / fast.ego_s:.1f}x | {rates[0]:.2f} / {rates[1]:.2f} |"
+                f"| {name} | {range_name} | {1e3 * ref.vehicle_s:.0f} / {1e3 * fast.vehicle_s:.0f} | "
+                f"{ref.vehicle_s / fast.vehicle_s:.1f}x | "
+                f"{1e3 * ref.ego_s:.0f} / {1e3 * fast.ego_s:.0f} | {ref.ego_s / fast.ego_s:.1f}x | "
+                f"{rates[0]:.2f} / {rates[1]:.2f} |"
             )
             print(
                 f"  frame {name} {range_name}: vehicle {1e3 * ref.vehicle_s:.0f} -> {1e3 * fast.vehicle_s:.0f} ms, "
@@ -281,7 +288,8 @@ def roofline_table(repeats: int, peak: float) -> str:
 def gpu_head_table(name: str, repeats: int, device: torch.device) -> str:
     """The dense reference against the per-parent PyTorch loop, both on the GPU, same run."""
     rows = [
-        "| range | label grid | reference s (dense logits, softmax, argmax) | per-parent loop s | reference / loop | labels differing |",
+        "| range | label grid | reference s (dense logits, softmax, argmax) | per-parent loop s | reference / "
+        "loop | labels differing |",
         "|---|---|---:|---:|---:|---|",
     ]
     timed_on = on(device)
@@ -295,7 +303,8 @@ def gpu_head_table(name: str, repeats: int, device: torch.device) -> str:
         t_loop, (loop, _) = timed_on(lambda: head.labels(fused), repeats)
         differ = int((loop[0].cpu().numpy() != ref_labels).sum())
         rows.append(
-            f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.4f} | {t_loop:.4f} | {t_ref / t_loop:.1f}x | {differ:,} of {ref_labels.size:,} |"
+            f"| {range_name} | {'x'.join(map(str, cfg.grid.dims))} | {t_ref:.4f} | {t_loop:.4f} | "
+            f"{t_ref / t_loop:.1f}x | {differ:,} of {ref_labels.size:,} |"
         )
         print(f"  head {range_name}: reference {t_ref:.4f} s, loop {t_loop:.4f} s", flush=True)
     return "\n".join(rows)
@@ -325,7 +334,8 @@ def masked_table(name: str, repeats: int, device: torch.device) -> str:
         selected = mask.any(1)[:, None].expand_as(masked)
         diff = float((masked - dense)[selected].abs().max())
         rows.append(
-            f"| {float(mask.any(1).float().mean()):.1%} | {t_masked:.3f} | {t_dense:.3f} | {t_dense / t_masked:.1f}x | {diff:.1e} |"
+            f"| {float(mask.any(1).float().mean()):.1%} | {t_masked:.3f} | {t_dense:.3f} | "
+            f"{t_dense / t_masked:.1f}x | {diff:.1e} |"
         )
     return "\n".join(rows)
 

@@ -133,7 +133,8 @@ def main() -> None:
         rows.append(f"| {stage} | " + " | ".join(cells) + " |")
     where = torch.cuda.get_device_name(device) if gpu else f"{opts.threads} CPU threads"
     print(
-        f"\nseconds per training step (median of {opts.repeats}){', peak GPU memory' if gpu else ''}, preset {opts.preset}, "
+        f"\nseconds per training step (median of {opts.repeats}){', peak GPU memory' if gpu else ''}, preset "
+        f"{opts.preset}, "
         f"{sum(p.numel() for p in build_model(preset(opts.preset)).parameters()):,} parameters, {where}\n"
     )
     print("\n".join(rows))

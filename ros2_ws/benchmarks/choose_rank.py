@@ -78,18 +78,21 @@ def main() -> None:
         limit = "none" if budget == UNBOUNDED else f"{budget:,}" + (f" on average, {burst:,} at most" if burst else "")
         rows.append(
             f"| {opts.dtype} | {rank or '- (channels)'} | {limit} | {size:,.0f} | "
-            f"{100 * results[-1]['miou']:.2f} | {100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |"
+            f"{100 * results[-1]['miou']:.2f} | {100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, "
+            f"{100 * kept['ci95'][1]:.0f}] |"
         )
     title = (
         f"{model.cfg.name} {model.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 alone "
-        f"{100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless {100 * point(boot.summary(lossless), 'co3sop-code'):.2f}"
+        f"{100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
+        f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}"
     )
     print(
         "\n".join(
             [
                 title,
                 "",
-                "| codec.dtype | codec.rank | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain kept (%) [95 % interval] |",
+                "| codec.dtype | codec.rank | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain "
+                "kept (%) [95 % interval] |",
                 "|---|---|---:|---:|---:|---|",
                 *rows,
             ]

@@ -232,8 +232,8 @@ def test_train_stages_resume_and_evaluate(small_split):
     gain = report["differences"]["on"]["co3sop-code"]
     alone = json.loads((bench / "ego-stage" / "evaluation.json").read_text())["tiny 51.2m, 0 collaborators"]
     assert (
-        f"| tiny | 51.2m | ego 4 + fusion 2 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} | {100 * report['off']['co3sop-code']['miou']:.2f} |"
-        in text
+        f"| tiny | 51.2m | ego 4 + fusion 2 steps | 1 | {100 * alone['co3sop-code']['miou']:.2f} | "
+        f"{100 * report['off']['co3sop-code']['miou']:.2f} |" in text
     )
     assert f"{100 * gain['delta']:.2f} [{100 * gain['ci95'][0]:.2f}, {100 * gain['ci95'][1]:.2f}]" in text
     assert "Input controls" in text and "| blank |" in text

@@ -40,7 +40,8 @@ def test_monitor_reports_rate_size_ratio_decode_time_and_grid(processes):
     last = {}
     for line in out.splitlines():  # the last report line per topic
         m = re.match(
-            r"\[monitor\] (/\S+)\s+(\w+)\s+([\d.]+) Hz\s+n=(\d+)\s+wire\s+([\d.]+) KB/msg\s+ratio\s+([\d.]+)x\s+decode\s+([\d.]+) ms\s+\| (.*)",
+            r"\[monitor\] (/\S+)\s+(\w+)\s+([\d.]+) Hz\s+n=(\d+)\s+wire\s+([\d.]+) "
+            r"KB/msg\s+ratio\s+([\d.]+)x\s+decode\s+([\d.]+) ms\s+\| (.*)",
             line,
         )
         if m:

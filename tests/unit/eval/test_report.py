@@ -1,4 +1,5 @@
-"""eval/report.py: its reading of a LiDAR gain short of its goal, its Table 2 and ablations across ranges, its errors on damaged evaluation JSON (ROS-free)."""
+"""eval/report.py: its reading of a LiDAR gain short of its goal, its Table 2 and ablations across ranges, its
+errors on damaged evaluation JSON (ROS-free)."""
 
 from __future__ import annotations
 
@@ -237,8 +238,8 @@ def test_an_ablation_is_set_out_across_the_three_ranges_as_the_paper_does(tmp_pa
     row = next(line for line in lines if line.startswith("| mu=0.5 |")).split(" | ")
     assert row[1] == "-"  # not run at 25.6 m
     assert (
-        row[3]
-        == f"{100 * point(far['mu=0.5'], 'co3sop-code'):.2f} ({100 * d['delta']:.2f} [{100 * d['ci95'][0]:.2f}, {100 * d['ci95'][1]:.2f}])"
+        row[3] == f"{100 * point(far['mu=0.5'], 'co3sop-code'):.2f} ({100 * d['delta']:.2f} [{100 * d['ci95'][0]:.2f}, "
+        f"{100 * d['ci95'][1]:.2f}])"
     )
     assert row[4] == "29.30 / 26.20 / 26.15 |"
     assert (

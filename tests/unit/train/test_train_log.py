@@ -1,4 +1,5 @@
-"""train/trainer.py's log on resume: the steps an interrupted run logged past its last saved state are dropped (ROS-free)."""
+"""A run's log on resume: the steps an interrupted run logged past its last saved state are dropped
+(ROS-free)."""
 
 from __future__ import annotations
 

@@ -73,14 +73,16 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument(
         "--model",
         default=DEFAULT_MODEL,
-        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: camera; small: the larger, GPU-trained camera model) or a path "
+        help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: "
+        f"camera; small: the larger, GPU-trained camera model) or a path "
         f"(default: {DEFAULT_MODEL})",
     )
     parser.add_argument(
         "--params",
         nargs="*",
         default=[],
-        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder is lossless)",
+        help="parameters of the other vehicles, e.g. codec.dtype:=int8 (the V2X codec; the ego's own encoder "
+        "is lossless)",
     )
     parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
     parser.add_argument(

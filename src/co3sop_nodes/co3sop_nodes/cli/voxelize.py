@@ -57,7 +57,8 @@ def main(args: list[str] | None = None) -> int:
         protocol = opv2v.read_yaml(opts.root / split / scenario / "data_protocol.yaml")
         if "co3sop_sim" not in protocol:
             raise DatasetError(
-                f"{opts.root / split / scenario / 'data_protocol.yaml'}: no co3sop_sim record: only generated scenarios can be re-annotated"
+                f"{opts.root / split / scenario / 'data_protocol.yaml'}: no co3sop_sim record: only generated "
+                f"scenarios can be re-annotated"
             )
         cfg = config_from_dict(protocol["co3sop_sim"]["config"])
         final = opts.root / opts.name / split / scenario

@@ -63,7 +63,8 @@ def bag_info(path: Path, counts: bool) -> str:
     frames = f"; {len(stamps)} frames" if stamps or not recording else ""  # a recording has no sensor poses
     out = [
         f"# {path}",
-        f"{'MCAP file' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs {sorted(cavs)}{frames}",
+        f"{'MCAP file' if recording else 'bag'}: {messages} messages over {duration:.1f} s; CAVs "
+        f"{sorted(cavs)}{frames}",
         "",
         "| topic | type | messages |",
         "|---|---|---:|",

@@ -75,7 +75,8 @@ def evaluate(
     early = model.cfg.early_fusion
     if early and codec is not None:
         raise Co3sopError(
-            f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no features to encode"
+            f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no "
+            f"features to encode"
         )
     rng = np.random.default_rng(seed)
     if path is not None:
@@ -327,7 +328,8 @@ def _codec(opts, cfg, stem, title, measure, boot) -> None:
         )
     text = (
         f"### Feature codecs over V2X: {title}\n\nAlone (no collaborator): mIoU co3sop-code "
-        f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, moved by its "
+        f"{100 * results['alone']['co3sop-code']['miou']:.2f}. Request maps are the ego's previous frame's, "
+        f"moved by its "
         "motion (none on the ego's first frame of a scenario, where a vehicle weighs by its own confidence alone): the "
         "last column leaves those first frames out.\n\n" + "\n".join(rows)
     )
@@ -402,7 +404,8 @@ DISTANCE_BINS: dict[str, Callable[[float], bool]] = {
 
 
 def _distance(opts, cfg, stem, title, measure, boot) -> None:
-    """Off / on per bin of the nearest collaborator's distance, each bin over the test scenarios that have samples in it."""
+    """Off / on per bin of the nearest collaborator's distance, each bin over the test scenarios that have samples
+    in it."""
     results = {}
     for name, accept in DISTANCE_BINS.items():
 
@@ -437,13 +440,15 @@ def distance_table(bins: dict) -> list[str]:
         return f"{100 * d['delta']:+.2f} [{100 * d['ci95'][0]:.2f}, {100 * d['ci95'][1]:.2f}]"
 
     rows = [
-        "| nearest collaborator | samples | scenarios | off mIoU 1..23 | on mIoU 1..23 | Δ mIoU 1..23 [95 %] | Δ geometry IoU [95 %] |",
+        "| nearest collaborator | samples | scenarios | off mIoU 1..23 | on mIoU 1..23 | Δ mIoU 1..23 [95 %] "
+        "| Δ geometry IoU [95 %] |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for name, r in bins.items():
         rows.append(
             f"| {name} | {r['samples']} | {r['off']['scenarios']} | {100 * point(r['off'], 'co3sop-code'):.2f} | "
-            f"{100 * point(r['on'], 'co3sop-code'):.2f} | {delta(r['difference']['co3sop-code'])} | {delta(r['difference']['geometry'])} |"
+            f"{100 * point(r['on'], 'co3sop-code'):.2f} | {delta(r['difference']['co3sop-code'])} | "
+            f"{delta(r['difference']['geometry'])} |"
         )
     return rows
 

@@ -178,8 +178,10 @@ def mean_sd(x: np.ndarray) -> str:
 
 def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
     lines = [
-        "| model | range | training steps | seeds | ego stage alone | off (fusion model, no collaborator) | on | gain on - off | "
-        "gain on - off, per seed [95 % interval] | gain on - ego stage, per seed [95 % interval] | geometry IoU off / on |",
+        "| model | range | training steps | seeds | ego stage alone | off (fusion model, no collaborator) | "
+        "on | gain on - off | "
+        "gain on - off, per seed [95 % interval] | gain on - ego stage, per seed [95 % interval] | geometry "
+        "IoU off / on |",
         "|---|---|---|---:|---:|---:|---:|---:|---|---|---:|",
     ]
     for (preset, rng, steps), seeds in runs.items():
@@ -197,7 +199,8 @@ def headline(runs: dict[tuple[str, str, str], dict[int, Path]]) -> list[str]:
                 boot = Bootstrap(list(r["on"]["per_scenario"]))
                 over_alone.append(boot.difference(confusions_of(r["on"]), confusions_of(single))["co3sop-code"])
         lines.append(
-            f"| {preset} | {rng} | {steps} | {len(seeds)} | {mean_sd(np.array(alone)) if alone else '-'} | {mean_sd(off)} | {mean_sd(on)} | "
+            f"| {preset} | {rng} | {steps} | {len(seeds)} | {mean_sd(np.array(alone)) if alone else '-'} | "
+            f"{mean_sd(off)} | {mean_sd(on)} | "
             f"**{mean_sd(on - off)}** | "
             + ", ".join(f"{pct(g['delta'])} {span(g['ci95'])}" for g in gains)
             + " | "
@@ -305,7 +308,8 @@ def early_reference(runs: dict[tuple[str, str, str], dict[int, Path]], rng: str)
     as scans before one network, instead of shared as features."""
     found = [(name, seeds) for (name, r, _), seeds in runs.items() if r == rng and model_preset(name).early_fusion]
     return "".join(
-        f" Early fusion ({name}: the collaborators' scans merged into the ego's before the same SSCNet-style network) gains "
+        f" Early fusion ({name}: the collaborators' scans merged into the ego's before the same SSCNet-style "
+        f"network) gains "
         + ", ".join(
             f"{pct(g['delta'])} {span(g['ci95'])} (seed {seed})"
             for seed, g in (
@@ -327,13 +331,15 @@ def why_short(observed: Path) -> str:
     top = sorted(added, key=lambda n: -added[n] * classes[n]["voxels"])[:3]  # most voxels added
     return (
         f" Why: on these test samples the collaborators' LiDAR returns raise the share of occupied voxels hit by"
-        f" {pct(seen['ego+collaborators'] - seen['ego'])} points only ({pct(seen['ego'])} % -> {pct(seen['ego+collaborators'])} %; "
+        f" {pct(seen['ego+collaborators'] - seen['ego'])} points only ({pct(seen['ego'])} % -> "
+        f"{pct(seen['ego+collaborators'])} %; "
         + ", ".join(f"{n} +{pct(added[n])} points" for n in top)
         + '): what fusion can add beyond inference is bounded by that ("What the neighbours can see" below).'
     )
 
 
-# The paper's Table 2 mIoU at 25.6 / 51.2 / 76.8 m (on its CARLA data: a reference for the methods' order, not their level)
+# The paper's Table 2 mIoU at 25.6 / 51.2 / 76.8 m (on its CARLA data: a reference for the methods' order, not their
+# level)
 PAPER_TABLE2 = {
     "SSCNet": (13.21, 9.58, 10.04),
     "LMSCNet": (24.92, 20.35, 17.62),
@@ -559,7 +565,8 @@ def validate_section(results: Path) -> list[str]:
         gain = r["differences"]["on"]["co3sop-code"]
         model = " ".join(path.stem.split("_")[:2])  # evaluate names its JSON <preset>_<range>_<ablation>
         out.append(
-            f"| {path.parent.name} | {model} | {recipe(r)} | {pct(point(r['off'], 'co3sop-code'))} | {pct(point(r['on'], 'co3sop-code'))} | "
+            f"| {path.parent.name} | {model} | {recipe(r)} | {pct(point(r['off'], 'co3sop-code'))} | "
+            f"{pct(point(r['on'], 'co3sop-code'))} | "
             f"{pct(gain['delta'])} {span(gain['ci95'])} | `{r.get('command', '')}` |"
         )
     return out + [""]
@@ -598,7 +605,8 @@ def levers_section(results: Path) -> list[str]:
 
         for i, s in enumerate(scored):
             out.append(
-                f"| `{s.get('model', '?')}` | {recipe(s)} | {pct(point(s, 'co3sop-code'))} {span(s['ci95']['co3sop-code'])} | "
+                f"| `{s.get('model', '?')}` | {recipe(s)} | {pct(point(s, 'co3sop-code'))} "
+                f"{span(s['ci95']['co3sop-code'])} | "
                 f"{pct(point(s, 'geometry'))} | "
                 + (f"{versus(s, scored[0])} | {versus(s, scored[i - 1])} |" if i else "reference | - |")
             )
@@ -647,7 +655,8 @@ def distance_reading(bins: dict, rng: str) -> list[str]:
     half = float(rng.rstrip("m")) / 2
     return [
         "Gain by the nearest collaborator's distance — " + "; ".join(parts) + ".",
-        f"The {rng} grid spans {half:g} m each side of its agent, so a neighbour about {2 * half:g} m away shares almost none",
+        f"The {rng} grid spans {half:g} m each side of its agent, so a neighbour about {2 * half:g} m away "
+        f"shares almost none",
         "of it: the share of samples in the far bins bounds the average gain this dataset allows.",
     ]
 
@@ -676,7 +685,8 @@ def training(seeds: dict[int, Path]) -> list[str]:
         "",
         *(
             [
-                "Folders under /tmp: the same dataset recipe generated, and the run started, on the machine with a GPU that trained it.",
+                "Folders under /tmp: the same dataset recipe generated, and the run started, on the machine "
+                "with a GPU that trained it.",
                 "",
             ]
             if elsewhere
@@ -786,7 +796,8 @@ def render(results: Path, command: str, target: Goals | None = None) -> str:
                 distance["title"],
                 "",
                 f"Made by `{distance['command']}`. Each row: the samples whose nearest collaborator (in the",
-                f"{COMM_RANGE:g} m communication range) is that far, 95 % intervals over the test scenarios that have such samples.",
+                f"{COMM_RANGE:g} m communication range) is that far, 95 % intervals over the test scenarios "
+                f"that have such samples.",
                 "",
                 *distance_table(distance["bins"]),
                 "",

@@ -84,7 +84,8 @@ def to_batch(inputs: dict, device: torch.device | str = "cpu") -> dict:
 def sensor_inputs(cfg: ModelConfig, world_from_lidar: np.ndarray, cameras=(), points: np.ndarray | None = None) -> dict:
     """One agent's numpy VehicleHalf inputs from sensor messages' contents, as the vehicle node and bag evaluation build them.
 
-    cameras: (name, rgb (H, W, 3) uint8, intrinsics (3, 3), lidar_from_optical (4, 4)) per camera; points: (N, 3) LiDAR frame.
+    cameras: (name, rgb (H, W, 3) uint8, intrinsics (3, 3), lidar_from_optical (4, 4)) per camera; points: (N, 3) LiDAR
+    frame.
     """
     if cfg.modality == "lidar":
         return {"occupancy": lidar_occupancy(points, cfg.grid)}

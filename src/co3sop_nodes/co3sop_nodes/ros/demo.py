@@ -101,7 +101,8 @@ def measured_rate(model, vehicles: int, period: float) -> float:
     rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n)) / 100
     say(
         f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms; "
-        f"{vehicles} vehicles + ego on {n} cores keep up with rate {rate:g} (a frame every {period / max(rate, 0.01):.2f} s)"
+        f"{vehicles} vehicles + ego on {n} cores keep up with rate {rate:g} "
+        f"(a frame every {period / max(rate, 0.01):.2f} s)"
     )
     return max(rate, 0.01)
 
@@ -175,7 +176,8 @@ def run_demo(opts: DemoOptions) -> int:
         channel = Channel({m: link for m in members}, shared=link if opts.channel_shared else None)
         os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
         say(
-            f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} Mbit/s of real time "
+            f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} "
+            f"Mbit/s of real time "
             f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
             + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
         )

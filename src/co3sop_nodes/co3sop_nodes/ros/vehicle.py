@@ -241,7 +241,8 @@ class Vehicle(ManagedNode):
             wanted = p[name]
             if wanted and wanted != have:
                 raise Co3sopError(
-                    f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint trained for it"
+                    f"parameter {name}={wanted!r}, but the checkpoint's model is {have!r}: pick a checkpoint "
+                    f"trained for it"
                 )
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.codec = FeatureCodecConfig()
@@ -326,7 +327,8 @@ class Vehicle(ManagedNode):
             enc = request_of(msg)
             if enc.grid != self.cfg.feature_grid:
                 raise Co3sopError(
-                    f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m is not this model's feature grid"
+                    f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m is not this "
+                    f"model's feature grid"
                 )
             pose = pose_of(msg.lidar_pose)
             pose.check("lidar_pose")

@@ -75,6 +75,7 @@ def timing(run: Path) -> str:
     except (OSError, KeyError, ValueError) as exc:
         raise Co3sopError(f"{log}: not a log.csv of train ({exc})") from None
     return f"{run}: " + "; ".join(
-        f"steps {p[0]['step']}-{p[-1]['step']} in {float(p[-1]['seconds']):.0f} s ({float(p[-1]['seconds']) / len(p):.3f} s/step)"
+        f"steps {p[0]['step']}-{p[-1]['step']} in {float(p[-1]['seconds']):.0f} s "
+        f"({float(p[-1]['seconds']) / len(p):.3f} s/step)"
         for p in parts
     )

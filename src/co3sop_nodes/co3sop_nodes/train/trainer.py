@@ -233,7 +233,8 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
     model.to(device)  # before the optimizer exists: a resumed optimizer state follows its parameters' device
     cfg = model.cfg
     say(
-        f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, {sum(p.numel() for p in model.parameters()):,} parameters, "
+        f"train: {cfg.name} ({cfg.modality}, {cfg.range}), stage {opts.stage}, "
+        f"{sum(p.numel() for p in model.parameters()):,} parameters, "
         f"on {device}" + (f" x {world.size} processes (torchrun)" if world.size > 1 else ""),
         flush=True,
     )

@@ -540,7 +540,8 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
     if enc.dtype in QUANTIZED:
         if len(enc.quant_scale) != rows or len(enc.quant_offset) != rows:
             raise SizeMismatchError(
-                f"quant_scale/quant_offset: need {rows} entries each, got {len(enc.quant_scale)}/{len(enc.quant_offset)}"
+                f"quant_scale/quant_offset: need {rows} entries each, got "
+                f"{len(enc.quant_scale)}/{len(enc.quant_offset)}"
             )
         scale = np.asarray(enc.quant_scale, np.float32).astype(np.float64)[:, None]
         offset = np.asarray(enc.quant_offset, np.float32).astype(np.float64)[:, None]
