@@ -35,9 +35,10 @@ import argparse
 from pathlib import Path
 
 from co3sop_nodes.cli.common import run
-from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
 from co3sop_nodes.model.path import PRECISIONS
-from co3sop_nodes.ros.demo import DEMO_FRAMES, DemoOptions, run_demo
+from co3sop_nodes.ros.demo import DemoOptions, run_demo
+
+DEFAULTS = DemoOptions()  # the library's defaults are the command's
 
 
 def _parameters(items: list[str], option: str, parser: argparse.ArgumentParser) -> dict[str, str]:
@@ -54,13 +55,13 @@ def main(args: list[str] | None = None) -> int:
         prog="demo", description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--bag", type=Path, help="a CAV bag to play (default: the generated demo scenario)")
-    parser.add_argument("--data", type=Path, default=Path("data/demo"), help="where the demo scenario is generated")
-    parser.add_argument("--bags", type=Path, default=Path("bags/demo"), help="where the demo scenario's bag is written")
-    parser.add_argument("--out", type=Path, default=Path("results/demo"), help="recording, score and pictures")
+    parser.add_argument("--data", type=Path, default=DEFAULTS.data, help="where the demo scenario is generated")
+    parser.add_argument("--bags", type=Path, default=DEFAULTS.bags, help="where the demo scenario's bag is written")
+    parser.add_argument("--out", type=Path, default=DEFAULTS.out, help="recording, score and pictures")
     parser.add_argument(
         "--frames",
         type=int,
-        default=DEMO_FRAMES,
+        default=DEFAULTS.frames,
         help="10 Hz frames of the generated demo scenario (the same "
         "town and traffic, longer; generated once per length)",
     )
@@ -68,14 +69,17 @@ def main(args: list[str] | None = None) -> int:
         "--rate", type=float, help="playback rate, 1 = real time (default: what this machine keeps up with, measured)"
     )
     parser.add_argument(
-        "--vehicles", type=int, default=3, help="vehicle processes (the first CAVs of the bag; the first is the ego)"
+        "--vehicles",
+        type=int,
+        default=DEFAULTS.vehicles,
+        help="vehicle processes (the first CAVs of the bag; the first is the ego)",
     )
     parser.add_argument(
         "--model",
-        default=DEFAULT_MODEL,
+        default=DEFAULTS.model,
         help=f"checkpoint of every node: a shipped one by name (tiny-lidar: collaborative LiDAR; tiny: "
         f"camera; small: the larger, GPU-trained camera model) or a path "
-        f"(default: {DEFAULT_MODEL})",
+        f"(default: {DEFAULTS.model})",
     )
     parser.add_argument(
         "--params",
@@ -87,12 +91,14 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--ego-params", nargs="*", default=[], help="parameters of the ego node, e.g. threads:=2")
     parser.add_argument(
         "--precision",
-        default="auto",
+        default=DEFAULTS.precision,
         choices=PRECISIONS,
         help="inference precision of every node (auto: what the "
         "machine computes fast; float32 on CPUs without AMX or AVX-512 BF16)",
     )
-    parser.add_argument("--device", default="cpu", help="where every node's model runs: cpu, cuda, cuda:N, auto")
+    parser.add_argument(
+        "--device", default=DEFAULTS.device, help="where every node's model runs: cpu, cuda, cuda:N, auto"
+    )
     parser.add_argument("--quiet", action="store_true", help="do not echo the nodes' output")
     parser.add_argument(
         "--channel-rate",
@@ -104,7 +110,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument(
         "--channel-loss",
         type=float,
-        default=0.0,
+        default=DEFAULTS.channel_loss,
         metavar="PERCENT",
         help="with --channel-rate: share of each CAV's packets dropped at random (default 0)",
     )

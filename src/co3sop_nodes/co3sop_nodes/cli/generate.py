@@ -17,6 +17,8 @@ from co3sop_nodes.cli.common import run
 from co3sop_nodes.data import opv2v
 from co3sop_nodes.sim.generation import REAL_SIZE, GenerateOptions, generate, read_recipe
 
+DEFAULTS = GenerateOptions(out=Path())  # the library's defaults are the command's
+
 
 def main(args: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
@@ -29,27 +31,31 @@ def main(args: list[str] | None = None) -> int:
         "options given on the command line win",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset root (OPV2V layout)")
+    parser.add_argument("--splits", nargs="+", default=DEFAULTS.splits, help="NAME=COUNT scenarios per split")
+    parser.add_argument("--frames", type=int, default=DEFAULTS.frames, help="10 Hz frames per scenario")
     parser.add_argument(
-        "--splits", nargs="+", default=["train=4", "validate=1", "test=1"], help="NAME=COUNT scenarios per split"
+        "--seed", type=int, default=DEFAULTS.seed, help="base seed: the same seed gives the same dataset"
     )
-    parser.add_argument("--frames", type=int, default=20, help="10 Hz frames per scenario")
-    parser.add_argument("--seed", type=int, default=0, help="base seed: the same seed gives the same dataset")
-    parser.add_argument("--workers", type=int, default=2, help="scenarios simulated in parallel")
+    parser.add_argument("--workers", type=int, default=DEFAULTS.workers, help="scenarios simulated in parallel")
     parser.add_argument(
         "--shard",
-        default="1/1",
+        default=DEFAULTS.shard,
         help="I/N: only the I-th of N disjoint shares of the scenarios (1 <= I <= N), so N "
         "machines generate one dataset; copy their OUT folders together",
     )
-    parser.add_argument("--cavs", default="2-4", help="CAVs per scenario: N or MIN-MAX (OPV2V: 2-7)")
-    parser.add_argument("--vehicles", type=int, default=30, help="other moving vehicles per town")
+    parser.add_argument("--cavs", default=DEFAULTS.cavs, help="CAVs per scenario: N or MIN-MAX (OPV2V: 2-7)")
+    parser.add_argument("--vehicles", type=int, default=DEFAULTS.vehicles, help="other moving vehicles per town")
     parser.add_argument(
-        "--image-size", default="400x300", help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it"
+        "--image-size",
+        default=DEFAULTS.image_size,
+        help="camera WIDTHxHEIGHT (OPV2V: 800x600); intrinsics scale with it",
     )
-    parser.add_argument("--lidar-steps", type=int, default=1024, help="LiDAR rays per channel per sweep")
+    parser.add_argument(
+        "--lidar-steps", type=int, default=DEFAULTS.lidar_steps, help="LiDAR rays per channel per sweep"
+    )
     parser.add_argument(
         "--label-margin",
-        default="0,0",
+        default=DEFAULTS.label_margin,
         metavar="SIDE,TOP",
         help="write label grids larger than each range's: SIDE voxels more on each side in x and y, TOP layers more "
         "on top (readers crop them back at the centre, as Co3SOP's LoadOccupancy does)",
@@ -65,7 +71,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument(
         "--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures"
     )
-    parser.add_argument("--picture-range", default="51.2m", choices=list(opv2v.LABEL_FOLDERS))
+    parser.add_argument("--picture-range", default=DEFAULTS.picture_range, choices=list(opv2v.LABEL_FOLDERS))
     known = parser.parse_known_args(args)[0]
     if known.real_size:
         parser.set_defaults(**REAL_SIZE)

@@ -18,6 +18,7 @@ import re
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import yaml
@@ -294,30 +295,47 @@ def scenario_timestamps(scenario_dir: Path) -> tuple[list[str], list[int]]:
     return cavs, reference
 
 
+class CavFiles(NamedTuple):
+    """Where one CAV's sensor files of one timestamp are (labels: label_path)."""
+
+    yaml: Path
+    images: dict[str, Path]  # camera name -> PNG
+    pcd: Path
+
+
+def cav_files(root: Path, split: str, scenario: str, cav: str, timestamp: int) -> CavFiles:
+    cav_dir, ts = Path(root, split, scenario, cav), f"{timestamp:06d}"
+    return CavFiles(
+        cav_dir / f"{ts}.yaml", {name: cav_dir / f"{ts}_{name}.png" for name in CAMERAS}, cav_dir / f"{ts}.pcd"
+    )
+
+
+def _lidar_carla(path: Path, data: dict) -> np.ndarray:
+    """The yaml's LiDAR pose as a 4x4 world_from_lidar in CARLA's axes."""
+    return geo.carla_pose_to_matrix(_numbers(path, data, ("lidar_pose",), (6,)))
+
+
 def read_lidar_pose(root: Path, split: str, scenario: str, cav: str, timestamp: int) -> np.ndarray:
     """A CAV's world_from_lidar (4x4, REP-103) at one timestamp, from its yaml alone (no sensor file is read)."""
-    path = Path(root, split, scenario, cav, f"{timestamp:06d}.yaml")
-    return geo.carla_to_ros_matrix(geo.carla_pose_to_matrix(_numbers(path, read_yaml(path), ("lidar_pose",), (6,))))
+    path = cav_files(root, split, scenario, cav, timestamp).yaml
+    return geo.carla_to_ros_matrix(_lidar_carla(path, read_yaml(path)))
 
 
 def cav_frame_files(root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True):
     """The files `read_cav_frame` reads for these arguments (labels that do not exist left out)."""
-    cav_dir, ts = Path(root, split, scenario, cav), f"{timestamp:06d}"
-    files = [cav_dir / f"{ts}.yaml", *(cav_dir / f"{ts}_{name}.png" for name in CAMERAS)]
-    files += [cav_dir / f"{ts}.pcd"] if points else []
+    files = cav_files(root, split, scenario, cav, timestamp)
     labels = [label_path(root, r, split, scenario, int(cav), timestamp) for r in ranges]
-    return files + [p for p in labels if p.exists()]
+    return [files.yaml, *files.images.values(), *([files.pcd] if points else []), *(p for p in labels if p.exists())]
 
 
 def read_cav_frame(
     root: Path, split: str, scenario: str, cav: str, timestamp: int, ranges=(), points: bool = True
 ) -> CavFrame:
     """One CAV's files at one timestamp; `points=False` skips the (slow, ASCII) point cloud."""
-    cav_dir = Path(root, split, scenario, cav)
-    ts = f"{timestamp:06d}"
-    path = cav_dir / f"{ts}.yaml"
+    files = cav_files(root, split, scenario, cav, timestamp)
+    path = files.yaml
     data = read_yaml(path)
-    lidar_carla = geo.carla_pose_to_matrix(_numbers(path, data, ("lidar_pose",), (6,)))
+    lidar_carla = _lidar_carla(path, data)
     cameras = []
     for name in CAMERAS:
         if name not in data:
@@ -325,10 +343,8 @@ def read_cav_frame(
         extrinsic = _numbers(path, data, (name, "extrinsic"), (4, 4))  # lidar -> camera, CARLA axes
         world_from_camera = geo.carla_to_ros_matrix(lidar_carla @ np.linalg.inv(extrinsic))
         intrinsic = _numbers(path, data, (name, "intrinsic"), (3, 3))
-        cameras.append(CameraFrame(name, world_from_camera, intrinsic, read_png(cav_dir / f"{ts}_{name}.png")))
-    xyz, intensity = (
-        read_pcd(cav_dir / f"{ts}.pcd") if points else (np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
-    )
+        cameras.append(CameraFrame(name, world_from_camera, intrinsic, read_png(files.images[name])))
+    xyz, intensity = read_pcd(files.pcd) if points else (np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
     vehicles = []
     for vid in data.get("vehicles") or {}:
         location = _numbers(path, data, ("vehicles", vid, "location"), (3,))

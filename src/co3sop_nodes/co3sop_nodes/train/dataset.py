@@ -138,7 +138,7 @@ class OccupancyDataset:
         if self.cache is not None:
             files = opv2v.cav_frame_files(self.root, split, name, cav, ts, (self.cfg.range,), points=lidar)
             try:
-                stamp = hashlib.sha1(repr([(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]).encode())
+                stamp = hashlib.sha1(repr([(p.name, *_size_and_time(p)) for p in files]).encode())
             except FileNotFoundError as exc:
                 raise DatasetError(f"{exc.filename}: missing") from None
             entry = self.cache / split / name / f"{cav}_{ts:06d}_{stamp.hexdigest()[:12]}.npz"
@@ -173,6 +173,11 @@ class OccupancyDataset:
             else np.zeros((0, 4, 4))
         )
         return Sample((*frame.key, ego.cav_id), ego, others, rel)
+
+
+def _size_and_time(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return st.st_size, st.st_mtime_ns
 
 
 def _write_entry(path: Path, arrays: dict) -> None:
