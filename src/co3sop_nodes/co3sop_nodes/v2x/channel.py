@@ -11,7 +11,11 @@ one rate for all of them together, as on one radio channel: a single nftables li
 on what the hub's bridge forwards from any CAV drops what exceeds it, as frames lost on a crowded channel.
 Every byte between CAVs then crosses a shaped link, over UDP:
 the processes use a Fast DDS profile without shared memory (which would bypass
-the link, /dev/shm being shared by all namespaces).
+the link, /dev/shm being shared by all namespaces). The radio carries what a CAV
+sends to the other CAVs (their addresses, or multicast); what it sends to the
+machine's side (the recorder, the launcher's diagnostics: each car's own log in
+a real deployment; any address of the machine a participant announces) leaves
+unshaped, is never lost, and the shared medium does not count it.
 
 Latency: this kernel has no `netem`, so no fixed propagation delay is added
 (at V2X distances it is about 1 us per 300 m); the delay that matters, the time
@@ -41,6 +45,11 @@ from dataclasses import dataclass
 from co3sop_nodes.common.errors import Co3sopError
 
 PREFIX = "co3sop-"  # every namespace this module makes: co3sop-<launcher pid>-<member>
+# DDS discovery (RTPS metatraffic: the ports of the standard mapping, 7400 + 250 domain + 2 participant + 10 for
+# unicast, 7400 + 250 domain for multicast, are even; user data goes to odd ones) is off the radio: its timers run on
+# the wall clock, which a slowed play rate does not slow, so on a link scaled by the play rate it would take that
+# many times its real share; every car joining at once would otherwise hold the first frames
+DISCOVERY_U32 = ("match", "ip", "protocol", "17", "0xff", "match", "ip", "dport", "0", "0x1")
 _NAME = re.compile(rf"^{PREFIX}(\d+)-")
 
 
@@ -227,7 +236,7 @@ class Channel:
             _run("ip", "addr", "add", f"{self.addresses[member]}/{prefix}", "dev", "eth0", ns=ns)
             _run("ip", "link", "set", "eth0", "up", ns=ns)
             _run("ip", "route", "add", "default", "dev", "eth0", ns=ns)  # multicast discovery needs a route
-            self._shape(ns, link)
+            self._shape(ns, link, self.host_address, self.subnet)
         if self.shared is not None:
             self._share(self.shared)
 
@@ -241,33 +250,37 @@ class Channel:
         _run("ip", "link", "set", port, "up", ns=hub)
 
     @staticmethod
-    def _shape(ns: str, link: Link) -> None:
+    def _shape(ns: str, link: Link, host, subnet) -> None:
+        """The radio on eth0's transmit side: an HTB tree whose class for the other CAVs (`subnet` but the machine's
+        end `host`, and multicast) leads to the link's token bucket; the rest (the machine's side, discovery) goes
+        unlimited."""
         rate = f"{link.rate_mbit * 1000:.0f}kbit"
         # bucket: 10 ms of the rate (the kernel refills it per timer tick), at least a few full-size packets
         burst = max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
+        tc = ("tc", "qdisc", "add", "dev", "eth0")
+        unlimited = ("htb", "rate", "10gbit", "burst", "1mb", "cburst", "1mb", "quantum", "60000")
+        _run(*tc, "root", "handle", "1:", "htb", "default", "20", ns=ns)
+        for cls in ("1:10", "1:20"):
+            _run("tc", "class", "add", "dev", "eth0", "parent", "1:", "classid", cls, *unlimited, ns=ns)
         _run(
-            "tc",
-            "qdisc",
-            "add",
-            "dev",
-            "eth0",
-            "root",
-            "tbf",
-            "rate",
-            rate,
-            "burst",
-            str(burst),
-            "latency",
-            f"{link.queue_ms:.0f}ms",
-            ns=ns,
+            *tc, "parent", "1:10", "tbf", "rate", rate, "burst", str(burst), "latency", f"{link.queue_ms:.0f}ms", ns=ns
         )
+        radio = (("match", "ip", "dst", str(subnet)), ("match", "ip", "dst", "224.0.0.0/4"))
+        harness = (DISCOVERY_U32, ("match", "ip", "dst", f"{host}/32"))
+        for prio, (match, flow) in enumerate([*((m, "1:20") for m in harness), *((m, "1:10") for m in radio)], 1):
+            _run(
+                *("tc", "filter", "add", "dev", "eth0", "parent", "1:", "protocol", "ip", "prio", str(prio), "u32"),
+                *match,
+                *("flowid", flow),
+                ns=ns,
+            )
         if link.loss > 0:
             per_million = round(link.loss * 1_000_000)
             # on the device's egress, as a radio loses frames: the sender is not told (an output-hook drop would
             # fail its sendto with EPERM)
             rules = (
                 'table netdev v2x {\n chain out {\n  type filter hook egress device "eth0" priority 0; policy accept;\n'
-                f"  numgen random mod 1000000 < {per_million} counter drop\n }}\n}}\n"
+                f"{_on_radio(host, subnet)} numgen random mod 1000000 < {per_million} counter drop\n }}\n}}\n"
             )
             _nft(ns, rules)
 
@@ -282,7 +295,8 @@ class Channel:
             "table bridge medium {\n"
             f" limit air {{ rate over {round(rate)} bytes/second burst {burst} bytes }}\n"
             " chain forward {\n  type filter hook forward priority 0; policy accept;\n"
-            f'  iifname {{ {members} }} limit name "air" counter drop\n }}\n}}\n'
+            f'{_on_radio(self.host_address, self.subnet)} iifname {{ {members} }} limit name "air" counter drop\n'
+            " }\n}\n"
         )
         _nft(self.hub, rules)
 
@@ -304,6 +318,13 @@ class Channel:
             self._reaper.terminate()
             self._reaper.wait(5)
         self._reaper = None
+
+
+def _on_radio(host, subnet) -> str:
+    """nftables rules of a chain whose last rule's matches follow: DDS discovery passes, and the last rule matches what
+    goes over the radio: to another CAV (an address of `subnet` but the machine's end `host`) or to a multicast
+    group."""
+    return f"  udp dport & 1 == 0 accept\n  ip daddr != {host} ip daddr {{ {subnet}, 224.0.0.0/4 }}"
 
 
 def _nft(ns: str, rules: str) -> None:
