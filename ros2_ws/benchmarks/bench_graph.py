@@ -87,9 +87,10 @@ def measure(mcap: Path) -> dict:
     return measure_diagnostics(read_recording(mcap).diagnostics)
 
 
-def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]]) -> dict:
-    """Bytes, latency, transport share, CPU and stage times from the nodes' /diagnostics (status name -> reports)."""
-    ego = diagnostics["ego"]
+def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: str = "ego") -> dict:
+    """Bytes, latency, transport share, CPU and stage times from the nodes' /diagnostics (status name -> reports),
+    of the ego whose status is named `status` ("cav_3/ego" where every CAV runs one)."""
+    ego = diagnostics[status]
     own = diagnostics.get(f"vehicle cav_{ego[-1]['received_wall_ns'].split(':')[0]}", [{}]) if ego else [{}]
     vehicles = {
         int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds}

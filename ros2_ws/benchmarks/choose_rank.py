@@ -1,11 +1,13 @@
 """Choosing the transform coding's rank, its precision and the burst of a byte budget on `validate`: the share of the
 collaboration gain that request maps keep under a byte budget, per `codec.rank`, with no budget at all (every voxel the
 ego asked for), and with the budget an average per message whose single messages may take up to a burst
-(`codec.burst_bytes`), each at `codec.dtype` --dtype.
+(`codec.burst_bytes`), each at `codec.dtype` --dtype; each with the request maps' levels of --levels (the ego's
+`request_levels`) and the vehicles' answers of --answers (`request_answer`: a message for each ego, or one for all
+by the union of their requests, every agent an ego).
 
     ros2_ws/benchmarks/choose_rank.py --model src/co3sop_nodes/checkpoints/tiny-lidar.pt --data data/bench \
         [--splits validate] [--dtype int8] [--budget 65536] [--ranks 4 6 8 10 16] [--unbounded 0 8] [--bursts] \
-        [--burst-ranks 8] [--out FILE.json]
+        [--burst-ranks 8] [--levels 256 4 2] [--answers each union] [--out FILE.json]
 
 Run with the workspace environment (`. ros2_ws/env.sh`). Gain kept: (codec - alone) / (lossless - alone) in mIoU
 1..23, as `evaluate --ablation codec` computes it (its request maps: the ego's previous frame's), with its 95 %
@@ -15,6 +17,7 @@ interval over the split's scenarios. Prints a markdown table.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -25,6 +28,7 @@ from co3sop_nodes.eval.metrics import Bootstrap, point
 from co3sop_nodes.inference.checkpoint import load_model
 from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.v2x.codec import QUANTIZED, FeatureCodecConfig
+from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 UNBOUNDED = 2**31 - 1  # the largest codec.max_bytes: every requested voxel fits
 
@@ -42,6 +46,8 @@ def main() -> None:
         "--bursts", type=int, nargs="*", default=[], help="codec.burst_bytes also run (at --burst-rank)"
     )
     parser.add_argument("--burst-ranks", type=int, nargs="+", default=[8], help="the ranks run with each burst")
+    parser.add_argument("--levels", type=int, nargs="+", default=[256], help="request_levels of the egos")
+    parser.add_argument("--answers", nargs="+", choices=REQUEST_ANSWERS, default=["each"], help="request_answer")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
     opts = parser.parse_args()
@@ -60,9 +66,17 @@ def main() -> None:
         + [(rank, opts.budget, burst) for rank in opts.burst_ranks for burst in opts.bursts]
     )
     rows, results = [], []
-    for rank, budget, burst in runs:
+    for (rank, budget, burst), levels, answer in itertools.product(runs, opts.levels, opts.answers):
         cfg = FeatureCodecConfig(opts.dtype, "request", max_bytes=budget, burst_bytes=burst, rank=rank)
-        confusions, size = evaluate(model, dataset, codec=cfg, cache=cache, desc=cfg.name)
+        confusions, size = evaluate(
+            model,
+            dataset,
+            codec=cfg,
+            cache=cache,
+            desc=f"{cfg.name} {levels} levels, {answer}",
+            request_levels=levels,
+            request_answer=answer,
+        )
         kept = boot.ratio(confusions, lossless, alone)
         results.append(
             {
@@ -70,6 +84,8 @@ def main() -> None:
                 "rank": rank,
                 "max_bytes": budget,
                 "burst_bytes": burst,
+                "request_levels": levels,
+                "request_answer": answer,
                 "bytes": size,
                 "miou": point(boot.summary(confusions), "co3sop-code"),
                 "gain_kept": kept,
@@ -77,7 +93,7 @@ def main() -> None:
         )
         limit = "none" if budget == UNBOUNDED else f"{budget:,}" + (f" on average, {burst:,} at most" if burst else "")
         rows.append(
-            f"| {opts.dtype} | {rank or '- (channels)'} | {limit} | {size:,.0f} | "
+            f"| {opts.dtype} | {rank or '- (channels)'} | {limit} | {levels} | {answer} | {size:,.0f} | "
             f"{100 * results[-1]['miou']:.2f} | {100 * kept['ratio']:.0f} [{100 * kept['ci95'][0]:.0f}, "
             f"{100 * kept['ci95'][1]:.0f}] |"
         )
@@ -91,9 +107,9 @@ def main() -> None:
             [
                 title,
                 "",
-                "| codec.dtype | codec.rank | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain "
-                "kept (%) [95 % interval] |",
-                "|---|---|---:|---:|---:|---|",
+                "| codec.dtype | codec.rank | codec.max_bytes | request_levels | request_answer | bytes per "
+                "neighbour-frame | mIoU 1..23 | gain kept (%) [95 % interval] |",
+                "|---|---|---:|---:|---|---:|---:|---|",
                 *rows,
             ]
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -90,6 +91,27 @@ def test_channel_shapes_rate_and_loss_and_removes_everything():
             channel.wrap("ego", ["tc", "qdisc", "show", "dev", "eth0"]), capture_output=True, text=True
         ).stdout
         assert "tbf" in shaping and "8Mbit" in shaping
+        # the machine's end (recorder, launcher) is off the radio: neither shaped nor lost
+        before = channel.dropped("lossy")
+        harness = subprocess.Popen(
+            [sys.executable, "-c", RECEIVE.replace("0.0.0.0", str(channel.host_address))],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(0.5)
+        sender = in_namespace(channel, "lossy", SEND.format(address=channel.host_address))
+        assert sender.wait(60) == 0
+        assert int(harness.communicate(timeout=30)[0]) == 2000 and channel.dropped("lossy") == before
+        server = subprocess.Popen(
+            [sys.executable, "-c", STREAM_SERVER.replace("0.0.0.0", str(channel.host_address))],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(0.5)
+        client = in_namespace(channel, "ego", STREAM_CLIENT.format(address=channel.host_address, size=4_000_000))
+        seconds = float(client.communicate(timeout=60)[0])
+        assert int(server.communicate(timeout=30)[0]) == 4_000_000
+        assert seconds < 1.0, seconds  # 4 MB at the ego's 8 Mbit/s would take 4 s
         host_if = ch.host_link(os.getpid())
         assert host_if in subprocess.run(["ip", "-br", "link"], capture_output=True, text=True).stdout
     assert ours(os.getpid()) == []
@@ -257,10 +279,10 @@ def demo(bag: Path, out: Path, *extra: str) -> subprocess.Popen:
     )
 
 
-def fused_per_frame(out: str) -> tuple[list[int], list[int]]:
-    """From the demo's output (the ego's /diagnostics as its supervisor saw them): per frame, the neighbours fused
-    and the neighbours it discovered but got no frame from in time (late, or nothing received at all)."""
-    line = out.split("neighbours fused per frame: ")[1].splitlines()[0]
+def fused_per_frame(out: str, ego: int = 0) -> tuple[list[int], list[int]]:
+    """From the demo's output (the `ego`-th ego's /diagnostics as its supervisor saw them): per frame, the neighbours
+    fused and the neighbours it discovered but got no frame from in time (late, or nothing received at all)."""
+    line = out.split("neighbours fused per frame: ")[1 + ego].splitlines()[0]
     used, rest = line.split("; heard but late: ")
     late, silent = rest.split("; never received: ")
     count = [0 if m == "-" else len(m.split(",")) for m in late.split()]
@@ -288,6 +310,36 @@ def test_demo_through_a_lossy_channel(scenario, tmp_path):
     used, late = fused_per_frame(out)
     assert len(used) == FRAMES and sum(used) < FRAMES, out  # at most a few get through
     assert sum(late) >= FRAMES, out
+    assert ours(proc.pid) == []
+
+
+def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
+    """Three CAVs, each an ego and a collaborator of the others, on one shared medium (12 Mbit/s of real time for
+    all of them together): each vehicle answers both other egos' request maps (2 levels, about 0.2 KB) with one
+    message (16 KB, int4, rank 8) and feeds its own ego losslessly on board (3.2 MB a frame, which the medium could not carry); every ego fuses
+    both neighbours, and the recording and the score hold every ego's frames."""
+    out = tmp_path / "all"
+    codec = ["codec.selection:=request", "codec.dtype:=int4", "codec.rank:=8", "codec.max_bytes:=16384"]
+    extra = ["--rate", "0.1", "--channel-rate", "12", "--channel-loss", "0", "--channel-shared", "--egos", "all"]
+    proc = demo(scenario, out, *extra, "--params", *codec, "request_answer:=union", "--ego-params", "request_levels:=2")
+    text = proc.communicate(timeout=400)[0]
+    assert proc.returncode == 0, text
+    assert "packets the shared medium dropped" in text
+    for i in range(3):
+        used, _ = fused_per_frame(text, i)
+        assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 2, text
+    counts = message_counts(out / "demo.mcap")
+    score = json.loads((out / "score.json").read_text())
+    cavs = sorted(int(a) for a in score["per_ego"])
+    assert len(cavs) == 3 and score["frames"] == 3 * FRAMES and not score["missed"]
+    for c in cavs:
+        assert counts[topics.ego_output(topics.EGO_OCCUPANCY, c)] == FRAMES
+        assert counts[topics.ego_output(topics.EGO_TRUTH_POINTS, c)] == FRAMES
+    diagnostics = json.loads((out / "diagnostics.json").read_text())
+    for c in cavs:  # one message for both other egos, chosen by both requests once they came
+        answered = [r["answered"] for r in diagnostics[f"vehicle cav_{c}"]]
+        assert all(r["recipients"] == "" for r in diagnostics[f"vehicle cav_{c}"])
+        assert sorted(answered[-1].split(",")) == sorted(str(o) for o in cavs if o != c), answered
     assert ours(proc.pid) == []
 
 

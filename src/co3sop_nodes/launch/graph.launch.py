@@ -1,10 +1,11 @@
 """The whole graph on a CAV bag, as `demo` runs it: recorder, ego, one vehicle per CAV, the player.
 
     ros2 launch co3sop_nodes graph.launch.py bag:=bags/demo/test/SCENARIO [model:=tiny-lidar] [vehicles:=3]
-        [rate:=0.25] [out:=results/launch] [vehicle_params_file:=...] [ego_params_file:=...]
+        [egos:=first|all] [rate:=0.25] [out:=results/launch] [vehicle_params_file:=...] [ego_params_file:=...]
 
-The CAVs are read from the bag (the first `vehicles`; the first is the ego).
-The ego's own encoder is lossless; the other vehicles use the codec of
+The CAVs are read from the bag (the first `vehicles`; the first is the ego,
+or, with egos:=all, every one runs an ego in its namespace). An ego's own
+encoder reaches it losslessly; the other vehicles use the codec of
 vehicle_params_file. The player waits for every subscriber before playing.
 Score the recording afterwards: ros2 run co3sop_nodes score OUT/graph.mcap.
 """
@@ -18,7 +19,7 @@ from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, read_checkpoint, resolve_checkpoint
-from co3sop_nodes.ros.graph import NodeSpec, bag_contents, describe
+from co3sop_nodes.ros.graph import EGOS, NodeSpec, bag_contents, describe
 
 CONFIG = PathJoinSubstitution([FindPackageShare("co3sop_nodes"), "config"])
 
@@ -30,7 +31,13 @@ def nodes(context) -> list[Node]:
     cavs = bag_contents(bag)[0][: int(arg("vehicles"))]
     sensors = read_checkpoint(checkpoint)["config"]["modality"]
     graph = describe(
-        bag, cavs, sensors, Path(arg("out")) / "graph.mcap", float(arg("rate")), common={"checkpoint": checkpoint}
+        bag,
+        cavs,
+        sensors,
+        Path(arg("out")) / "graph.mcap",
+        float(arg("rate")),
+        egos=arg("egos"),
+        common={"checkpoint": checkpoint},
     )
     files = {"ego": [arg("ego_params_file")], "vehicle": [arg("vehicle_params_file")]}
 
@@ -43,6 +50,7 @@ def nodes(context) -> list[Node]:
             output="screen",
             arguments=list(spec.arguments),
             parameters=[*files.get(spec.executable, []), spec.parameters] if spec.parameters else None,
+            remappings=list(spec.remappings) or None,
         )
 
     return [node(spec) for spec in (*graph.nodes, graph.player)]
@@ -59,6 +67,9 @@ def generate_launch_description() -> LaunchDescription:
             ),
             DeclareLaunchArgument(
                 "vehicles", default_value="3", description="vehicle nodes: the bag's first CAVs; the first is the ego"
+            ),
+            DeclareLaunchArgument(
+                "egos", default_value="first", choices=list(EGOS), description="which CAVs run an ego: first or all"
             ),
             DeclareLaunchArgument("rate", default_value="0.25", description="playback rate (1 = real time)"),
             DeclareLaunchArgument(

@@ -97,7 +97,7 @@ def test_occupancy_and_request_round_trip_through_both_bindings():
     for msg in both(lambda t: occupancy_msg(t, enc, agent_id=3, **AT), "co3sop_msgs/msg/SemanticOccupancy"):
         assert np.array_equal(decode_labels(occupancy_of(msg)).labels, labels) and occupancy_of(msg).grid == GRID
     need = np.random.default_rng(2).random(GRID.dims).astype(np.float32)
-    req = encode_request(need, GRID)
+    req = encode_request(need, GRID, levels=4)
     for msg in both(lambda t: request_msg(t, req, agent_id=3, pose=POSE, **AT), "co3sop_msgs/msg/RequestMap"):
         assert np.array_equal(decode_request(request_of(msg)), decode_request(req))
 

@@ -13,6 +13,7 @@ import pytest
 import yaml
 from ament_index_python.packages import get_package_share_directory
 
+from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.ros import ego, vehicle
 from co3sop_nodes.ros.graph import LOSSLESS, describe
 from co3sop_nodes.ros.lifecycle import AUTOSTART
@@ -249,6 +250,33 @@ def test_the_described_graph_runs_existing_executables_with_declared_parameters(
     assert own.ros_arguments()[:3] == ["--ros-args", "-r", "__ns:=/cav_3"] and "id:=3" in own.ros_arguments()
     assert graph.player.arguments[:3] == (str(tmp_path / "bag"), "--rate", "0.5")
     assert "/cav_8/lidar/points" in graph.player.arguments and "/cav_8/camera0/image_raw" not in graph.player.arguments
+
+
+def test_every_cav_an_ego_gets_its_own_features_on_board_and_the_others_over_v2x(tmp_path):
+    graph = describe(
+        tmp_path / "bag",
+        [3, 5, 8],
+        "lidar",
+        tmp_path / "g.mcap",
+        0.5,
+        egos="all",
+        common={"checkpoint": "tiny-lidar"},
+        vehicle_params={"codec.selection": "request"},
+    )
+    assert [s.executable for s in graph.nodes] == ["recorder", "ego", "ego", "ego", "vehicle", "vehicle", "vehicle"]
+    assert graph.recorder.car is None and graph.player.car is None  # the machine's side, off the radio
+    for e, v, car in zip(graph.egos, graph.vehicles, ("ego", "cav5", "cav8")):
+        c = v.parameters["id"]
+        assert e.parameters["ego_id"] == c and e.node == f"/cav_{c}/ego" and e.car == v.car == car
+        assert v.parameters["local_features"] is True and v.parameters["codec.selection"] == "request"
+        # the ego's own features, named relative to its namespace, come from its car's lossless topic
+        assert e.remappings == ((f"cav_{c}/voxel_features", f"/cav_{c}/voxel_features/local"),)
+        assert ["-r", f"cav_{c}/voxel_features:=/cav_{c}/voxel_features/local"] == e.ros_arguments()[3:5]
+    recorded = [re.compile(t) for t in graph.recorder.arguments[3:]]
+    for topic in ("/cav_5/ego/occupancy", "/cav_8/ego/occupancy/points", "/cav_3/ground_truth/occupancy_50m"):
+        assert any(r.fullmatch(topic) for r in recorded), topic
+    with pytest.raises(Co3sopError, match="egos 'some'"):
+        describe(tmp_path / "bag", [3], "lidar", tmp_path / "g.mcap", 0.5, egos="some")
 
 
 def test_the_license_and_the_citation_are_where_users_look():

@@ -1441,3 +1441,26 @@ def test_rank_errors_name_the_field():
         with pytest.raises(NonFiniteError) as info:
             decode_features(dataclasses.replace(enc, **{field: tuple(values)}))
         _assert_error(info, NonFiniteError, field)
+
+
+def test_request_maps_with_fewer_levels_take_fewer_bytes_and_keep_what_is_asked():
+    grid = GridSpec(ORIGIN, 0.2, (32, 32, 4))
+    rng = np.random.default_rng(5)
+    need = np.where(rng.random(grid.dims) < 0.1, rng.random(grid.dims), 0.02).astype(np.float32)
+    sizes = {}
+    for levels in (256, 16, 4, 2):
+        enc = codec.encode_request(need, grid, levels=levels)
+        got = codec.decode_request(enc)
+        sizes[levels] = len(enc.need)
+        assert enc.levels == levels and np.abs(got - need).max() <= 0.5 / (levels - 1) + 1e-6
+        assert np.array_equal(got * (levels - 1), np.rint(got * (levels - 1)))  # on the levels
+    assert np.array_equal(codec.decode_request(codec.encode_request(need, grid, levels=2)), need > 0.5)
+    assert sizes[2] < sizes[4] < sizes[16] < sizes[256]
+    for levels in (0, 1, 257):
+        with pytest.raises(CodecError, match="levels"):
+            codec.encode_request(need, grid, levels=levels)
+    bad = dataclasses.replace(codec.encode_request(need, grid), levels=2)  # values up to 255 sent as 2 levels
+    with pytest.raises(CodecError, match="beyond its 2 levels"):
+        codec.decode_request(bad)
+    with pytest.raises(CodecError, match="levels"):
+        codec.decode_request(dataclasses.replace(bad, levels=0))

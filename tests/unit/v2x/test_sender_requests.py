@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from co3sop_nodes.v2x.sender_requests import Request, RequestBook
+from co3sop_nodes.v2x.sender_requests import Request, RequestBook, union_request
 
 S = 1_000_000_000
 HERE = np.eye(4)
@@ -17,7 +17,7 @@ def at(x: float) -> np.ndarray:
 
 
 def request(x: float, t: float = 0.0, fill: float = 1.0) -> Request:
-    return Request(np.full((4, 4, 2), fill, np.float32), at(x), int(t * S), int(t * S))
+    return Request(np.full((4, 4, 2), fill, np.float32), at(x), int(t * S))
 
 
 def book(**kw) -> RequestBook:
@@ -54,6 +54,17 @@ def test_each_frame_answers_the_nearest_fresh_requests_only():
     assert b.serving(int(1.5 * S), HERE) == {} and len(b) == 0  # expired and forgotten
 
 
+def test_requests_age_in_sensor_time_whatever_the_play_rate():
+    """A request is a frame or two old when it is answered: its stamp against the frame's, not when it came."""
+    b = book()
+    b.offer("/e1", 1, request(10, t=5.0), HERE, alive)
+    assert list(b.serving(int(5.9 * S), HERE)) == [1]  # 0.9 s of sensor time later, however long that took
+    b.offer("/e2", 2, request(10, t=9.0), HERE, alive)  # stamped far ahead of the frames: kept, not served
+    assert list(b.serving(int(6.0 * S), HERE)) == [1]
+    assert list(b.serving(int(7.0 * S), HERE)) == [] and len(b) == 1  # the first expired; the second waits
+    assert list(b.serving(int(8.5 * S), HERE)) == [2]
+
+
 def test_memory_stays_flat_under_thousands_of_ids_and_a_flood_does_not_push_out_a_near_ego():
     b = book()
     b.offer("/ego/request_map", 1, request(10), HERE, alive)
@@ -65,3 +76,10 @@ def test_memory_stays_flat_under_thousands_of_ids_and_a_flood_does_not_push_out_
     for ego in range(3000):
         unplaced.offer(f"/fake{ego}", ego, request(5, t=ego * 1e-4), None, alive)
     assert sorted(unplaced._requests) == list(range(2992, 3000))
+
+
+def test_a_union_of_requests_asks_the_most_any_ego_asks():
+    a = np.array([[[0.0, 0.5]], [[1.0, 0.2]]], np.float32)
+    b = np.array([[[0.3, 0.1]], [[0.0, 0.9]]], np.float32)
+    assert np.array_equal(union_request([a, b]), np.array([[[0.3, 0.5]], [[1.0, 0.9]]], np.float32))
+    assert np.array_equal(union_request([a]), a)

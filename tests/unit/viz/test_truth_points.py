@@ -50,9 +50,11 @@ def test_an_egos_ground_truth_at_its_range_becomes_the_points_the_ego_publishes(
     assert conv.truth(topics.ground_truth(EGO, "51.2m"), early) == []  # no prediction yet: it waits
     assert conv.truth(topics.ground_truth(EGO, "25.6m"), occupancy(EGO, "25.6m", 1)[0]) == []
     assert conv.truth(topics.ground_truth(OTHER, "51.2m"), occupancy(OTHER, "51.2m", 1)[0]) == []
-    (waited,) = conv.prediction(occupancy(EGO, "51.2m", 1, seed=9)[0])  # the ego at 51.2 m: what waited is drawn
+    # the ego at 51.2 m: what waited is drawn, beside its prediction
+    ((shown, waited),) = conv.prediction(occupancy(EGO, "51.2m", 1, seed=9)[0])
     late, late_labels = occupancy(EGO, "51.2m", 2, seed=2)
-    (now,) = conv.truth(topics.ground_truth(EGO, "51.2m"), late)  # from then on, as it comes
+    ((shown_late, now),) = conv.truth(topics.ground_truth(EGO, "51.2m"), late)  # from then on, as it comes
+    assert shown == shown_late == topics.EGO_TRUTH_POINTS
     for raw, labels, stamp in ((waited, early_labels, 1), (now, late_labels, 2)):
         msg = points_of(raw)
         cloud = occupancy_cloud(labels, BENCHMARK_RANGES["51.2m"])
@@ -72,7 +74,18 @@ def test_waiting_ground_truth_is_bounded():
     for stamp in range(5):
         conv.truth(topics.ground_truth(EGO, "76.8m"), occupancy(EGO, "76.8m", stamp)[0])
     drawn = conv.prediction(occupancy(EGO, "76.8m", 9)[0])
-    assert [points_of(raw).header.stamp.sec for raw in drawn] == [2, 3, 4]
+    assert [points_of(raw).header.stamp.sec for _, raw in drawn] == [2, 3, 4]
+
+
+def test_every_egos_truth_is_drawn_beside_its_own_prediction():
+    """Every CAV an ego: each one's truth points go under its namespace, as its prediction does."""
+    conv = TruthPoints()
+    for cav in (EGO, OTHER):
+        assert conv.prediction(occupancy(cav, "51.2m", 1)[0], topics.ego_output(topics.EGO_OCCUPANCY, cav)) == []
+    for cav in (EGO, OTHER):
+        ((shown, raw),) = conv.truth(topics.ground_truth(cav, "51.2m"), occupancy(cav, "51.2m", 2)[0])
+        assert shown == topics.ego_output(topics.EGO_TRUTH_POINTS, cav) == f"/cav_{cav}/ego/ground_truth/points"
+        assert points_of(raw).header.frame_id == topics.lidar_frame(cav)
 
 
 @pytest.mark.parametrize("raw", [b"", b"\x00\x01\x00\x00" + bytes(7), bytes(range(256))])

@@ -26,7 +26,14 @@ side, unshaped. A neighbour's DDS runs over UDP only (config/fastdds_udp.xml);
 the ego's processes and the player share memory among themselves, as one car's
 computers and sensors would (config/fastdds_onboard.xml), and reach the
 neighbours over UDP.
-Namespaces are removed on exit, SIGINT and SIGTERM included.
+Namespaces are removed on exit, SIGINT and SIGTERM included. What the cars send
+to the machine's side (the recorder, this launcher's diagnostics) is off the radio.
+
+With --egos all every CAV runs an ego besides its vehicle (in its namespace:
+/cav_N/ego/occupancy), fed its own car's features losslessly on board
+(voxel_features/local) and the others' through their V2X codec; each vehicle
+answers every ego's request map (parameter request_answer: one message for
+each, or one for all); the score gives each ego's table and the mean.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ from pathlib import Path
 from co3sop_nodes.cli.common import run
 from co3sop_nodes.model.path import PRECISIONS
 from co3sop_nodes.ros.demo import DemoOptions, run_demo
+from co3sop_nodes.ros.graph import EGOS
 
 DEFAULTS = DemoOptions()  # the library's defaults are the command's
 
@@ -119,6 +127,12 @@ def main(args: list[str] | None = None) -> int:
         action="store_true",
         help="with --channel-rate: every CAV transmits on one shared medium of that rate (together, as on one radio "
         "channel), not each on a link of its own",
+    )
+    parser.add_argument(
+        "--egos",
+        choices=EGOS,
+        default=DEFAULTS.egos,
+        help="which CAVs run an ego: the first (default) or all, each then also a collaborator of the others",
     )
     opts = parser.parse_args(args)
     if opts.channel_rate is None and (opts.channel_loss or opts.channel_shared):

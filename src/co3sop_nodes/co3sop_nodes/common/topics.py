@@ -58,6 +58,30 @@ def voxel_features(agent_id: int | None = None) -> str:
     return _under(agent_id, "voxel_features")
 
 
+def local_features(agent_id: int | None = None) -> str:
+    """co3sop_msgs/VoxelFeatures of a vehicle whose car also runs an ego (every CAV an ego): its features lossless,
+    for that ego on board; no other car's ego subscribes to it, so it never crosses the V2X link."""
+    return _under(agent_id, "voxel_features/local")
+
+
+def is_local_features(topic: str) -> bool:
+    return topic.endswith("/voxel_features/local")
+
+
+def ego_output(absolute: str, agent_id: int | None = None) -> str:
+    """An ego's output (EGO_OCCUPANCY, EGO_POINTS, EGO_REQUEST) where every CAV runs an ego: the ego of CAV
+    `agent_id` runs in that CAV's namespace (/cav_3/ego/occupancy); as is for None, the one ego's."""
+    return absolute if agent_id is None else namespace(agent_id) + absolute
+
+
+_EGO_OCCUPANCY = re.compile(rf"^(/cav_\d+)?{re.escape(EGO_OCCUPANCY)}$")
+
+
+def is_ego_occupancy(topic: str) -> bool:
+    """/ego/occupancy, or an ego's of every-CAV-an-ego (/cav_N/ego/occupancy)."""
+    return _EGO_OCCUPANCY.match(topic) is not None
+
+
 def camera_image(agent_id: int | None, camera: str) -> str:
     """sensor_msgs/Image (rgb8) of camera0..3 (front, right, left, back)."""
     return _under(agent_id, f"{camera}/image_raw")

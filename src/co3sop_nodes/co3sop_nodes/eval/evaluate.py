@@ -25,10 +25,11 @@ from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.model.path import InferencePath, inference_path
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
-from co3sop_nodes.v2x.codec import FeatureCodecConfig
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_request, encode_request
 from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative
 from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
+from co3sop_nodes.v2x.sender_requests import union_request
 
 
 def data_origin(root: Path) -> dict:
@@ -60,6 +61,8 @@ def evaluate(
     path: InferencePath | None = None,
     labels: dict | None = None,
     indices: list[int] | None = None,
+    request_levels: int = 256,
+    request_answer: str = "each",
 ) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
@@ -70,7 +73,10 @@ def evaluate(
     every one but the ego's first frame of a scenario). `path`, where given, is the inference path the model
     runs on from now on (`Co3SOP.use`: a cache is valid for one path only); `labels`, where given, is filled with
     each sample's predicted labels by sample index; `indices`, where given, are the samples evaluated (default:
-    every one).
+    every one); `request_levels`: the levels a request map's need is sent with (the ego's parameter);
+    `request_answer`: "each" (a message per ego, chosen by its request) or "union" (a sender's one message for every
+    agent of the frame, each an ego, chosen by the union of their requests within the communication range: the
+    vehicle's parameter request_answer where every CAV runs an ego).
     """
     early = model.cfg.early_fusion
     if early and codec is not None:
@@ -81,9 +87,10 @@ def evaluate(
     rng = np.random.default_rng(seed)
     if path is not None:
         model.use(path)
-    device = model.path.torch_device
+    device, grid = model.path.torch_device, model.cfg.feature_grid
     confusions, sent = {}, []
     senders: dict[tuple, SenderBudgets] = {}  # (scenario, sender) -> its byte budgets, one per ego
+    broadcast: dict[tuple, tuple[VehicleOutput, int]] = {}  # (frame, sender) -> its message for every ego (union)
     cache = vehicle_cache() if cache is None else cache
     controlled = ControlledInputs(dataset, inputs)
     indices = range(len(dataset)) if indices is None else indices
@@ -115,7 +122,8 @@ def evaluate(
             j = previous_frame(frame, cav)
             if j is None:
                 return None
-            return request_of(vehicle(cav, frame - 1, j).confidence), dataset.frames[frame - 1].poses[j]
+            sent = encode_request(request_of(vehicle(cav, frame - 1, j).confidence), grid, levels=request_levels)
+            return decode_request(sent), dataset.frames[frame - 1].poses[j]  # as the vehicle receives it
 
         others = sample.others
         if (
@@ -141,20 +149,37 @@ def evaluate(
         # a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on a
         # scenario's first frame: the neighbour then weighs by its own confidence alone)
         request = previous_request(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
+        union = request_answer == "union" and request is not None
+
+        def union_wanted(record) -> np.ndarray | None:
+            """The union of the requests of every other agent of the frame within comm range of `record`."""
+            frame = dataset.frames[f]
+            asks = [
+                request_for_neighbour(*r, record.world_from_lidar, grid)
+                for cav, pose in zip(frame.cav_ids, frame.poses)
+                if cav != record.cav_id
+                and (r := previous_request(f, cav)) is not None
+                and np.linalg.norm(r[1][:2, 3] - record.world_from_lidar[:2, 3]) <= COMM_RANGE
+            ]
+            return union_request(asks) if asks else None
+
         candidates = {}
         for record in others:
             out = vehicle(record.cav_id)
             if codec is not None:
-                wanted = (
-                    None
-                    if request is None
-                    else request_for_neighbour(*request, record.world_from_lidar, model.cfg.feature_grid)
-                )
                 key = (sample.key[:2], record.cav_id)
                 if key not in senders:
                     senders[key] = SenderBudgets(codec)
-                out, size = through_codec(out, model.cfg.feature_grid, senders[key].config(sample.ego.cav_id), wanted)
-                senders[key].spend(sample.ego.cav_id, size)
+                if union and (f, record.cav_id) in broadcast:
+                    out, size = broadcast[(f, record.cav_id)]
+                elif union:
+                    out, size = through_codec(out, grid, senders[key].config(None), union_wanted(record))
+                    senders[key].spend(None, size)
+                    broadcast[(f, record.cav_id)] = out, size
+                else:
+                    wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, grid)
+                    out, size = through_codec(out, grid, senders[key].config(sample.ego.cav_id), wanted)
+                    senders[key].spend(sample.ego.cav_id, size)
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)
         pred = predict_frame(

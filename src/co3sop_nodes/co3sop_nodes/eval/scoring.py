@@ -1,4 +1,5 @@
-"""Scores a recording of the graph: each /ego/occupancy against its ground truth by stamp and agent (ROS-free).
+"""Scores a recording of the graph: each ego's prediction (/ego/occupancy, or /cav_N/ego/occupancy where every CAV
+runs an ego) against its ground truth by stamp and agent (ROS-free); with several egos, each one's table too.
 
 Ground truth of an ego agent with no prediction at that stamp is a missed
 frame: it is listed and scored as an all-empty prediction (a deployed system
@@ -18,7 +19,7 @@ from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.data.bags import BagReader, occupancy_labels, open_recording
-from co3sop_nodes.eval.metrics import CONVENTIONS_NOTE, Confusion, markdown_table
+from co3sop_nodes.eval.metrics import CONVENTIONS_NOTE, SCORES, Confusion, markdown_table, point
 from co3sop_nodes.messages import header_stamp_ns
 from co3sop_nodes.viz.bev import save_comparison
 
@@ -67,7 +68,7 @@ def read_recording(path: Path, range_name: str | None = None) -> Recording:
     try:
         preds: dict[tuple[int, int], np.ndarray] = {}
         ranges = set()
-        pred_conns = [c for c in reader.connections if c.topic == topics.EGO_OCCUPANCY]
+        pred_conns = [c for c in reader.connections if topics.is_ego_occupancy(c.topic)]
         for conn, stamp, msg in _messages(reader, pred_conns):
             with reader.about(conn, stamp):
                 labels, grid = occupancy_labels(msg)
@@ -112,10 +113,11 @@ class Score:
     scored: int  # frames with ground truth (predicted + missed)
     missed: list[tuple[int, int]]  # (agent, stamp) with ground truth but no prediction
     unmatched: list[tuple[int, int]]  # predictions without ground truth
+    per_ego: dict[int, dict] = field(default_factory=dict)  # agent -> its own frames' summary
 
 
 def score(rec: Recording) -> Score:
-    confusion = Confusion()
+    confusion, per_ego = Confusion(), {}
     missed = []
     for key in sorted(rec.truths):
         truth = rec.truths[key]
@@ -124,8 +126,21 @@ def score(rec: Recording) -> Score:
             missed.append(key)
             prediction = np.zeros_like(truth)
         confusion.add(prediction, truth)
+        per_ego.setdefault(key[0], Confusion()).add(prediction, truth)
     unmatched = sorted(k for k in rec.predictions if k not in rec.truths)
-    return Score(confusion.summary(), rec.range_name, len(rec.truths), missed, unmatched)
+    return Score(
+        confusion.summary(),
+        rec.range_name,
+        len(rec.truths),
+        missed,
+        unmatched,
+        {a: c.summary() for a, c in sorted(per_ego.items())},
+    )
+
+
+def mean_over_egos(per_ego: dict[int, dict]) -> dict[str, float]:
+    """Each score (metrics.SCORES) averaged over the egos, each ego's frames pooled first."""
+    return {name: float(np.mean([point(s, name) for s in per_ego.values()])) for name in SCORES}
 
 
 def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:
@@ -148,12 +163,10 @@ def _pictures(rec, out: Path, keys: list[tuple[int, int]]) -> list[Path]:
 
 
 def _diagnostics_summary(diagnostics: list[dict[str, str]]) -> str:
-    if not diagnostics:
-        return "no ego diagnostics recorded"
     neighbours = [int(d.get("neighbours_used", 0)) for d in diagnostics]
     total_ms = [float(d.get("total_ms", 0.0)) for d in diagnostics]
     return (
-        f"ego diagnostics: {len(diagnostics)} frames, neighbours used per frame min {min(neighbours)} / "
+        f"{len(diagnostics)} frames, neighbours used per frame min {min(neighbours)} / "
         f"mean {np.mean(neighbours):.2f} / max {max(neighbours)}, ego time per frame p50 {np.median(total_ms):.0f} ms"
     )
 
@@ -168,19 +181,32 @@ def score_recording(
     rec = read_recording(recording, range_name)
     result = score(rec)
     name = f"{recording.stem} {result.range_name}"
+    egos = {f"ego cav {a}": summary for a, summary in result.per_ego.items()} if len(result.per_ego) > 1 else {}
+    columns = {**egos, (f"every ego ({name})" if egos else name): result.summary}
     lines = [
         f"### Per-class IoU (%) and mIoU: {recording.name}, {result.range_name}, {result.scored} frames",
         "",
-        markdown_table({name: result.summary}, every_class=True),
+        markdown_table(columns, every_class=True),
         "",
         CONVENTIONS_NOTE,
         "",
+    ]
+    if egos:
+        mean = mean_over_egos(result.per_ego)
+        lines += [
+            f"{len(egos)} egos; the mean over egos of each one's score: "
+            + ", ".join(f"{k} {100 * v:.2f}" for k, v in mean.items()),
+            "",
+        ]
+    lines += [
         f"frames: {result.scored} with ground truth, {result.scored - len(result.missed)} predicted, "
         f"{len(result.missed)} missed (scored as empty), {len(result.unmatched)} predictions without ground truth",
     ]
     lines += [f"- missed: cav {a} at stamp {s}" for a, s in result.missed]
     lines += [f"- no ground truth: cav {a} at stamp {s}" for a, s in result.unmatched]
-    lines.append(_diagnostics_summary(rec.diagnostics.get("ego", [])))
+    statuses = sorted(n for n in rec.diagnostics if n == "ego" or n.endswith("/ego"))  # the egos' node names
+    lines += [f"{status} diagnostics: {_diagnostics_summary(rec.diagnostics[status])}" for status in statuses]
+    lines += [] if statuses else ["no ego diagnostics recorded"]
     keys = sorted(rec.truths)
     if frames:
         chosen = [k for k in keys if k[1] in set(frames)]
@@ -202,6 +228,14 @@ def score_recording(
         "missed": [list(k) for k in result.missed],
         "unmatched": [list(k) for k in result.unmatched],
         **result.summary,
+        **(
+            {
+                "per_ego": {str(a): v for a, v in result.per_ego.items()},
+                "mean_over_egos": mean_over_egos(result.per_ego),
+            }
+            if egos
+            else {}
+        ),
     }
     (out / "score.json").write_text(json.dumps(data, indent=2) + "\n")
     return 0

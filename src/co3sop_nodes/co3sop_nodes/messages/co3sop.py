@@ -106,12 +106,13 @@ def request_msg(types: MessageTypes, enc: EncodedRequest, *, stamp_ns: int, fram
         codec=enc.codec,
         need=types.octets(enc.need),
         need_raw_size=enc.need_raw_size,
+        levels=enc.levels,
     )
 
 
 def request_of(msg) -> EncodedRequest:
     """Raises GridError on an invalid grid."""
-    return EncodedRequest(grid_of(msg.grid), msg.codec, octets_of(msg.need), msg.need_raw_size)
+    return EncodedRequest(grid_of(msg.grid), msg.codec, octets_of(msg.need), msg.need_raw_size, msg.levels)
 
 
 def occupancy_msg(types: MessageTypes, enc: EncodedLabels, *, stamp_ns: int, frame_id: str, agent_id: int):

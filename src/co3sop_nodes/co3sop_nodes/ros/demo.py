@@ -23,8 +23,9 @@ from co3sop_nodes.eval.scoring import message_counts, score_recording
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.path import inference_path
+from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import channel_environment
-from co3sop_nodes.ros.graph import NodeSpec, bag_contents, describe
+from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
 from co3sop_nodes.v2x.channel import Channel, Link
@@ -94,14 +95,15 @@ def bag_period(bag: Path, frames: int) -> float:
         return (reader.end_time - reader.start_time) / 1e9 / max(1, frames - 1) if frames > 1 else 0.1
 
 
-def measured_rate(model, vehicles: int, period: float) -> float:
-    """The playback rate this machine keeps up with for `vehicles` vehicles and the ego (model.pace), to 2 digits."""
+def measured_rate(model, vehicles: int, period: float, egos: int = 1) -> float:
+    """The playback rate this machine keeps up with for `vehicles` vehicles and `egos` egos (model.pace), to 2
+    digits."""
     cost = pace.frame_cost(model)
     n = pace.cores()
-    rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n)) / 100
+    rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n, egos=egos)) / 100
     say(
         f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms; "
-        f"{vehicles} vehicles + ego on {n} cores keep up with rate {rate:g} "
+        f"{vehicles} vehicles + {egos} ego{'s' if egos > 1 else ''} on {n} cores keep up with rate {rate:g} "
         f"(a frame every {period / max(rate, 0.01):.2f} s)"
     )
     return max(rate, 0.01)
@@ -145,6 +147,7 @@ class DemoOptions:
     channel_rate: float | None = None
     channel_loss: float = 0.0
     channel_shared: bool = False
+    egos: str = "first"
 
 
 def run_demo(opts: DemoOptions) -> int:
@@ -164,16 +167,16 @@ def run_demo(opts: DemoOptions) -> int:
     ego = cavs[0]
     opts.out.mkdir(parents=True, exist_ok=True)
     mcap = opts.out / "demo.mcap"
-    say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego cav {ego}; recording to {mcap}")
+    egos = cavs if opts.egos == "all" else [ego]
+    say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego{'s' if len(egos) > 1 else ''} {egos}; recording to {mcap}")
     say(f"model {checkpoint} ({sensors}); inference on {path.describe()}")
     model.use(path)
     if opts.rate is None:
-        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames))
+        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos))
     channel = None
     if opts.channel_rate is not None:
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)
-        members = ["ego", *(f"cav{c}" for c in cavs[1:])]
-        channel = Channel({m: link for m in members}, shared=link if opts.channel_shared else None)
+        channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
         os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
         say(
             f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} "
@@ -185,16 +188,27 @@ def run_demo(opts: DemoOptions) -> int:
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, t0)
 
 
-def frames_accounted(supervisor: Supervisor, ego: int) -> int:
-    """The ego's own frames fused, or skipped to stay current by the ego or by its own encoder (from their latest
+def frames_accounted(supervisor: Supervisor, ego: NodeSpec) -> int:
+    """An ego's own frames fused, or skipped to stay current by the ego or by its own encoder (from their latest
     /diagnostics: the newest frame is never skipped, so the last report counts every skip before it)."""
-    fused = supervisor.reports("ego")
-    encoder = supervisor.reports(f"vehicle cav_{ego}")
+    fused = supervisor.reports(status_of(ego))
+    encoder = supervisor.reports(f"vehicle cav_{ego.parameters['ego_id']}")
     return (
         len(fused)
         + (int(fused[-1].get("skipped", 0)) if fused else 0)
         + (int(encoder[-1].get("skipped", 0)) if encoder else 0)
     )
+
+
+def links_up(supervisor: Supervisor, status: str, wanted: list[str]) -> bool:
+    """The node whose status is `status` has matched a publisher on every topic of `wanted` (its links status)."""
+    reports = supervisor.reports(status + links.SUFFIX)
+    return bool(reports) and all(links.matched_publishers(reports[-1]).get(t, 0) > 0 for t in wanted)
+
+
+def status_of(ego: NodeSpec) -> str:
+    """The name an ego's status has on /diagnostics: its node's name ("ego", "cav_3/ego")."""
+    return ego.node.lstrip("/")
 
 
 def _interrupt(signum, frame):
@@ -213,10 +227,8 @@ def _graph(
     t0: float,
 ) -> int:
     """The nodes started (inside the channel's namespaces where there is one), the bag played, the recording scored."""
-    ego = cavs[0]
-
     echo = not opts.quiet
-
+    every = opts.egos == "all"
     common = {
         "checkpoint": checkpoint,
         "autostart": False,  # the demo drives the lifecycle
@@ -224,20 +236,28 @@ def _graph(
         "precision": opts.precision,
     }
     graph = describe(
-        bag, cavs, sensors, mcap, opts.rate, common=common, ego_params=opts.ego_params, vehicle_params=opts.params
+        bag,
+        cavs,
+        sensors,
+        mcap,
+        opts.rate,
+        egos=opts.egos,
+        common=common,
+        ego_params=opts.ego_params,
+        vehicle_params=opts.params,
     )
 
     def start(spec: NodeSpec, label: str) -> Process:
         """A node started in its car: on a channel, in that car's namespace with its DDS profile."""
         argv = [executable(spec.executable), *spec.ros_arguments()]
-        if channel:
+        if channel and spec.car is not None:
             return Process(label, channel.wrap(spec.car, argv), echo, channel_environment(spec.car))
         return Process(label, argv, echo)
 
     recorder = start(graph.recorder, "recorder")
-    nodes = {"/ego": start(graph.ego, "ego")}
+    nodes = {spec.node: start(spec, f"ego {spec.parameters['ego_id']}" if every else "ego") for spec in graph.egos}
     for spec in graph.vehicles:
-        nodes[f"{spec.namespace}/{spec.name}"] = start(spec, f"vehicle {spec.parameters['id']}")
+        nodes[spec.node] = start(spec, f"vehicle {spec.parameters['id']}")
     player = None
     supervisor = Supervisor(
         "demo",
@@ -253,48 +273,65 @@ def _graph(
     try:
         say("configuring the nodes (each loads the model), then activating them")
         supervisor.bring_up(list(nodes))
-        for c in cavs:  # the ego knows every neighbour before the first frame, or fuses it alone
-            supervisor.wait_subscribed("/ego", topics.voxel_features(c))
-        for topic in (
-            topics.EGO_OCCUPANCY,
-            topics.DIAGNOSTICS,
-        ):  # the nodes' outputs are recorded from their first frame on
-            supervisor.wait_subscribed("/recorder", topic)
+        # every link up as its receiver sees it: each ego matched to every vehicle's features (or it fuses that
+        # neighbour's first frames without it), each vehicle to every other car's ego's request maps
+        needs = {}
+        for ego in graph.egos:
+            own = ego.parameters["ego_id"]
+            feeds = [topics.local_features(c) if every and c == own else topics.voxel_features(c) for c in cavs]
+            needs[status_of(ego)] = feeds
+            request = topics.ego_output(topics.EGO_REQUEST, own if every else None)
+            for v in graph.vehicles:
+                if v.parameters["id"] != own:
+                    needs.setdefault(f"vehicle cav_{v.parameters['id']}", []).append(request)
+            # the nodes' outputs are recorded from their first frame on
+            supervisor.wait_subscribed("/recorder", topics.ego_output(topics.EGO_OCCUPANCY, own if every else None))
+        supervisor.wait_subscribed("/recorder", topics.DIAGNOSTICS)
+        supervisor.wait(
+            "every V2X link up (each ego matched to every vehicle, each vehicle to every other ego)",
+            lambda: all(links_up(supervisor, status, wanted) for status, wanted in needs.items()),
+            timeout=120,
+        )
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable(graph.player.executable), *graph.player.ros_arguments()], echo)
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
-        say("bag played; waiting for the ego to fuse the last frames")
-        accounted = lambda: frames_accounted(supervisor, ego) >= frames
-        supervisor.wait(f"the ego to fuse (or skip) all {frames} frames", accounted, timeout=120)
+        say(f"bag played; waiting for the ego{'s' if every else ''} to fuse the last frames")
+        accounted = lambda: all(frames_accounted(supervisor, ego) >= frames for ego in graph.egos)
+        supervisor.wait(f"every ego to fuse (or skip) all {frames} frames", accounted, timeout=120)
     finally:
         for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
             if p is not None:
                 p.stop()
         supervisor.close()
-    reports = supervisor.reports("ego")
-    published = len(reports)
     # every node's /diagnostics as the launcher received them (beside the recording, which holds what the recorder got)
-    statuses = {"ego": reports, **{f"vehicle cav_{c}": supervisor.reports(f"vehicle cav_{c}") for c in cavs}}
+    statuses = {status_of(ego): supervisor.reports(status_of(ego)) for ego in graph.egos}
+    statuses |= {f"vehicle cav_{c}": supervisor.reports(f"vehicle cav_{c}") for c in cavs}
     (opts.out / "diagnostics.json").write_text(json.dumps(statuses, indent=1) + "\n")
-    skipped = frames_accounted(supervisor, ego) - published
-    say(
-        f"graph stopped after {time.monotonic() - t0:.0f} s; the ego reported {published} fused frames"
-        + (
-            f", {skipped} skipped to stay current (the graph fuses slower than rate {opts.rate:g} feeds it)"
-            if skipped
-            else ""
-        )
-    )
-    if channel:  # what crossed the links in time, frame by frame
+    published = 0
+    for ego in graph.egos:
+        reports = statuses[status_of(ego)]
+        published += len(reports)
+        skipped = frames_accounted(supervisor, ego) - len(reports)
         say(
-            "neighbours fused per frame: "
-            + " ".join(r.get("neighbours_used", "?") for r in reports)
-            + "; heard but late: "
-            + " ".join(r["neighbours_missing"] or "-" for r in reports)
-            + "; never received: "
-            + " ".join(r["neighbours_silent"] or "-" for r in reports)
+            (f"ego {ego.parameters['ego_id']}" if every else "the ego")
+            + f" reported {len(reports)} fused frames"
+            + (
+                f", {skipped} skipped to stay current (the graph fuses slower than rate {opts.rate:g} feeds it)"
+                if skipped
+                else ""
+            )
         )
+        if channel:  # what crossed the links in time, frame by frame
+            say(
+                "  neighbours fused per frame: "
+                + " ".join(r.get("neighbours_used", "?") for r in reports)
+                + "; heard but late: "
+                + " ".join(r["neighbours_missing"] or "-" for r in reports)
+                + "; never received: "
+                + " ".join(r["neighbours_silent"] or "-" for r in reports)
+            )
+    say(f"graph stopped after {time.monotonic() - t0:.0f} s")
     if channel and opts.channel_loss:
         say("packets dropped by the channel: " + ", ".join(f"{m} {channel.dropped(m)}" for m in channel.links))
     if channel and opts.channel_shared:
@@ -302,11 +339,12 @@ def _graph(
             f"packets the shared medium dropped (its rate exceeded by the CAVs together): {channel.dropped_by_medium()}"
         )
     code = score_recording(mcap, opts.out)
-    layout = write_layout(opts.out / "foxglove_layout.json", ego)
+    layout = write_layout(opts.out / "foxglove_layout.json", cavs[0], every)
     say(f"to see it in 3D: open {mcap} in Foxglove and import the layout {layout} (prediction | ground truth, cameras)")
-    recorded = message_counts(mcap).get(topics.EGO_OCCUPANCY, 0)
+    counts = message_counts(mcap)
+    recorded = sum(n for t, n in counts.items() if topics.is_ego_occupancy(t))
     if recorded != published:
-        say(f"error: the recording holds {recorded} of the {published} /ego/occupancy messages published")
+        say(f"error: the recording holds {recorded} of the {published} ego occupancy messages published")
         return 1
-    say(f"the recording holds all {published} /ego/occupancy messages; done in {time.monotonic() - t0:.0f} s")
+    say(f"the recording holds all {published} ego occupancy messages; done in {time.monotonic() - t0:.0f} s")
     return code

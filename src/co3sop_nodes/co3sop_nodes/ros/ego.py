@@ -67,10 +67,11 @@ from co3sop_nodes.ros.dds import (
     subscribe_foreign,
 )
 from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
+from co3sop_nodes.ros.links import publish_links
 from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.params import Param, parameters_help
 from co3sop_nodes.ros.worker import Worker
-from co3sop_nodes.v2x.codec import decode_features, encode_labels, encode_request
+from co3sop_nodes.v2x.codec import REQUEST_LEVELS, decode_features, encode_labels, encode_request
 from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
 from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.request_map import request_of
@@ -163,6 +164,14 @@ PARAMS = (
         True,
         True,
     ),
+    Param(
+        "request_levels",
+        int,
+        "levels of the request map's need (2: whether it is above a half, about 0.2 KB a map; 256: about 17 KB)",
+        256,
+        True,
+        REQUEST_LEVELS,
+    ),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
     Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
     Param(
@@ -247,6 +256,8 @@ class Ego(ManagedNode):
         self.ego_id = self.params["ego_id"]
         # its own encoder's features: cav_<ego_id>/voxel_features, relative (remap it to where that encoder publishes)
         self.own_topic = self.resolve_topic_name(topics.relative(topics.voxel_features(self.ego_id)))
+        # its status on /diagnostics: the node's name ("ego"; "cav_3/ego" for an ego in /cav_3, one per CAV)
+        self.status_name = self.get_fully_qualified_name().lstrip("/")
         self.drops = DropLog(self.get_logger())
         self.published = 0
         self._subs: dict[str, object] = {}
@@ -342,6 +353,7 @@ class Ego(ManagedNode):
             "pose_noise_sigma",
             "publish_points",
             "request_maps",
+            "request_levels",
             "max_stamp_ahead",
         ):
             if name in values:
@@ -369,11 +381,11 @@ class Ego(ManagedNode):
 
     def _discover(self) -> None:
         """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace, up to max_topics
-        (to make room, topics without a publisher left are released)."""
+        (to make room, topics without a publisher left are released); then the links, as this ego sees them."""
         new = [
             name
             for name, types in self.get_topic_names_and_types()
-            if FEATURES_TYPE in types and name not in self._subs
+            if FEATURES_TYPE in types and name not in self._subs and not self._another_cars_own(name)
         ]
         if new and len(self._subs) + len(new) > self.params["max_topics"]:
             self._release_silent()
@@ -385,6 +397,16 @@ class Ego(ManagedNode):
                 continue
             self._subscribe(name)
             self.get_logger().info(f"neighbour discovered: {name}")
+        with self._worker.lock:
+            subs = dict(self._subs)
+        publish_links(self, self._diag, self.status_name, topics.lidar_frame(self.ego_id), subs)
+
+    def _another_cars_own(self, topic: str) -> bool:
+        """Features not meant for this ego, never subscribed: another car's on board (voxel_features/local) and,
+        where this ego's own come on board, its own car's V2X transmission (/cav_<ego_id>/voxel_features)."""
+        return topic != self.own_topic and (
+            topics.is_local_features(topic) or topic == topics.voxel_features(self.ego_id)
+        )
 
     def _release_silent(self) -> None:
         """Unsubscribes from neighbour topics that have no publisher left, forgetting their vehicle and frames."""
@@ -538,7 +560,7 @@ class Ego(ManagedNode):
             cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
             self._points.publish(point_cloud_msg(RCLPY, cloud, stamp_ns=stamp, frame_id=frame))
         if self.request_maps:  # for the vehicles' next frame: where this one was unsure (v2x/request_map.py)
-            need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid)
+            need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid, levels=self.request_levels)
             self._request.publish(
                 request_msg(
                     RCLPY,
@@ -582,7 +604,7 @@ class Ego(ManagedNode):
             + (f"; no frame from cav {', '.join(map(str, missing))}" if missing else "")
             + (f"; nothing received yet on {', '.join(silent)}" if silent else "")
         )
-        self._diag.publish(diagnostics_msg(RCLPY, stamp, "ego", frame, level, text, values))
+        self._diag.publish(diagnostics_msg(RCLPY, stamp, self.status_name, frame, level, text, values))
         self.get_logger().info(f"frame {stamp}: published #{self.published}, {text}, {1e3 * (t3 - t0):.0f} ms")
 
 

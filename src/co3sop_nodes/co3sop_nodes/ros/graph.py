@@ -1,4 +1,5 @@
-"""The node graph on a CAV bag, described once: recorder, ego, one vehicle per CAV, the player.
+"""The node graph on a CAV bag, described once: recorder, the ego (or one on every CAV), one vehicle per CAV,
+the player.
 
 `demo` starts it as processes (driving the lifecycle itself) and graph.launch.py as launch_ros Nodes; both
 read the nodes, their arguments and their parameters from `describe`.
@@ -18,23 +19,33 @@ from co3sop_nodes.viz.foxglove import CAMERAS
 
 # the ego's own encoder runs on the ego: its features reach the fusion losslessly
 LOSSLESS = {"codec.dtype": "float32", "codec.selection": "dense", "codec.compression": "none"}
+# which CAVs run an ego: the first only, or every one (each then also a collaborator of the others)
+EGOS = ("first", "all")
 
 
 @dataclass(frozen=True)
 class NodeSpec:
     """One process of the graph. `car`: whose computer runs it ("ego", or "cav<N>" for a neighbour), which an
-    emulated V2X channel puts in that car's network namespace."""
+    emulated V2X channel puts in that car's network namespace; None: the machine's side (the simulator's player,
+    the recorder), off the radio."""
 
     executable: str
     name: str
-    car: str = "ego"
+    car: str | None = "ego"
     namespace: str = ""
     arguments: tuple[str, ...] = ()
     parameters: dict = field(default_factory=dict)
+    remappings: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def node(self) -> str:
+        """The node's fully qualified name."""
+        return f"{self.namespace}/{self.name}"
 
     def ros_arguments(self) -> list[str]:
         """The command line after the executable, as `ros2 run` takes it."""
         remap = ["-r", f"__ns:={self.namespace}"] if self.namespace else []
+        remap += [x for a, b in self.remappings for x in ("-r", f"{a}:={b}")]
         params = [x for k, v in self.parameters.items() for x in ("-p", f"{k}:={_param_text(v)}")]
         return [*self.arguments, *(["--ros-args", *remap, *params] if remap or params else [])]
 
@@ -42,14 +53,14 @@ class NodeSpec:
 @dataclass(frozen=True)
 class Graph:
     recorder: NodeSpec
-    ego: NodeSpec
+    egos: tuple[NodeSpec, ...]
     vehicles: tuple[NodeSpec, ...]
     player: NodeSpec
 
     @property
     def nodes(self) -> tuple[NodeSpec, ...]:
         """Every process but the player, in start order."""
-        return (self.recorder, self.ego, *self.vehicles)
+        return (self.recorder, *self.egos, *self.vehicles)
 
 
 def _param_text(value) -> str:
@@ -84,6 +95,12 @@ def played_topics(cavs: list[int], sensors: str) -> list[str]:
     return played + [t for cam in CAMERAS if (t := topics.camera_image(cavs[0], cam)) not in played]
 
 
+def car_of(cav: int, cavs: list[int]) -> str:
+    """The car (an emulated channel's member) of CAV `cav`: "ego" for the first, the one the machine's side
+    shares memory with, "cav<N>" for the others."""
+    return "ego" if cav == cavs[0] else f"cav{cav}"
+
+
 def describe(
     bag: Path,
     cavs: list[int],
@@ -91,32 +108,51 @@ def describe(
     recording: Path,
     rate: float,
     *,
+    egos: str = "first",
     common: dict | None = None,
     ego_params: dict | None = None,
     vehicle_params: dict | None = None,
 ) -> Graph:
-    """The graph for `cavs` of `bag` (the first is the ego). `common`: parameters of the ego and every vehicle (the
-    checkpoint, device, ...); `vehicle_params`: the neighbours' (their V2X codec), the ego's own encoder is
-    lossless; the recording also keeps the ego's camera images (the Foxglove layout's panels)."""
-    common, ego = dict(common or {}), cavs[0]
-    shown = [re.escape(topics.camera_image(ego, cam)) for cam in CAMERAS]
+    """The graph for `cavs` of `bag`. `egos`: "first", one ego (the first CAV's, in the root namespace: /ego/...) whose
+    own encoder is lossless, or "all", an ego on every CAV (in its namespace: /cav_N/ego/...), each fed its own
+    car's features losslessly on board (voxel_features/local) and the others' through their V2X codec.
+    `common`: parameters of every ego and vehicle (the checkpoint, device, ...); `vehicle_params`: the V2X codec.
+    The recording keeps every ego's output and the first CAV's camera images (the Foxglove layout's panels)."""
+    if egos not in EGOS:
+        raise Co3sopError(f"egos {egos!r}: one of {', '.join(EGOS)}")
+    common, first, every = dict(common or {}), cavs[0], egos == "all"
+    shown = [re.escape(topics.camera_image(first, cam)) for cam in CAMERAS]
+    outputs = (
+        [rf"/cav_\d+{t}" for t in (re.escape(topics.EGO_OCCUPANCY), re.escape(topics.EGO_POINTS))] if every else []
+    )
     recorder = NodeSpec(
-        "recorder", "recorder", arguments=("--out", str(recording), "--topics", *DEFAULT_TOPICS, *shown)
+        "recorder",
+        "recorder",
+        None,
+        arguments=("--out", str(recording), "--topics", *DEFAULT_TOPICS, *outputs, *shown),
     )
-    ego_node = NodeSpec("ego", "ego", parameters={"ego_id": ego, **common, **(ego_params or {})})
-    vehicles = tuple(
-        NodeSpec(
-            "vehicle",
-            "vehicle",
-            "ego" if c == ego else f"cav{c}",
-            topics.namespace(c),
-            parameters={"id": c, **common, **(LOSSLESS if c == ego else vehicle_params or {})},
+
+    def ego(c: int) -> NodeSpec:
+        params = {"ego_id": c, **common, **(ego_params or {})}
+        if not every:
+            return NodeSpec("ego", "ego", parameters=params)
+        own = topics.relative(topics.voxel_features(c))  # as the ego names its own, relative to its namespace
+        local = ((own, topics.local_features(c)),)
+        return NodeSpec("ego", "ego", car_of(c, cavs), topics.namespace(c), parameters=params, remappings=local)
+
+    def vehicle(c: int) -> NodeSpec:
+        if every:
+            params = {**(vehicle_params or {}), "local_features": True}
+        else:
+            params = LOSSLESS if c == first else vehicle_params or {}
+        return NodeSpec(
+            "vehicle", "vehicle", car_of(c, cavs), topics.namespace(c), parameters={"id": c, **common, **params}
         )
-        for c in cavs
-    )
+
     player = NodeSpec(
         "player",
         "player",
+        None,
         arguments=(
             str(bag),
             "--rate",
@@ -127,4 +163,4 @@ def describe(
             *played_topics(cavs, sensors),
         ),
     )
-    return Graph(recorder, ego_node, vehicles, player)
+    return Graph(recorder, tuple(ego(c) for c in (cavs if every else cavs[:1])), tuple(map(vehicle, cavs)), player)

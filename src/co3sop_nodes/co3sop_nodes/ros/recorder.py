@@ -80,14 +80,14 @@ class Recorder(Node):
         self.mcap.write(topic, self._types[topic], raw, now)
         try:
             clouds = (
-                self.truth_points.prediction(raw)
-                if topic == topics.EGO_OCCUPANCY
+                self.truth_points.prediction(raw, topic)
+                if topics.is_ego_occupancy(topic)
                 else self.truth_points.truth(topic, raw)
             )
         except Co3sopError as exc:  # recorded as it came; only its picture is missing
             return self.drops(topic, "not drawn", str(exc))
-        for cloud in clouds:
-            self.mcap.write(topics.EGO_TRUTH_POINTS, POINT_CLOUD, cloud, now)
+        for shown, cloud in clouds:
+            self.mcap.write(shown, POINT_CLOUD, cloud, now)
 
     def close(self) -> None:
         self.mcap.close()

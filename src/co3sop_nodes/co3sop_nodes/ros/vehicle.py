@@ -62,6 +62,7 @@ from co3sop_nodes.ros.dds import (
     subscribe_foreign,
 )
 from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
+from co3sop_nodes.ros.links import publish_links
 from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.params import Param, parameters_help
 from co3sop_nodes.ros.worker import Worker
@@ -77,7 +78,7 @@ from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.request_map import request_for_neighbour
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly
-from co3sop_nodes.v2x.sender_requests import Request, RequestBook
+from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS, Request, RequestBook, union_request
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
 
@@ -146,13 +147,31 @@ PARAMS = (
     Param(
         "request_timeout",
         float,
-        "s: an ego's request map not renewed within this is no longer served",
+        "s of sensor time: an ego's request map is served by frames at most this much newer than it (the same at "
+        "any play rate)",
         1.0,
         True,
         (0.0, 3600.0),
     ),
     Param("comm_range", float, "m: request maps of egos farther away are refused", COMM_RANGE, True, (0.0, 10_000.0)),
     Param("max_egos", int, "egos answered per frame with codec.selection request, nearest first", 4, True, (1, 64)),
+    Param(
+        "request_answer",
+        str,
+        "with codec.selection request: each (one message per ego, its voxels chosen by that ego's request map; "
+        "every ego on the topic receives every one) or union (one message for all, its voxels chosen by the most "
+        "any of them requests)",
+        "each",
+        True,
+        choices=REQUEST_ANSWERS,
+    ),
+    Param(
+        "local_features",
+        bool,
+        "also publish the features losslessly on voxel_features/local, for the ego on this car when every CAV runs "
+        "one (no other car's ego subscribes to it, so it never crosses the V2X link)",
+        False,
+    ),
     Param(
         "max_request_topics",
         int,
@@ -208,6 +227,8 @@ CODEC_FIELDS = {
     "codec.rank": "rank",
 }
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
+# the ego on board gets the features as they are
+LOSSLESS_CODEC = FeatureCodecConfig("float32", "dense", codec="none")
 
 
 class Vehicle(ManagedNode):
@@ -246,7 +267,9 @@ class Vehicle(ManagedNode):
                 )
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self.codec = FeatureCodecConfig()
-        self._apply({name: p[name] for name in (*CODEC_FIELDS, "request_timeout", "comm_range", "max_egos")})
+        self._apply(
+            {name: p[name] for name in (*CODEC_FIELDS, "request_timeout", "comm_range", "max_egos", "request_answer")}
+        )
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
         self.cameras = p["cameras"]
@@ -265,11 +288,16 @@ class Vehicle(ManagedNode):
         self._pub = self.create_lifecycle_publisher(
             VoxelFeatures, topics.voxel_features(), features_qos(p["features_reliability"])
         )
+        self._local = (
+            self.create_lifecycle_publisher(VoxelFeatures, topics.local_features(), features_qos("reliable"))
+            if p["local_features"]
+            else None
+        )
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
             f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
             f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}, "
-            f"{p['features_reliability']}; inference on {self.model.path.describe()}; "
+            f"{p['features_reliability']}{', lossless on voxel_features/local' if self._local else ''}; inference on {self.model.path.describe()}; "
             f"compiled kernels: {', '.join(self.kernels) or 'none'}"
         )
 
@@ -300,7 +328,8 @@ class Vehicle(ManagedNode):
         self._request_subs, self._request_timer, self._requests = {}, None, None
 
     def _discover_requests(self) -> None:
-        """Every RequestMap topic in the graph, up to max_request_topics (topics without a publisher are released)."""
+        """Every RequestMap topic in the graph, up to max_request_topics (topics without a publisher are released);
+        then the links, as this vehicle sees them."""
         limit = self.params["max_request_topics"]
         new = [
             name
@@ -321,6 +350,7 @@ class Vehicle(ManagedNode):
             self._request_subs[name] = subscribe_foreign(
                 self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg), REQUEST_QOS, self.drops
             )
+        publish_links(self, self._diag, f"vehicle cav_{self.agent_id}", self.lidar_frame, self._request_subs)
 
     def _on_request(self, topic: str, msg: RequestMap) -> None:
         try:
@@ -337,7 +367,7 @@ class Vehicle(ManagedNode):
             return self.drops(topic, "request", str(exc))
         if msg.agent_id == self.agent_id:  # a vehicle that is also an ego does not serve itself
             return
-        request = Request(need, pose.matrix(), stamp_ns(msg.header.stamp), time.time_ns())
+        request = Request(need, pose.matrix(), stamp_ns(msg.header.stamp))
         with self._worker.lock:
             refused = self._requests.offer(
                 topic, msg.agent_id, request, self._pose, lambda t: self.count_publishers(t) > 0
@@ -345,18 +375,18 @@ class Vehicle(ManagedNode):
         if refused is not None:
             self.drops(topic, refused.kind, refused.reason)
 
-    def _recipients(self, world_from_lidar: np.ndarray) -> dict[int, Request]:
-        """The egos served one message each this frame: with selection "request", the nearest with a fresh request."""
+    def _recipients(self, stamp: int, world_from_lidar: np.ndarray) -> dict[int, Request]:
+        """The egos whose requests this frame answers: with selection "request", the nearest with a fresh request."""
         with self._worker.lock:
             self._pose = world_from_lidar
             if self.codec.selection != "request":
                 return {}
-            return self._requests.serving(time.time_ns(), world_from_lidar)
+            return self._requests.serving(stamp, world_from_lidar)
 
     def release(self) -> None:
         self.params.on_change(None)
-        for pub in ("_pub", "_diag"):
-            if hasattr(self, pub):
+        for pub in ("_pub", "_local", "_diag"):
+            if getattr(self, pub, None) is not None:
                 self.destroy_lifecycle_publisher(getattr(self, pub))
                 delattr(self, pub)
         self.model = None
@@ -374,7 +404,7 @@ class Vehicle(ManagedNode):
         """The run-time parameters in `values` (at start, and on `ros2 param set`): the codec's are checked against
         this model's features (a codec that could encode no message is refused) and used from the next frame on;
         the others are read where they are used."""
-        for name in ("request_timeout", "comm_range", "max_egos"):
+        for name in ("request_timeout", "comm_range", "max_egos", "request_answer"):
             if name in values:
                 setattr(self, name, values[name])
         if self._requests is not None:
@@ -469,17 +499,24 @@ class Vehicle(ManagedNode):
         with torch.inference_mode():
             out = self.model.vehicle(**to_batch(inputs, self.model.path.torch_device))
         t2 = time.perf_counter()
-        # one message per requesting ego, its voxels weighed by that ego's request moved into this frame; else one for all
-        fg, recipients = self.cfg.feature_grid, self._recipients(world_from_lidar)
+        # one message per requesting ego, its voxels weighed by that ego's request moved into this frame, or one for
+        # all weighed by the union of their requests; with no request, one for all by the codec's own selection
+        fg, recipients = self.cfg.feature_grid, self._recipients(stamp, world_from_lidar)
+        wanted = {
+            ego: request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg) for ego, r in recipients.items()
+        }
         try:
-            messages = [
-                (ego, self._encode_for(out, ego, request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)))
-                for ego, r in recipients.items()
-            ] or [(None, self._encode_for(out, None, None))]
+            if self.request_answer == "union" and wanted:
+                messages = [(None, self._encode_for(out, None, union_request(list(wanted.values()))))]
+            else:
+                messages = [(ego, self._encode_for(out, ego, need)) for ego, need in wanted.items()]
+            messages = messages or [(None, self._encode_for(out, None, None))]
+            local = encode_output(out, fg, LOSSLESS_CODEC) if self._local is not None else None
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
             return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
-        msgs = [
-            features_msg(
+
+        def message(enc, ego: int | None):
+            return features_msg(
                 RCLPY,
                 enc,
                 stamp_ns=stamp,
@@ -488,11 +525,14 @@ class Vehicle(ManagedNode):
                 pose=pose,
                 recipient_id=ego,
             )
-            for ego, enc in messages
-        ]
+
+        msgs = [message(enc, ego) for ego, enc in messages]
+        on_board = message(local, None) if local is not None else None
         t3 = time.perf_counter()
         for msg in msgs:
             self._pub.publish(msg)
+        if on_board is not None:
+            self._local.publish(on_board)
         published_wall = time.time_ns()
         self.published += 1
         values = {
@@ -505,6 +545,7 @@ class Vehicle(ManagedNode):
             "payload_bytes": sum(enc.payload_bytes for _, enc in messages),
             "recipients": ",".join(f"{ego}:{enc.budget_bytes}" for ego, enc in messages if ego is not None),
             "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),
+            "answered": ",".join(map(str, wanted)),  # the egos whose requests chose the voxels sent
             "cpu_ms": f"{1e3 * (time.process_time() - cpu0):.1f}",
             "frames_published": self.published,
             "skipped": sum(self.skips.counts.values()),

@@ -655,6 +655,10 @@ def decode_labels(enc: EncodedLabels, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES
     return DecodedLabels(labels=labels, confidence=confidence)
 
 
+# a request map's levels: need quantized to 2 (a yes or no per voxel) .. 256 (1/255 steps)
+REQUEST_LEVELS = (2, 256)
+
+
 @dataclass(frozen=True)
 class EncodedRequest:
     """An ego's request map as carried by co3sop_msgs/RequestMap (minus header, ids and pose)."""
@@ -663,21 +667,35 @@ class EncodedRequest:
     codec: str
     need: bytes
     need_raw_size: int
+    levels: int = 256
 
 
-def encode_request(need: np.ndarray, grid: GridSpec, codec: str = "zstd", level: int = 3) -> EncodedRequest:
-    """(nx, ny, nz) need in [0, 1] -> round(255 * need) uint8, compressed."""
+def _check_levels(levels: int) -> None:
+    if not REQUEST_LEVELS[0] <= levels <= REQUEST_LEVELS[1]:
+        raise CodecError(f"levels: {levels}, expected {REQUEST_LEVELS[0]} to {REQUEST_LEVELS[1]}")
+
+
+def encode_request(
+    need: np.ndarray, grid: GridSpec, codec: str = "zstd", level: int = 3, levels: int = 256
+) -> EncodedRequest:
+    """(nx, ny, nz) need in [0, 1] -> round((levels - 1) * need) uint8, compressed (fewer levels, fewer bytes: 2
+    levels send whether the need is above a half)."""
     _check_choice("codec", codec, CODECS)
+    _check_levels(levels)
     need = np.asarray(need, dtype=np.float32)
     if need.shape != grid.dims:
         raise SizeMismatchError(f"need: shape {need.shape} does not match the grid {grid.dims}")
     if not (np.isfinite(need).all() and need.min(initial=0) >= 0 and need.max(initial=0) <= 1):
         raise CodecError("need: values must lie in [0, 1]")
-    raw = np.rint(need * 255).astype(np.uint8).tobytes()
-    return EncodedRequest(grid, codec, _compress(raw, codec, level), len(raw))
+    raw = np.rint(need * (levels - 1)).astype(np.uint8).tobytes()
+    return EncodedRequest(grid, codec, _compress(raw, codec, level), len(raw), levels)
 
 
 def decode_request(enc: EncodedRequest, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> np.ndarray:
-    """Inverse of encode_request: (nx, ny, nz) float32 need in [0, 1] (multiples of 1/255)."""
+    """Inverse of encode_request: (nx, ny, nz) float32 need in [0, 1] (multiples of 1 / (levels - 1))."""
+    _check_levels(enc.levels)
     raw = _decompress(enc.need, enc.codec, enc.need_raw_size, enc.grid.num_voxels, "need", max_raw_bytes)
-    return (np.frombuffer(raw, np.uint8).astype(np.float32) / 255).reshape(enc.grid.dims)
+    q = np.frombuffer(raw, np.uint8)
+    if q.size and q.max() >= enc.levels:
+        raise CodecError(f"need: value {q.max()} beyond its {enc.levels} levels")
+    return (q.astype(np.float32) / (enc.levels - 1)).reshape(enc.grid.dims)

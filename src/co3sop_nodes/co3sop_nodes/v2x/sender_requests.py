@@ -4,8 +4,9 @@ Anyone on the DDS domain can publish a RequestMap, so what a request may
 cost the sender is bounded: an ego id's requests are taken from the one
 topic they first came on (another topic claiming that id is refused until
 the first has no publisher left), a request whose ego is beyond
-`comm_range` of the vehicle is refused, a stored request expires `timeout`
-after it came, at most `capacity` are held (beyond, the farthest ego's goes,
+`comm_range` of the vehicle is refused, a stored request expires when a frame
+`timeout` of sensor time newer than it comes (sensor time: the same at any play
+rate; a request stamped beyond that ahead of the frame is not served), at most `capacity` are held (beyond, the farthest ego's goes,
 so a flood of far or made-up ids cannot push out the near egos a vehicle
 serves), and a frame answers at most `max_egos` of them, nearest first. The vehicle node feeds it
 and counts every refusal by its kind.
@@ -18,6 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# how a vehicle answers several egos' requests: a message for each, or one for all
+REQUEST_ANSWERS = ("each", "union")
+
+
+def union_request(needs: list[np.ndarray]) -> np.ndarray:
+    """The requests of several egos (each (X, Y, Z) in [0, 1] on this vehicle's grid) as one: the most any of them
+    asks of each voxel, so that one message answers them all."""
+    return np.maximum.reduce(needs)
+
 
 @dataclass(frozen=True)
 class Request:
@@ -25,8 +35,7 @@ class Request:
 
     need: np.ndarray  # (X, Y, Z) on the ego's feature grid, in [0, 1]
     world_from_ego: np.ndarray  # (4, 4) the ego's LiDAR pose when it made the request
-    stamp: int  # the ego frame it came from
-    received_ns: int  # wall clock
+    stamp: int  # sensor time (ns) of the ego frame it came from
 
 
 @dataclass(frozen=True)
@@ -44,6 +53,7 @@ class RequestBook:
         self.comm_range, self.timeout_ns, self.max_egos, self.capacity = comm_range, timeout_ns, max_egos, capacity
         self._requests: dict[int, Request] = {}  # ego -> its latest request, oldest first
         self._topics: dict[int, str] = {}  # ego -> the topic its requests are taken from
+        self._now: int | None = None  # sensor time of the newest frame served
 
     def __len__(self) -> int:
         return len(self._requests)
@@ -57,7 +67,8 @@ class RequestBook:
         has_publisher: Callable[[str], bool],
     ) -> Refusal | None:
         """Keeps `request` as `ego`'s latest, or says why not. world_from_lidar: the vehicle's newest pose, if known."""
-        self.expire(request.received_ns)
+        if self._now is not None:
+            self.expire(self._now)
         bound = self._topics.get(ego)
         if bound is not None and bound != topic:
             if has_publisher(bound):
@@ -80,16 +91,20 @@ class RequestBook:
         return None
 
     def expire(self, now_ns: int) -> None:
-        """Forgets every request older than the timeout (and the topic its ego was bound to)."""
-        for ego in [e for e, r in self._requests.items() if now_ns - r.received_ns > self.timeout_ns]:
+        """Forgets every request more than the timeout older than sensor time `now_ns` (and the topic its ego was
+        bound to)."""
+        for ego in [e for e, r in self._requests.items() if now_ns - r.stamp > self.timeout_ns]:
             del self._requests[ego], self._topics[ego]
 
-    def serving(self, now_ns: int, world_from_lidar: np.ndarray) -> dict[int, Request]:
-        """The requests a frame at `world_from_lidar` answers: fresh, within comm_range, the max_egos nearest."""
-        self.expire(now_ns)
+    def serving(self, stamp_ns: int, world_from_lidar: np.ndarray) -> dict[int, Request]:
+        """The requests the frame of sensor time `stamp_ns` at `world_from_lidar` answers: within the timeout of it,
+        within comm_range, the max_egos nearest."""
+        self._now = stamp_ns if self._now is None else max(self._now, stamp_ns)
+        self.expire(stamp_ns)
         near = sorted(
             (d, ego)
             for ego, r in self._requests.items()
             if (d := _distance(r.world_from_ego, world_from_lidar)) <= self.comm_range
+            and r.stamp - stamp_ns <= self.timeout_ns
         )
         return {ego: self._requests[ego] for _, ego in near[: self.max_egos]}

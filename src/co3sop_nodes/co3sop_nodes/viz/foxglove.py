@@ -28,12 +28,13 @@ def _points_panel(topic: str, frame: str) -> dict:
     }
 
 
-def layout(ego_id: int, cameras: tuple[str, ...] = CAMERAS) -> dict:
-    """Top: /ego/occupancy/points | /ego/ground_truth/points in the ego's LiDAR frame; bottom: the ego's cameras."""
-    frame = topics.lidar_frame(ego_id)
+def layout(ego_id: int, cameras: tuple[str, ...] = CAMERAS, every_cav_an_ego: bool = False) -> dict:
+    """Top: /ego/occupancy/points | /ego/ground_truth/points in the ego's LiDAR frame (under /cav_<ego_id> where
+    every CAV runs an ego); bottom: the ego's cameras."""
+    frame, ns = topics.lidar_frame(ego_id), ego_id if every_cav_an_ego else None
     config = {
-        "3D!prediction": _points_panel(topics.EGO_POINTS, frame),
-        "3D!ground_truth": _points_panel(topics.EGO_TRUTH_POINTS, frame),
+        "3D!prediction": _points_panel(topics.ego_output(topics.EGO_POINTS, ns), frame),
+        "3D!ground_truth": _points_panel(topics.ego_output(topics.EGO_TRUTH_POINTS, ns), frame),
     }
     row: str | dict = ""
     for cam in reversed(cameras):  # a right-leaning split tree, equal shares
@@ -62,6 +63,6 @@ def _leaves(tree: str | dict) -> int:
     return 1 if isinstance(tree, str) else _leaves(tree["first"]) + _leaves(tree["second"])
 
 
-def write_layout(path: Path, ego_id: int) -> Path:
-    path.write_text(json.dumps(layout(ego_id), indent=2) + "\n")
+def write_layout(path: Path, ego_id: int, every_cav_an_ego: bool = False) -> Path:
+    path.write_text(json.dumps(layout(ego_id, every_cav_an_ego=every_cav_an_ego), indent=2) + "\n")
     return path

@@ -4,7 +4,9 @@ Foxglove or RViz2 (ROS-free: raw CDR in, raw CDR out, through rosbags).
 
 Only an ego's own ground truth at its prediction's range is drawn (every CAV's three ranges would multiply a
 recording's size): a ground-truth message waits (at most `keep` per CAV and range) until a prediction says
-which CAV is an ego at which range, and from then on is converted as it comes.
+which CAV is an ego at which range, and from then on is converted as it comes. The points go beside that
+ego's prediction: /ego/ground_truth/points for /ego/occupancy, /cav_3/ego/ground_truth/points for
+/cav_3/ego/occupancy (every CAV an ego).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ class TruthPoints:
     def __init__(self, keep: int = 50):
         self._store = typestore()
         self._types = RosbagsTypes(self._store)
-        self._egos: set[tuple[int, str]] = set()
+        self._egos: dict[tuple[int, str], str] = {}  # (CAV, range) of an ego -> the topic of its truth's points
         self._waiting: dict[tuple[int, str], deque[bytes]] = {}
         self._keep = keep
 
@@ -42,9 +44,9 @@ class TruthPoints:
         except Exception as exc:
             raise DatasetError(f"{what}: not a valid SemanticOccupancy ({exception_line(exc)})") from None
 
-    def prediction(self, raw: bytes) -> list[bytes]:
-        """A /ego/occupancy message: the PointCloud2s (CDR) of the ground truth that waited for it."""
-        msg = self._decode(raw, topics.EGO_OCCUPANCY)
+    def prediction(self, raw: bytes, topic: str = topics.EGO_OCCUPANCY) -> list[tuple[str, bytes]]:
+        """An ego's prediction (on `topic`): (topic, PointCloud2 CDR) of the ground truth that waited for it."""
+        msg = self._decode(raw, topic)
         grid = msg.grid
         key = next(
             (
@@ -56,16 +58,16 @@ class TruthPoints:
         )
         if key is None or key in self._egos:
             return []
-        self._egos.add(key)
-        return [self._points(r, "waiting ground truth") for r in self._waiting.pop(key, [])]
+        shown = self._egos[key] = topic.removesuffix(topics.EGO_OCCUPANCY) + topics.EGO_TRUTH_POINTS
+        return [(shown, self._points(r, "waiting ground truth")) for r in self._waiting.pop(key, [])]
 
-    def truth(self, topic: str, raw: bytes) -> list[bytes]:
-        """A ground-truth message: its PointCloud2 (CDR) when its CAV is an ego at its range, else nothing (yet)."""
+    def truth(self, topic: str, raw: bytes) -> list[tuple[str, bytes]]:
+        """A ground-truth message: (topic, PointCloud2 CDR) when its CAV is an ego at its range, else nothing (yet)."""
         key = truth_key(topic)
         if key is None:
             return []
         if key in self._egos:
-            return [self._points(raw, topic)]
+            return [(self._egos[key], self._points(raw, topic))]
         self._waiting.setdefault(key, deque(maxlen=self._keep)).append(bytes(raw))
         return []
 
