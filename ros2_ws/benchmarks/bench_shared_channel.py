@@ -1,24 +1,30 @@
 """Every CAV an ego on one shared V2X channel: CAVs x medium rate, per ego, against the same graph with no channel.
 
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [--cavs 2 3 4 5] [--medium 3 6 12] [--answers union each]
-        [--request-levels 2] [--model tiny-lidar|CKPT] [--out results/bench_shared_channel]
+        [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each number of CAVs N (the bag's first N),
-`demo --egos all` runs every CAV's ego and vehicle:
+`demo --egos all` runs every CAV's ego and vehicle, at one play rate for N (the rate the demo measures for N
+vehicles and N egos, times --rate-scale: the codec and the channel cost more than the model's time the demo
+measures, and an ego behind its input skips frames, which `score` counts as empty):
 - with no channel, every ego alone (ego parameter max_collaborators 0): the floor of each ego's score;
 - with no channel and lossless features (float32, dense): the ceiling;
-- on one shared medium of M Mbit/s of real time (`--channel-shared`, scaled by the play rate the demo measures, so
-  the bytes per frame are real time's), per answer mode (vehicle parameter request_answer): request maps of
+- on one shared medium of M Mbit/s of real time (`--channel-shared`, scaled by the play rate, so the bytes per frame
+  are real time's), per answer mode (vehicle parameter request_answer): request maps of
   --request-levels levels, int4 coefficients at rank 8, each message's budget (codec.max_bytes) its share of the
-  medium: 80 % of the M Mbit/s at 10 Hz split over the copies DDS sends (one per ego it reaches, unicast): N x (N-1)
-  copies a frame with one message for every ego (union), N x (N-1)^2 with a message for each ego (each: every ego
-  receives every ego's message).
-Per ego, from the launcher's copy of every node's /diagnostics and `score`: neighbour-frames fused (% of those
+  medium: 80 % of the M Mbit/s at 10 Hz, less the request maps (N x (N-1) a frame), split over the copies of
+  feature messages DDS sends (one per ego a message reaches, unicast): N x (N-1) a frame with one message for every
+  ego (union), N x (N-1)^2 with a message for each ego (each: every ego receives every ego's message). A cell whose
+  budget holds no voxel (the vehicle would refuse the codec) is listed, not run.
+Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
+current, which `score` counts as empty predictions), neighbour-frames fused (% of those
 within comm range: fused, late or never received), latency
 p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy published), bytes per neighbour-frame
-received, and the share of the collaboration gain it kept, (channel - alone) / (lossless - alone) in mIoU 1..23, on
-this one scene (no interval: `evaluate` and choose_rank.py have them over a split's scenarios); per vehicle, the
-bytes it sent per frame. Prints a markdown table (also OUT/bench_shared_channel.md and .json).
+received, its collaboration gain (lossless - alone, mIoU 1..23), the gain on the channel (channel - alone) and the
+share kept where the gain is at least half a point (every ego together: the gains summed), on this one scene (no
+interval: `evaluate` and choose_rank.py have them over a split's scenarios); per vehicle, the bytes it sent per
+frame. Prints a markdown table (also OUT/bench_shared_channel.md and .json). Resumable: a run
+whose OUT/<cell>/cell.json exists is read, not run again.
 """
 
 from __future__ import annotations
@@ -34,17 +40,49 @@ import numpy as np
 from ament_index_python.packages import get_package_prefix
 from bench_graph import measure_diagnostics
 
-from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
+from co3sop_nodes.common.errors import CodecError
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
+from co3sop_nodes.model.path import inference_path
+from co3sop_nodes.ros.demo import bag_period, measured_rate
+from co3sop_nodes.ros.graph import bag_contents
+from co3sop_nodes.ros.vehicle import CODEC_FIELDS
+from co3sop_nodes.v2x.codec import FeatureCodecConfig, check_codec_for
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 FRAME_RATE = 10.0  # Hz: the sensors' rate, at which the medium's bytes per frame are counted
-SHARE = 0.8  # of the medium for feature payloads: the rest for request maps, RTPS headers, acknowledgements
+SHARE = 0.8  # of the medium for payloads: the rest for RTPS headers, heartbeats and acknowledgements
+# a request map's bytes at 51.2 m (tiny-lidar's 64x64x6 feature grid): about 17 KB at 256 levels, 1.6-2.0 KB at 4,
+# 0.2 KB at 2 (measured on the demo scene's frames)
+REQUEST_BYTES = {256: 17_500, 4: 2_000, 2: 260}
+MIN_GAIN = 0.005  # mIoU: the least collaboration gain whose share is reported
 
 
-def budget(medium_mbit: float, cavs: int, answer: str) -> int:
-    """Bytes one message may take: its share of the medium's bytes per frame over the copies sent."""
+def codec_of(size: int) -> FeatureCodecConfig:
+    """The vehicles' codec: request maps, int4 coefficients at rank 8, `size` bytes per message."""
+    return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), rank=8)
+
+
+def carries_features(codec: FeatureCodecConfig, cfg) -> bool:
+    """A message of `codec` can carry a voxel of the model's features (the vehicle refuses a codec that cannot)."""
+    try:
+        check_codec_for(codec, cfg.embed_dims, cfg.feature_grid)
+    except CodecError:
+        return False
+    return True
+
+
+def budget(medium_mbit: float, cavs: int, answer: str, levels: int) -> int:
+    """Bytes one message may take: the medium's payload bytes per frame, less every ego's request map to every
+    vehicle, over the copies of feature messages DDS sends (one per ego a message reaches)."""
+    payload = SHARE * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (cavs - 1) * REQUEST_BYTES[levels]
     copies = cavs * (cavs - 1) * ((cavs - 1) if answer == "each" else 1)
-    return int(SHARE * medium_mbit * 1e6 / 8 / FRAME_RATE / copies)
+    return int(payload / copies)
+
+
+def kept_share(kept: float, gain: float) -> str:
+    """The share of a collaboration gain kept, in %, where the gain is at least MIN_GAIN (else the ratio means
+    nothing: an ego whose neighbours add nothing)."""
+    return f"{100 * kept / gain:.0f}" if gain >= MIN_GAIN else "-"
 
 
 def fused_share(reports: list[dict[str, str]]) -> float:
@@ -57,6 +95,15 @@ def fused_share(reports: list[dict[str, str]]) -> float:
 
 
 def run(demo: str, opts, out: Path, cavs: int, extra: list[str]) -> dict:
+    """One demo run, measured (kept in OUT/cell.json: a run that finished is not run again)."""
+    kept = out / "cell.json"
+    if kept.exists():
+        cell = json.loads(kept.read_text())
+        return {
+            **cell,
+            "egos": {int(k): v for k, v in cell["egos"].items()},
+            "sent": {int(k): v for k, v in cell["sent"].items()},
+        }
     argv = [demo, "--bag", str(opts.bag), "--out", str(out), "--quiet", "--model", opts.model, "--egos", "all"]
     argv += ["--vehicles", str(cavs), *extra]
     print(f"[bench_shared_channel] {cavs} CAVs: {' '.join(extra) or 'no channel'}", flush=True)
@@ -81,13 +128,16 @@ def run(demo: str, opts, out: Path, cavs: int, extra: list[str]) -> dict:
             "bytes": measured["bytes_per_agent_frame"],
             "frames": len(reports),
             "miou23": score["per_ego"][str(cav)]["co3sop-code"]["miou"] if "per_ego" in score else None,
+            "missed": sum(1 for agent, _ in score["missed"] if agent == cav),  # skipped to stay current: scored empty
         }
     sent = {  # the payloads of its messages a frame, before DDS copies each to every ego it reaches
         int(name.removeprefix("vehicle cav_")): float(np.mean([int(d["payload_bytes"]) for d in reports]))
         for name, reports in diagnostics.items()
         if name.startswith("vehicle")
     }
-    return {"rate": rate, "egos": egos, "sent": sent, "medium_drops": int(medium.group(1)) if medium else None}
+    cell = {"rate": rate, "egos": egos, "sent": sent, "medium_drops": int(medium.group(1)) if medium else None}
+    kept.write_text(json.dumps(cell, indent=1) + "\n")
+    return cell
 
 
 def main() -> int:
@@ -96,52 +146,72 @@ def main() -> int:
     parser.add_argument("--cavs", type=int, nargs="+", default=[2, 3, 4, 5])
     parser.add_argument("--medium", type=float, nargs="+", default=[3, 6, 12], help="shared rate, Mbit/s real time")
     parser.add_argument("--answers", nargs="+", choices=REQUEST_ANSWERS, default=["union"])
-    parser.add_argument("--request-levels", type=int, default=2, help="the egos' request_levels")
+    parser.add_argument(
+        "--request-levels", type=int, choices=sorted(REQUEST_BYTES), default=4, help="the egos' request_levels"
+    )
+    parser.add_argument(
+        "--rate-scale", type=float, default=0.5, help="the play rate: the demo's measured one for N CAVs times this"
+    )
     parser.add_argument("--out", type=Path, default=Path("results/bench_shared_channel"))
     parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it")
     opts = parser.parse_args()
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
+    model = load_graph_model(resolve_checkpoint(opts.model, "--model"))[0].use(inference_path("cpu", "auto"))
+    cfg, period = model.cfg, bag_period(opts.bag, bag_contents(opts.bag)[1])
     levels = f"request_levels:={opts.request_levels}"
     rows = [
         f"Every CAV an ego; bag {opts.bag}; model {opts.model}; request maps of {opts.request_levels} levels, "
         "int4 coefficients at rank 8, each message's budget its share of the medium (see the script).",
         "",
-        "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | neighbour-frames "
-        "fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | gain kept (%) | vehicle's message bytes "
-        "per frame | packets the medium dropped |",
-        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | frames missed | "
+        "neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | collaboration gain, lossless (points) | "
+        "gain on the channel (points) | gain kept (%) | vehicle's message bytes per frame | packets the medium dropped |",
+        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     results = []
     for n in opts.cavs:
-        alone = run(demo, opts, opts.out / f"{n}cavs-alone", n, ["--ego-params", "max_collaborators:=0"])
+        # every run of N CAVs at one rate: the demo's for N vehicles and N egos, slowed by --rate-scale, so that the
+        # codec's and the channel's cost on top of the model's leaves the egos every frame (a skipped one is scored
+        # empty); the medium is scaled by it, so its bytes per frame are real time's
+        rate = f"{max(0.01, opts.rate_scale * measured_rate(model, n, period, egos=n)):.3f}"
+        opts_rate = ["--rate", rate]
+        alone = run(demo, opts, opts.out / f"{n}cavs-alone", n, [*opts_rate, "--ego-params", "max_collaborators:=0"])
         lossless = run(
             demo,
             opts,
             opts.out / f"{n}cavs-lossless",
             n,
-            ["--params", "codec.dtype:=float32", "codec.compression:=none"],
+            [*opts_rate, "--params", "codec.dtype:=float32", "codec.compression:=none"],
         )
         for medium in opts.medium:
             for answer in opts.answers:
-                size = budget(medium, n, answer)
-                codec = ["codec.selection:=request", "codec.dtype:=int4", "codec.rank:=8", f"codec.max_bytes:={size}"]
-                extra = ["--channel-rate", f"{medium:g}", "--channel-shared", "--params", *codec]
+                size = budget(medium, n, answer, opts.request_levels)
+                if not carries_features(codec_of(size), cfg):
+                    rows.append(
+                        f"| {n} | {medium:g} | {answer} | {size:,} | | | not run: a message of this budget carries "
+                        "no voxel (the request maps and the basis take it) | | | | | | | | |"
+                    )
+                    continue
+                codec = [f"{param}:={getattr(codec_of(size), field)}" for param, field in CODEC_FIELDS.items()]
+                extra = [*opts_rate, "--channel-rate", f"{medium:g}", "--channel-shared", "--params", *codec]
                 extra += [f"request_answer:={answer}", "--ego-params", levels]
                 cell = run(demo, opts, opts.out / f"{n}cavs-{medium:g}mbit-{answer}", n, extra)
                 for cav, ego in sorted(cell["egos"].items()):
                     floor, ceiling = alone["egos"][cav]["miou23"], lossless["egos"][cav]["miou23"]
-                    ego["gain_kept"] = (ego["miou23"] - floor) / (ceiling - floor) if ceiling != floor else None
-                    kept = "-" if ego["gain_kept"] is None else f"{100 * ego['gain_kept']:.0f}"
+                    ego["gain"], ego["kept"] = ceiling - floor, ego["miou23"] - floor
                     rows.append(
                         f"| {n} | {medium:g} | {answer} | {size:,} | {cell['rate']:g} | {cav} | "
-                        f"{100 * ego['fused']:.0f} | {ego['latency_p50']:.0f} / {ego['latency_p95']:.0f} | "
-                        f"{ego['bytes']:,.0f} | {kept} | {cell['sent'][cav]:,.0f} | {cell['medium_drops']} |"
+                        f"{ego['missed']} | {100 * ego['fused']:.0f} | {ego['latency_p50']:.0f} / {ego['latency_p95']:.0f} | "
+                        f"{ego['bytes']:,.0f} | {100 * ego['gain']:+.2f} | {100 * ego['kept']:+.2f} | "
+                        f"{kept_share(ego['kept'], ego['gain'])} | {cell['sent'][cav]:,.0f} | {cell['medium_drops']} |"
                     )
-                kept = [e["gain_kept"] for e in cell["egos"].values() if e["gain_kept"] is not None]
+                egos = cell["egos"].values()
                 rows.append(
-                    f"| {n} | {medium:g} | {answer} | {size:,} | {cell['rate']:g} | mean | "
-                    f"{100 * np.mean([e['fused'] for e in cell['egos'].values()]):.0f} | | | "
-                    f"{np.mean(kept) * 100:.0f} | | |"
+                    f"| {n} | {medium:g} | {answer} | {size:,} | {cell['rate']:g} | all | "
+                    f"{sum(e['missed'] for e in egos)} | {100 * np.mean([e['fused'] for e in egos]):.0f} | | | "
+                    f"{100 * sum(e['gain'] for e in egos):+.2f} | "
+                    f"{100 * sum(e['kept'] for e in egos):+.2f} | "
+                    f"{kept_share(sum(e['kept'] for e in egos), sum(e['gain'] for e in egos))} | | |"
                 )
                 results.append(
                     {
