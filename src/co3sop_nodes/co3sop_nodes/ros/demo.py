@@ -175,7 +175,9 @@ def run_demo(opts: DemoOptions) -> int:
         opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos))
     channel = None
     if opts.channel_rate is not None:
-        link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100)
+        # rate and queue in real time: at play rate r a link carries r times the bytes per second, and a packet
+        # may wait 1 / r times as long (200 ms of real time)
+        link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100, Link.queue_ms / opts.rate)
         channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
         os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
         say(

@@ -90,7 +90,7 @@ class Supervisor:
             if (why := self._alive()) is not None:
                 raise Co3sopError(f"{why} (while waiting for {what})")
             if time.monotonic() > deadline:
-                raise Co3sopError(f"no {what} within {timeout:g} s")
+                raise Co3sopError(f"waited {timeout:g} s for {what}, in vain")
             time.sleep(0.05)
 
     def _call(self, service_type, service: str, request, timeout: float, resend: float | None = None):

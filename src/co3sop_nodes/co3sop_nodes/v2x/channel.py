@@ -286,10 +286,11 @@ class Channel:
 
     def _share(self, medium: Link) -> None:
         """One token bucket for every member's transmissions, on the hub's bridge (the machine's side unshaped).
-        nftables' bucket holds one second of the rate besides the burst: the medium's rate holds over windows of
-        a second, within which a frame's burst can pass faster (each member's own link still paces it)."""
+        What the members send together beyond the rate passes up to the medium's `queue_ms` of it (its burst: as a
+        radio's senders would wait that long for the channel), beyond that it is dropped; nftables' bucket holds one
+        second of the rate besides, so the rate holds over windows of about a second."""
         rate = medium.rate_mbit * 1e6 / 8  # bytes/s
-        burst = max(4096, int(rate * 0.01))  # 10 ms of the rate, as each member's own bucket
+        burst = max(4096, int(rate * medium.queue_ms / 1000))
         members = ", ".join(f'"{m}"' for m in self.links)
         rules = (
             "table bridge medium {\n"
