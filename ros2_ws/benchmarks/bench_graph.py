@@ -42,6 +42,7 @@ from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATU
 from co3sop_nodes.eval.evaluate import plot_codecs
 from co3sop_nodes.eval.scoring import read_recording
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
+from co3sop_nodes.ros import links
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 
 # The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps
@@ -95,7 +96,7 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
     vehicles = {
         int(name.split("cav_")[1]): {int(d["stamp"]): d for d in ds}
         for name, ds in diagnostics.items()
-        if name.startswith("vehicle")
+        if name.startswith("vehicle") and not name.endswith(links.SUFFIX)
     }
     sizes, latency, dds_share = [], [], []
     for d in ego:

@@ -164,8 +164,9 @@ def main() -> int:
         "int4 coefficients at rank 8, each message's budget its share of the medium (see the script).",
         "",
         "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | frames missed | "
-        "neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | collaboration gain, lossless (points) | "
-        "gain on the channel (points) | gain kept (%) | vehicle's message bytes per frame | packets the medium dropped |",
+        "neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | "
+        "collaboration gain, lossless (points) | gain on the channel (points) | gain kept (%) | "
+        "vehicle's message bytes per frame | packets the medium dropped |",
         "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     results = []
@@ -201,7 +202,8 @@ def main() -> int:
                     ego["gain"], ego["kept"] = ceiling - floor, ego["miou23"] - floor
                     rows.append(
                         f"| {n} | {medium:g} | {answer} | {size:,} | {cell['rate']:g} | {cav} | "
-                        f"{ego['missed']} | {100 * ego['fused']:.0f} | {ego['latency_p50']:.0f} / {ego['latency_p95']:.0f} | "
+                        f"{ego['missed']} | {100 * ego['fused']:.0f} | "
+                        f"{ego['latency_p50']:.0f} / {ego['latency_p95']:.0f} | "
                         f"{ego['bytes']:,.0f} | {100 * ego['gain']:+.2f} | {100 * ego['kept']:+.2f} | "
                         f"{kept_share(ego['kept'], ego['gain'])} | {cell['sent'][cav]:,.0f} | {cell['medium_drops']} |"
                     )

@@ -30,6 +30,7 @@ from co3sop_nodes.inference.outputs import encode_output
 from co3sop_nodes.messages import features_of, pose_of, request_of, stamp_ns
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.ros import links
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.v2x.request_map import request_for_neighbour
@@ -75,9 +76,9 @@ class Graph:
         for c in neighbours:
             self.supervisor.wait_subscribed("/ego", topics.voxel_features(c))
 
-    def wait_fused(self, n: int, where=lambda report: True, timeout: float = 180) -> list[dict]:
-        """The ego's /diagnostics reports once `n` of them satisfy `where`."""
-        return self.supervisor.wait_reports("ego", n, timeout, where)
+    def wait_fused(self, n: int, where=lambda report: True, timeout: float = 180, ego: str = "ego") -> list[dict]:
+        """The /diagnostics reports of the ego whose status is `ego` (its node's name) once `n` satisfy `where`."""
+        return self.supervisor.wait_reports(ego, n, timeout, where)
 
     def stop(self, name: str, sig=signal.SIGINT, timeout: float = 30) -> int:
         proc = self.procs[name]
@@ -277,6 +278,7 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     outputs = vehicle_outputs(model, bag)
     first = min(outputs)
     world_from_ego = outputs[first][cavs[0]][1]
+    stand_in = first - 1_000_000  # just before the first frame: a request ages in sensor time
 
     def ask() -> None:  # the stand-in ego's request, known to every vehicle before it encodes a frame
         graph.start(
@@ -284,7 +286,7 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
             sys.executable,
             str(Path(__file__).parent / "peers" / "requester.py"),
             str(cavs[0]),
-            "1",
+            str(stand_in),
             json.dumps(world_from_ego.tolist()),
             model.cfg.range,
         )
@@ -303,14 +305,14 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     requests = {
         stamp_ns(m.header.stamp): m for _, m in recorded_messages(mcap, re.escape(topics.EGO_REQUEST), RequestMap)
     }
-    assert 1 in requests and len(requests) >= FRAMES  # the stand-in's, and the ego's after each of its frames
+    assert stand_in in requests and len(requests) >= FRAMES  # the stand-in's, and the ego's after each of its frames
     assert all(m.agent_id == cavs[0] for m in requests.values())
     features = recorded_messages(mcap, r"/cav_\d+/voxel_features", VoxelFeatures)
     addressed = [(t, m) for t, m in features if m.addressed]
     assert addressed and all(m.recipient_id == cavs[0] for _, m in addressed)  # the only ego
     used = {}  # (vehicle, frame stamp) -> the request stamp it answered
     for name, statuses in read_recording(mcap).diagnostics.items():
-        if name.startswith("vehicle "):
+        if name.startswith("vehicle ") and not name.endswith(links.SUFFIX):
             for status in statuses:
                 for item in filter(None, status["request_stamps"].split(",")):
                     used[int(name.split("_")[1]), int(status["stamp"])] = int(item.split(":")[1])
@@ -420,7 +422,7 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
             sys.executable,
             str(Path(__file__).parent / "peers" / "requester.py"),
             str(ego),
-            "1",
+            str(first),  # stamped as the first frame: a request ages in sensor time
             json.dumps(poses[first][ego]["pose"].tolist()),
             "51.2m",
             topic,
@@ -728,7 +730,7 @@ def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
         "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
     )
     assert player.wait(120) == 0, graph.log("player")
-    reports = graph.wait_fused(FRAMES, lambda r: r["neighbours"] == str(neighbour))
+    reports = graph.wait_fused(FRAMES, lambda r: r["neighbours"] == str(neighbour), ego="fleet/ego")
     assert all(r["neighbours_missing"] == "" for r in reports), reports
     assert "/fleet/car_a/voxel_features" in graph.log("own") and "neighbour discovered: /v2x/any_name" in graph.log(
         "ego"

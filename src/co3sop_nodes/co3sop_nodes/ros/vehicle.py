@@ -297,7 +297,8 @@ class Vehicle(ManagedNode):
         self.get_logger().info(
             f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
             f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}, "
-            f"{p['features_reliability']}{', lossless on voxel_features/local' if self._local else ''}; inference on {self.model.path.describe()}; "
+            f"{p['features_reliability']}{', lossless on voxel_features/local' if self._local else ''}; "
+            f"inference on {self.model.path.describe()}; "
             f"compiled kernels: {', '.join(self.kernels) or 'none'}"
         )
 

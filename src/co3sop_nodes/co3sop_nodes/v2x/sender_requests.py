@@ -6,7 +6,8 @@ topic they first came on (another topic claiming that id is refused until
 the first has no publisher left), a request whose ego is beyond
 `comm_range` of the vehicle is refused, a stored request expires when a frame
 `timeout` of sensor time newer than it comes (sensor time: the same at any play
-rate; a request stamped beyond that ahead of the frame is not served), at most `capacity` are held (beyond, the farthest ego's goes,
+rate; a request stamped beyond that ahead of the frame is not served), at most
+`capacity` are held (beyond, the farthest ego's goes,
 so a flood of far or made-up ids cannot push out the near egos a vehicle
 serves), and a frame answers at most `max_egos` of them, nearest first. The vehicle node feeds it
 and counts every refusal by its kind.
