@@ -51,6 +51,15 @@ CODECS = {  # the neighbours' vehicle parameters
 }
 
 
+def run_demo(argv: list[str]) -> subprocess.CompletedProcess:
+    """One `demo` run (its output captured); the benchmark stops, showing the end of that output, if it fails."""
+    done = subprocess.run(argv, capture_output=True, text=True)
+    if done.returncode != 0:
+        print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
+        raise SystemExit(1)
+    return done
+
+
 def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str, run: int = 0) -> dict:
     out = (
         opts.out / f"link{link:g}-loss{loss:g}-{codec.replace(' ', '').replace(',', '-')}-{reliability}"
@@ -82,10 +91,7 @@ def cell(demo: str, opts, link: float, loss: float, codec: str, reliability: str
         + (["--channel-shared"] if opts.shared else [])
     )
     print(f"[bench_channel] {link:g} Mbit/s, {loss:g} % loss, {codec}, {reliability}", flush=True)
-    done = subprocess.run(argv, capture_output=True, text=True)
-    if done.returncode != 0:
-        print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
-        raise SystemExit(1)
+    done = run_demo(argv)
     diagnostics = json.loads((out / "diagnostics.json").read_text())
     ego = diagnostics["ego"]
     neighbours = len(diagnostics) - 2  # every vehicle but the ego's own encoder

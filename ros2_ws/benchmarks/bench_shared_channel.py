@@ -32,12 +32,12 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 from ament_index_python.packages import get_package_prefix
+from bench_channel import run_demo
 from bench_graph import measure_diagnostics
 
 from co3sop_nodes.common.errors import CodecError
@@ -107,10 +107,7 @@ def run(demo: str, opts, out: Path, cavs: int, extra: list[str]) -> dict:
     argv = [demo, "--bag", str(opts.bag), "--out", str(out), "--quiet", "--model", opts.model, "--egos", "all"]
     argv += ["--vehicles", str(cavs), *extra]
     print(f"[bench_shared_channel] {cavs} CAVs: {' '.join(extra) or 'no channel'}", flush=True)
-    done = subprocess.run(argv, capture_output=True, text=True)
-    if done.returncode != 0:
-        print(done.stdout[-3000:], done.stderr[-3000:], file=sys.stderr)
-        raise SystemExit(1)
+    done = run_demo(argv)
     diagnostics = json.loads((out / "diagnostics.json").read_text())
     score = json.loads((out / "score.json").read_text())
     medium = re.search(r"packets the shared medium dropped [^:]*: (\d+)", done.stdout)

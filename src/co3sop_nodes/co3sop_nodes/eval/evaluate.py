@@ -26,7 +26,7 @@ from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.model.path import InferencePath, inference_path
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_request, encode_request
-from co3sop_nodes.v2x.neighbours import COMM_RANGE, noisy_relative
+from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
 from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 from co3sop_nodes.v2x.sender_requests import union_request
@@ -153,14 +153,13 @@ def evaluate(
 
         def union_wanted(record) -> np.ndarray | None:
             """The union of the requests of every other agent of the frame within comm range of `record`."""
-            frame = dataset.frames[f]
-            asks = [
-                request_for_neighbour(*r, record.world_from_lidar, grid)
-                for cav, pose in zip(frame.cav_ids, frame.poses)
-                if cav != record.cav_id
-                and (r := previous_request(f, cav)) is not None
-                and np.linalg.norm(r[1][:2, 3] - record.world_from_lidar[:2, 3]) <= COMM_RANGE
-            ]
+            requests = {
+                cav: r
+                for cav in dataset.frames[f].cav_ids
+                if cav != record.cav_id and (r := previous_request(f, cav)) is not None
+            }
+            near = nearest_collaborators(record.world_from_lidar, {cav: r[1] for cav, r in requests.items()})
+            asks = [request_for_neighbour(*requests[cav], record.world_from_lidar, grid) for cav in near]
             return union_request(asks) if asks else None
 
         candidates = {}
