@@ -27,7 +27,7 @@ fi
 . "$ROOT/ros2_ws/env.sh"
 cd "$ROOT"
 set +e
-python -m pytest -c src/co3sop_nodes/setup.cfg --rootdir tests tests "$@"
+python -m pytest -c src/co3sop_nodes/setup.cfg --rootdir tests --durations=30 tests "$@"
 code=$?
 set -e
 if [ "$code" -eq 5 ]; then

@@ -1,7 +1,8 @@
 """Every CAV an ego on one shared V2X channel: CAVs x medium rate, per ego, against the same graph with no channel.
 
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [--cavs 2 3 4 5] [--medium 3 6 12] [--answers union each]
-        [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--out results/bench_shared_channel]
+        [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--reference CKPT]
+        [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each number of CAVs N (the bag's first N),
 `demo --egos all` runs every CAV's ego and vehicle, at one play rate for N (the rate the demo measures for N
@@ -11,7 +12,8 @@ measures, and an ego behind its input skips frames, which `score` counts as empt
 - with no channel and lossless features (float32, dense): the ceiling;
 - on one shared medium of M Mbit/s of real time (`--channel-shared`, scaled by the play rate, so the bytes per frame
   are real time's), per answer mode (vehicle parameter request_answer): request maps of
-  --request-levels levels, int4 coefficients at rank 8, each message's budget (codec.max_bytes) its share of the
+  --request-levels levels, int4 coefficients at rank 8 (or the model's learned wire code, codec.learned, where it
+  has one: the alone and lossless runs are then --reference's), each message's budget (codec.max_bytes) its share of the
   medium: 80 % of the M Mbit/s at 10 Hz, less the request maps (N x (N-1) a frame), split over the copies of
   feature messages DDS sends (one per ego a message reaches, unicast): N x (N-1) a frame with one message for every
   ego (union), N x (N-1)^2 with a message for each ego (each: every ego receives every ego's message). A cell whose
@@ -57,15 +59,18 @@ REQUEST_BYTES = {256: 17_500, 4: 2_000, 2: 260}
 MIN_GAIN = 0.005  # mIoU: the least collaboration gain whose share is reported
 
 
-def codec_of(size: int) -> FeatureCodecConfig:
-    """The vehicles' codec: request maps, int4 coefficients at rank 8, `size` bytes per message."""
+def codec_of(size: int, cfg) -> FeatureCodecConfig:
+    """The vehicles' codec: request maps, `size` bytes per message, the model's learned wire code where it has one,
+    else int4 coefficients at rank 8."""
+    if cfg.wire is not None:
+        return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), learned=True)
     return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), rank=8)
 
 
 def carries_features(codec: FeatureCodecConfig, cfg) -> bool:
     """A message of `codec` can carry a voxel of the model's features (the vehicle refuses a codec that cannot)."""
     try:
-        check_codec_for(codec, cfg.embed_dims, cfg.feature_grid)
+        check_codec_for(codec, cfg.wire.rank if codec.learned else cfg.embed_dims, cfg.feature_grid)
     except CodecError:
         return False
     return True
@@ -94,7 +99,7 @@ def fused_share(reports: list[dict[str, str]]) -> float:
     return used / due if due else 1.0
 
 
-def run(demo: str, opts, out: Path, cavs: int, extra: list[str]) -> dict:
+def run(demo: str, opts, out: Path, cavs: int, extra: list[str], model: str) -> dict:
     """One demo run, measured (kept in OUT/cell.json: a run that finished is not run again)."""
     kept = out / "cell.json"
     if kept.exists():
@@ -104,7 +109,7 @@ def run(demo: str, opts, out: Path, cavs: int, extra: list[str]) -> dict:
             "egos": {int(k): v for k, v in cell["egos"].items()},
             "sent": {int(k): v for k, v in cell["sent"].items()},
         }
-    argv = [demo, "--bag", str(opts.bag), "--out", str(out), "--quiet", "--model", opts.model, "--egos", "all"]
+    argv = [demo, "--bag", str(opts.bag), "--out", str(out), "--quiet", "--model", model, "--egos", "all"]
     argv += ["--vehicles", str(cavs), *extra]
     print(f"[bench_shared_channel] {cavs} CAVs: {' '.join(extra) or 'no channel'}", flush=True)
     done = run_demo(argv)
@@ -151,14 +156,21 @@ def main() -> int:
     )
     parser.add_argument("--out", type=Path, default=Path("results/bench_shared_channel"))
     parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it")
+    parser.add_argument(
+        "--reference",
+        help="the model of the alone and lossless runs (default: --model): the one a learned code was trained from",
+    )
     opts = parser.parse_args()
+    reference = opts.reference or opts.model
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
     model = load_graph_model(resolve_checkpoint(opts.model, "--model"))[0].use(inference_path("cpu", "auto"))
     cfg, period = model.cfg, bag_period(opts.bag, bag_contents(opts.bag)[1])
     levels = f"request_levels:={opts.request_levels}"
     rows = [
-        f"Every CAV an ego; bag {opts.bag}; model {opts.model}; request maps of {opts.request_levels} levels, "
-        "int4 coefficients at rank 8, each message's budget its share of the medium (see the script).",
+        f"Every CAV an ego; bag {opts.bag}; model {opts.model} (alone and lossless: {reference}); request maps of "
+        f"{opts.request_levels} levels, "
+        + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
+        + ", each message's budget its share of the medium (see the script).",
         "",
         "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | frames missed | "
         "neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | "
@@ -173,27 +185,23 @@ def main() -> int:
         # empty); the medium is scaled by it, so its bytes per frame are real time's
         rate = f"{max(0.01, opts.rate_scale * measured_rate(model, n, period, egos=n)):.3f}"
         opts_rate = ["--rate", rate]
-        alone = run(demo, opts, opts.out / f"{n}cavs-alone", n, [*opts_rate, "--ego-params", "max_collaborators:=0"])
-        lossless = run(
-            demo,
-            opts,
-            opts.out / f"{n}cavs-lossless",
-            n,
-            [*opts_rate, "--params", "codec.dtype:=float32", "codec.compression:=none"],
-        )
+        floor = [*opts_rate, "--ego-params", "max_collaborators:=0"]
+        alone = run(demo, opts, opts.out / f"{n}cavs-alone", n, floor, reference)
+        ceiling = [*opts_rate, "--params", "codec.dtype:=float32", "codec.compression:=none"]
+        lossless = run(demo, opts, opts.out / f"{n}cavs-lossless", n, ceiling, reference)
         for medium in opts.medium:
             for answer in opts.answers:
                 size = budget(medium, n, answer, opts.request_levels)
-                if not carries_features(codec_of(size), cfg):
+                if not carries_features(codec_of(size, cfg), cfg):
                     rows.append(
                         f"| {n} | {medium:g} | {answer} | {size:,} | | | not run: a message of this budget carries "
                         "no voxel (the request maps and the basis take it) | | | | | | | | |"
                     )
                     continue
-                codec = [f"{param}:={getattr(codec_of(size), field)}" for param, field in CODEC_FIELDS.items()]
+                codec = [f"{p}:={str(getattr(codec_of(size, cfg), f)).lower()}" for p, f in CODEC_FIELDS.items()]
                 extra = [*opts_rate, "--channel-rate", f"{medium:g}", "--channel-shared", "--params", *codec]
                 extra += [f"request_answer:={answer}", "--ego-params", levels]
-                cell = run(demo, opts, opts.out / f"{n}cavs-{medium:g}mbit-{answer}", n, extra)
+                cell = run(demo, opts, opts.out / f"{n}cavs-{medium:g}mbit-{answer}", n, extra, opts.model)
                 for cav, ego in sorted(cell["egos"].items()):
                     floor, ceiling = alone["egos"][cav]["miou23"], lossless["egos"][cav]["miou23"]
                     ego["gain"], ego["kept"] = ceiling - floor, ego["miou23"] - floor

@@ -306,7 +306,8 @@ def test_demo_through_a_lossy_channel(scenario, tmp_path):
     assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 2, out
     # dense float16 features (~1 MB a frame) do not fit 27 Mbit/s: the ego still publishes every frame, alone,
     # and its diagnostics name the neighbours it discovered but got no frame from in time
-    proc = demo(scenario, tmp_path / "dense", "--params", "codec.dtype:=float16", "--ego-params", "max_wait:=1.0")
+    dense = ["--params", "codec.dtype:=float16", "--ego-params", "max_wait:=1.0", "stay_current:=false"]
+    proc = demo(scenario, tmp_path / "dense", *dense)
     out = proc.communicate(timeout=300)[0]
     assert proc.returncode == 0, out
     assert message_counts(tmp_path / "dense" / "demo.mcap")[topics.EGO_OCCUPANCY] == FRAMES

@@ -26,10 +26,10 @@ from co3sop_nodes.data.bags import read_frames
 from co3sop_nodes.eval.bag_eval import predict_bag, vehicle_outputs
 from co3sop_nodes.eval.scoring import read_recording
 from co3sop_nodes.inference.checkpoint import export_model, load_model, shipped_checkpoint
-from co3sop_nodes.inference.outputs import encode_output
+from co3sop_nodes.inference.outputs import code_id, encode_output
 from co3sop_nodes.messages import features_of, pose_of, request_of, stamp_ns
-from co3sop_nodes.model.co3sop import build_model
-from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.co3sop import build_model, with_wire
+from co3sop_nodes.model.config import WireConfig, preset
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
@@ -233,6 +233,44 @@ def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):
             f"frame {stamp}: {(labels != offline[stamp].labels).mean():.2%} of voxels differ"
         )
     assert rec.truths.keys() == rec.predictions.keys()
+
+
+def test_a_learned_code_crosses_dds_as_its_integers_and_decodes_as_offline(graph, scenario, tmp_path):
+    """Vehicles send a model's learned wire code (codec.learned: 4 integers per voxel, int4, no constants, basis or
+    confidence; named by the code) for their 1024 most confident voxels; the ego decodes it with the same code's
+    decoder and fuses: every prediction equals offline evaluation through the same codec, bit for bit."""
+    bag, cavs = scenario
+    torch.manual_seed(3)
+    wired = with_wire(load_model(shipped_checkpoint("tiny.pt"))[0], WireConfig(4, 7))
+    checkpoint = tmp_path / "wired.pt"
+    export_model(checkpoint, wired, {})
+    model, _ = load_model(checkpoint)
+    codec = FeatureCodecConfig("int4", "topk", topk=1024, learned=True)
+    params = [f"checkpoint:={checkpoint}", "codec.dtype:=int4", "codec.selection:=topk", "codec.topk:=1024"]
+    params.append("codec.learned:=true")
+    features = "/cav_.*/voxel_features"
+    mcap = run_graph(
+        graph,
+        bag,
+        cavs,
+        params,
+        ego_params=["-p", f"checkpoint:={checkpoint}"],
+        recorded=(features, topics.EGO_OCCUPANCY, topics.DIAGNOSTICS, "/cav_.*/ground_truth/occupancy_50m"),
+    )
+    sent = [features_of(m) for _, m in recorded_messages(mcap, features, VoxelFeatures)]
+    assert len(sent) == FRAMES * len(cavs)
+    assert all(
+        (e.learned_code, e.channels, e.dtype, e.num_voxels, e.has_confidence, e.quant_scale, e.basis)
+        == (code_id(model), 4, "int4", 1024, False, (), ())
+        for e in sent
+    )
+    rec = read_recording(mcap)
+    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics["ego"]  # fused
+    torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
+    offline = predict_bag(model, bag, cavs[0], codec)
+    assert sorted(offline) == sorted(s for _, s in rec.predictions)
+    for (_, stamp), labels in rec.predictions.items():
+        assert np.array_equal(labels, offline[stamp].labels), f"frame {stamp}"
 
 
 def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[str, object]]:

@@ -103,6 +103,7 @@ def test_training_feeds_the_merged_scans_and_no_collaborator(model_and_scans):
     forward, data = _Forward(model.train(), "ego", torch.device("cpu")), dataset(1)
     index = torch.arange(0, GRID.dims[0] * GRID.dims[1] * GRID.dims[2], 97)[None]
     for i in (0, 1):
-        logits, confidence, labels = forward(training_sample(CFG, "ego")(data, i), index)
+        logits, confidence, labels, wire = forward(training_sample(CFG, "ego")(data, i), index, np.random.default_rng())
+        assert wire == {}  # no wire code outside the wire stage
         assert logits[-1].shape[-1] == index.shape[1] and confidence.shape[1] == 1 and labels.shape == GRID.dims
     assert scans == [MERGED[0], MERGED[1]]

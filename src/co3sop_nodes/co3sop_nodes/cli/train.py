@@ -6,7 +6,10 @@
 Stages as in Co3SOP: `ego` trains the vehicle half and the head on single
 agents; `fusion` starts from an ego checkpoint, freezes the vehicle half and
 trains the fusion and the head with collaborators; `joint` trains everything
-at once. Every CAV of every frame is the ego in turn. Progress bar, CSV log
+at once. `wire` starts from a collaborative checkpoint and trains a code for
+the V2X wire (K integers per voxel, --wire-rank) with the fusion and the head
+behind it, each collaborator's voxels chosen by the ego's request as a byte
+budget would (vehicle features frozen); vehicles send it with codec.learned. Every CAV of every frame is the ego in turn. Progress bar, CSV log
 (log.csv), loss plot (loss.png), resumable training state (state.pt, written
 atomically every --save-every steps; --resume continues it) and the exported
 model (model.pt, float16 weights + config + the command that made it).
@@ -43,7 +46,11 @@ def main(args: list[str] | None = None) -> int:
         "--preset", default="tiny", choices=sorted(PRESETS), help="model preset (ignored with --init or --resume)"
     )
     parser.add_argument("--range", choices=["25.6m", "51.2m", "76.8m"], help="benchmark range (default: the preset's)")
-    parser.add_argument("--stage", choices=("ego", "fusion", "joint"), default="joint")
+    parser.add_argument("--stage", choices=("ego", "fusion", "joint", "wire"), default="joint")
+    parser.add_argument("--wire-rank", type=int, default=4, help="wire stage: integers per voxel of a new wire code")
+    parser.add_argument(
+        "--wire-levels", type=int, default=7, help="wire stage: each integer in [-L, L] (int4 on the wire: L <= 7)"
+    )
     parser.add_argument(
         "--init", type=Path, help="start from this checkpoint's weights (the ego stage's for --stage fusion)"
     )

@@ -64,7 +64,7 @@ def predict_bag(
         if ego_id not in agents:
             continue
         received = {
-            cav: (through_codec(out, model.cfg.feature_grid, codec)[0], world_from_lidar)
+            cav: (through_codec(model, out, codec)[0], world_from_lidar)
             for cav, (out, world_from_lidar) in agents.items()
         }
         ego, world_from_ego = received.pop(ego_id)

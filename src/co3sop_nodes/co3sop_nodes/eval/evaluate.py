@@ -41,7 +41,10 @@ def data_origin(root: Path) -> dict:
 
 def vehicle_cache(max_bytes: int = 4 << 30) -> BoundedCache:
     """The vehicle halves' outputs kept between samples and calls, at most `max_bytes` of them."""
-    return BoundedCache(max_bytes, lambda out: out.features.nbytes + out.confidence.nbytes)
+    return BoundedCache(
+        max_bytes,
+        lambda out: out.features.nbytes + out.confidence.nbytes + (0 if out.code is None else out.code.nbytes),
+    )
 
 
 @torch.no_grad()
@@ -172,12 +175,12 @@ def evaluate(
                 if union and (f, record.cav_id) in broadcast:
                     out, size = broadcast[(f, record.cav_id)]
                 elif union:
-                    out, size = through_codec(out, grid, senders[key].config(None), union_wanted(record))
+                    out, size = through_codec(model, out, senders[key].config(None), union_wanted(record))
                     senders[key].spend(None, size)
                     broadcast[(f, record.cav_id)] = out, size
                 else:
                     wanted = None if request is None else request_for_neighbour(*request, record.world_from_lidar, grid)
-                    out, size = through_codec(out, grid, senders[key].config(sample.ego.cav_id), wanted)
+                    out, size = through_codec(model, out, senders[key].config(sample.ego.cav_id), wanted)
                     senders[key].spend(sample.ego.cav_id, size)
                 sent.append(size)
             candidates[record.cav_id] = (out, record.world_from_lidar)

@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from co3sop_nodes.common.errors import CodecError
 from co3sop_nodes.common.grid import GridSpec
-from co3sop_nodes.model.co3sop import VehicleOutput
+from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.v2x.codec import (
     DecodedFeatures,
     EncodedFeatures,
@@ -21,26 +22,55 @@ from co3sop_nodes.v2x.codec import (
 )
 
 
+def code_id(model: Co3SOP) -> str:
+    """The name of the model's learned wire code ("" without one)."""
+    return model.vehicle.wire.code_id() if model.vehicle.wire is not None else ""
+
+
 def encode_output(
-    out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None
+    out: VehicleOutput,
+    grid: GridSpec,
+    cfg: FeatureCodecConfig,
+    request: np.ndarray | None = None,
+    learned_code: str = "",
 ) -> EncodedFeatures:
-    """A batch-of-one vehicle output -> what the vehicle sends (to the ego whose `request` it weighs, if any)."""
-    return encode_features(out.features[0].cpu().numpy(), out.confidence[0, 0].cpu().numpy(), grid, cfg, request)
+    """A batch-of-one vehicle output -> what the vehicle sends (to the ego whose `request` it weighs, if any); with
+    a learned codec, its wire code, named `learned_code` (code_id of the model)."""
+    confidence = out.confidence[0, 0].cpu().numpy()
+    if not cfg.learned:
+        return encode_features(out.features[0].cpu().numpy(), confidence, grid, cfg, request)
+    if out.code is None:
+        raise CodecError("a learned codec needs a model with a learned wire code (trained with train --stage wire)")
+    return encode_features(out.code[0].cpu().numpy(), confidence, grid, cfg, request, learned_code)
 
 
-def decoded_output(dec: DecodedFeatures) -> VehicleOutput:
-    """What the ego received -> a batch-of-one vehicle output (voxels not sent: features 0, confidence 0)."""
+def decoded_output(dec: DecodedFeatures, model: Co3SOP | None = None) -> VehicleOutput:
+    """What the ego received -> a batch-of-one vehicle output (voxels not sent: features 0, confidence 0); a
+    learned code is decoded by `model`'s, which must be the code it was sent in."""
+    if dec.learned_code:
+        have = code_id(model) if model is not None else ""
+        if dec.learned_code != have:
+            raise CodecError(
+                f"learned_code: {dec.learned_code!r}, but this model's code is "
+                f"{have!r}" + ("" if have else " (none: it decodes no learned code)")
+            )
+        if dec.features.shape[0] != model.cfg.wire.rank:
+            raise CodecError(f"channels: {dec.features.shape[0]}, but the code has {model.cfg.wire.rank} per voxel")
+        with torch.no_grad():
+            device = model.path.torch_device
+            code, mask = torch.from_numpy(dec.features)[None].to(device), torch.from_numpy(dec.mask)[None].to(device)
+            return model.ego.receive(code, mask)
     conf = dec.confidence if dec.confidence is not None else np.zeros(dec.features.shape[1:], np.float32)
     return VehicleOutput(torch.from_numpy(dec.features)[None], torch.from_numpy(conf)[None, None])
 
 
 def through_codec(
-    out: VehicleOutput, grid: GridSpec, cfg: FeatureCodecConfig, request: np.ndarray | None = None
+    model: Co3SOP, out: VehicleOutput, cfg: FeatureCodecConfig, request: np.ndarray | None = None
 ) -> tuple[VehicleOutput, int]:
-    """A vehicle output as the ego receives it through `cfg` without DDS, and the bytes it took (payload and
-    quantisation constants, as a byte budget counts them)."""
-    enc = encode_output(out, grid, cfg, request)
-    return decoded_output(decode_features(enc)), enc.budget_bytes
+    """A vehicle output of `model` as its ego receives it through `cfg` without DDS, and the bytes it took (payload
+    and quantisation constants, as a byte budget counts them)."""
+    enc = encode_output(out, model.cfg.feature_grid, cfg, request, code_id(model) if cfg.learned else "")
+    return decoded_output(decode_features(enc), model), enc.budget_bytes
 
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

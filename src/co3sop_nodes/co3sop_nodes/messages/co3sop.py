@@ -60,6 +60,7 @@ def features_msg(
         basis_rank=enc.basis_rank,
         basis=types.sequence(enc.basis, "float32"),
         basis_mean=types.sequence(enc.basis_mean, "float32"),
+        learned_code=enc.learned_code,
         sparse=enc.sparse,
         num_voxels=enc.num_voxels,
         voxel_mask=types.octets(enc.voxel_mask),
@@ -93,6 +94,7 @@ def features_of(msg) -> EncodedFeatures:
         basis_rank=msg.basis_rank,
         basis=tuple(msg.basis),
         basis_mean=tuple(msg.basis_mean),
+        learned_code=msg.learned_code,
     )
 
 

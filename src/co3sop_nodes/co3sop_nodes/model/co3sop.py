@@ -12,14 +12,15 @@ The node graph calls exactly these two halves; training calls both.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
 
+from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
 from co3sop_nodes.model.backbone import ResNet
-from co3sop_nodes.model.config import ModelConfig
+from co3sop_nodes.model.config import ModelConfig, WireConfig
 from co3sop_nodes.model.fpn import FPN
 from co3sop_nodes.model.fusion import VoxelFusion, hybrid_mask
 from co3sop_nodes.model.head import OccupancyHead
@@ -27,6 +28,7 @@ from co3sop_nodes.model.lidar import LMSCNetEncoder, SSCNetEncoder
 from co3sop_nodes.model.lifting import LiftingLayer, project, voxel_centres
 from co3sop_nodes.model.occformer import OccFormerHead
 from co3sop_nodes.model.path import InferencePath
+from co3sop_nodes.model.wire import WireDecoder, WireEncoder
 
 # ImageNet-style normalisation of uint8 RGB inputs
 _MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1) * 255
@@ -37,9 +39,11 @@ _STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1) * 255
 class VehicleOutput:
     features: torch.Tensor  # (B, C, X, Y, Z) feature grid, sender's LiDAR frame
     confidence: torch.Tensor  # (B, 1, X, Y, Z) in [0, 1]
+    code: torch.Tensor | None = None  # (B, K, X, Y, Z) integers: the wire code of a model that has one
 
     def to(self, device: torch.device) -> VehicleOutput:
-        return VehicleOutput(self.features.to(device), self.confidence.to(device))
+        code = None if self.code is None else self.code.to(device)
+        return VehicleOutput(self.features.to(device), self.confidence.to(device), code)
 
 
 class VehicleHalf(nn.Module):
@@ -68,15 +72,22 @@ class VehicleHalf(nn.Module):
         else:
             raise ValueError(f"unknown modality {cfg.modality!r}")
         self.confidence = nn.Conv3d(c, 1, 1)
+        self.wire = WireEncoder(c, cfg.wire) if cfg.wire else None
         self.path = InferencePath()  # set by Co3SOP.use
 
     def forward(self, images=None, lidar2img=None, occupancy=None) -> VehicleOutput:
         """Camera: images (B, N, 3, H, W) uint8 or float 0..255, lidar2img (B, N, 4, 4).
         LiDAR: occupancy (B, 1, X, Y, Z) 0/1. Features and confidence in float32 whatever the path's precision (the
-        wire's codecs take float32)."""
+        wire's codecs take float32), and the wire code where the model has one (in float32: its rounding is the
+        message)."""
         with self.path.autocast():
             out = self._forward(images, lidar2img, occupancy)
-        return VehicleOutput(out.features.float().contiguous(), out.confidence.float().contiguous())
+        features, confidence = out.features.float().contiguous(), out.confidence.float().contiguous()
+        return VehicleOutput(features, confidence, self.encode(features, confidence))
+
+    def encode(self, features: torch.Tensor, confidence: torch.Tensor) -> torch.Tensor | None:
+        """The wire code (B, K, X, Y, Z) of features (B, C, X, Y, Z) and confidence (B, 1, X, Y, Z); None without one."""
+        return None if self.wire is None else self.wire(features, confidence)
 
     def _forward(self, images, lidar2img, occupancy) -> VehicleOutput:
         fg = self.cfg.feature_grid
@@ -108,7 +119,16 @@ class EgoHalf(nn.Module):
             self.head = OccFormerHead(cfg)
         else:
             raise ValueError(f"unknown head {cfg.head!r}")
+        self.wire = WireDecoder(cfg.embed_dims, cfg.wire) if cfg.wire else None
         self.path = InferencePath()  # set by Co3SOP.use
+
+    def receive(self, code: torch.Tensor, received: torch.Tensor) -> VehicleOutput:
+        """A neighbour's wire code (B, K, X, Y, Z) at the voxels received (B, X, Y, Z) bool -> its output as fusion
+        takes it (features and confidence 0 where not received)."""
+        if self.wire is None:
+            raise Co3sopError(f"{self.cfg.name}: has no wire code to decode")
+        features, confidence = self.wire(code, received)
+        return VehicleOutput(features, confidence)
 
     def align(self, ego: VehicleOutput, others: list[VehicleOutput], neighbour_from_ego: torch.Tensor):
         """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
@@ -196,3 +216,12 @@ class Co3SOP(nn.Module):
 
 def build_model(cfg: ModelConfig) -> Co3SOP:
     return Co3SOP(cfg)
+
+
+def with_wire(model: Co3SOP, wire: WireConfig) -> Co3SOP:
+    """`model` with a new wire code `wire` (its encoder and decoder freshly initialised, every other weight kept):
+    what the wire stage starts from."""
+    out = build_model(replace(model.cfg, wire=wire))
+    missing, unexpected = out.load_state_dict(model.state_dict(), strict=False)
+    assert not unexpected and all(k.split(".")[1] == "wire" for k in missing), (missing, unexpected)
+    return out

@@ -49,6 +49,18 @@ class OccFormerConfig:
 
 
 @dataclass(frozen=True)
+class WireConfig:
+    """The code learned for the V2X wire (model/wire.py): K integers in [-L, L] per voxel sent."""
+
+    rank: int = 4  # K
+    levels: int = 7  # L: 2L + 1 values, int4 on the wire up to 7
+
+    def __post_init__(self):
+        if not 1 <= self.rank <= 64 or not 1 <= self.levels <= 7:
+            raise Co3sopError(f"wire code: rank {self.rank} must be in 1..64 and levels {self.levels} in 1..7 (int4)")
+
+
+@dataclass(frozen=True)
 class ModelConfig:
     name: str
     modality: str = "camera"  # vehicle half: "camera" (Co3SOP-Base, SurroundOcc-style) | "lidar" (LMSCNet / SSCNet)
@@ -73,12 +85,16 @@ class ModelConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     # (origin, voxel size, dims) of a grid other than the benchmark range's (custom extents, small tests)
     custom_grid: tuple | None = None
+    # a code learned for the wire (collaborative models; trained in the `wire` stage), None: features as they are
+    wire: WireConfig | None = None
 
     def __post_init__(self):
         if self.early_fusion and (self.modality != "lidar" or self.fusion):
             raise Co3sopError(
                 f"{self.name}: early_fusion merges LiDAR scans before a single-agent model (modality lidar, fusion off)"
             )
+        if self.wire is not None and not self.fusion:
+            raise Co3sopError(f"{self.name}: a wire code needs a collaborative model (fusion on)")
 
     @property
     def grid(self) -> GridSpec:
@@ -174,10 +190,11 @@ def config_from_dict(data: dict) -> ModelConfig:
         "fusion_attention": AttentionConfig,
         "lidar": LidarConfig,
         "occformer": OccFormerConfig,
+        "wire": WireConfig,
     }
     kwargs = {}
     for key, value in data.items():
-        if key in nested:
+        if key in nested and value is not None:
             value = nested[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
         elif key == "custom_grid" and value is not None:
             origin, voxel, dims = value

@@ -480,13 +480,15 @@ class Ego(ManagedNode):
         t0 = time.perf_counter()
         try:
             enc = features_of(msg)
-            if enc.grid != self.cfg.feature_grid or enc.channels != self.cfg.embed_dims:
+            # a learned code carries its K integers per voxel, which this model's decoder of the code expands
+            channels = self.cfg.wire.rank if enc.learned_code and self.cfg.wire else self.cfg.embed_dims
+            if enc.grid != self.cfg.feature_grid or enc.channels != channels:
                 raise Co3sopError(
                     f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
                     f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
-                    f"{self.cfg.feature_grid.voxel_size:g} m x {self.cfg.embed_dims}"
+                    f"{self.cfg.feature_grid.voxel_size:g} m x {channels}"
                 )
-            out = decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes))
+            out = decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes), self.model)
         except PayloadTooLargeError as exc:
             return self.drops(topic, "size", str(exc))
         except NonFiniteError as exc:

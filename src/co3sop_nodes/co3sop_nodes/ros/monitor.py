@@ -84,6 +84,7 @@ def summarize_features(msg: VoxelFeatures) -> tuple[str, int, int]:
     text = (
         f"{_header_text(msg.header, msg.agent_id)}  {_grid_text(enc.grid)}  "
         f"C={enc.channels} {enc.dtype} {enc.codec} {layout}{conf}"
+        + (f" learned code {enc.learned_code}" if enc.learned_code else "")
     )
     return text, enc.raw_bytes, enc.payload_bytes
 

@@ -37,7 +37,7 @@ from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.common.transforms import StaticTransforms
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
 from co3sop_nodes.inference.inputs import sensor_inputs, to_batch
-from co3sop_nodes.inference.outputs import encode_output
+from co3sop_nodes.inference.outputs import code_id, encode_output
 from co3sop_nodes.inference.predict import compile_kernels
 from co3sop_nodes.messages import (
     diagnostics_msg,
@@ -207,6 +207,14 @@ PARAMS = (
         (0, 4096),
     ),
     Param(
+        "codec.learned",
+        bool,
+        "send the model's learned wire code (K integers per voxel; a checkpoint trained with one, train --stage "
+        "wire) instead of its features",
+        False,
+        True,
+    ),
+    Param(
         "features_reliability",
         str,
         "QoS of the published features: reliable (resends lost fragments) or best_effort (a "
@@ -225,6 +233,7 @@ CODEC_FIELDS = {
     "codec.max_bytes": "max_bytes",
     "codec.burst_bytes": "burst_bytes",
     "codec.rank": "rank",
+    "codec.learned": "learned",
 }
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 # the ego on board gets the features as they are
@@ -266,6 +275,7 @@ class Vehicle(ManagedNode):
                     f"trained for it"
                 )
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
+        self._code = code_id(self.model)
         self.codec = FeatureCodecConfig()
         self._apply(
             {name: p[name] for name in (*CODEC_FIELDS, "request_timeout", "comm_range", "max_egos", "request_answer")}
@@ -417,7 +427,13 @@ class Vehicle(ManagedNode):
             return
         try:
             candidate = replace(self.codec, **codec)
-            check_codec_for(candidate, self.cfg.embed_dims, self.cfg.feature_grid)
+            if candidate.learned and self.cfg.wire is None:
+                raise CodecError(
+                    f"codec.learned: {self.cfg.name} has no learned wire code (a checkpoint trained with one: "
+                    "train --stage wire)"
+                )
+            channels = self.cfg.wire.rank if candidate.learned else self.cfg.embed_dims
+            check_codec_for(candidate, channels, self.cfg.feature_grid)
         except CodecError as exc:
             raise Co3sopError(str(exc)) from None
         self.codec = candidate
@@ -425,7 +441,7 @@ class Vehicle(ManagedNode):
 
     def _encode_for(self, out, ego: int | None, request: np.ndarray | None):
         """One message's encoding for `ego` (None: every ego), within its byte budget where the codec averages one."""
-        enc = encode_output(out, self.cfg.feature_grid, self._budgets.config(ego), request)
+        enc = encode_output(out, self.cfg.feature_grid, self._budgets.config(ego), request, self._code)
         self._budgets.spend(ego, enc.budget_bytes)
         return enc
 

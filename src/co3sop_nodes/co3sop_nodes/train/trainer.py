@@ -20,8 +20,8 @@ from co3sop_nodes.common.errors import Co3sopError, DatasetError
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.inference.checkpoint import export_model, load_model, read_checkpoint, save_training_state
 from co3sop_nodes.inference.inputs import to_batch
-from co3sop_nodes.model.co3sop import VehicleOutput, build_model
-from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.co3sop import VehicleOutput, build_model, with_wire
+from co3sop_nodes.model.config import WireConfig, preset
 from co3sop_nodes.model.losses import confidence_loss, downsample_labels, occupancy_loss
 from co3sop_nodes.model.mask_loss import mask_classification_loss
 from co3sop_nodes.model.occformer import class_scores, log_scores
@@ -29,6 +29,7 @@ from co3sop_nodes.train import distributed
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
 from co3sop_nodes.train.loader import StepSamples, step_loader
 from co3sop_nodes.train.log import keep_log_until, plot_losses
+from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 
 
 def learning_rate(lr: float, schedule: str, step: int, steps: int) -> float:
@@ -83,8 +84,10 @@ def training_sample(cfg, stage: str) -> Callable[[OccupancyDataset, int], Sample
 
 class _Forward(torch.nn.Module):
     """One sample's training forward (its vehicle halves, then the ego half) as one module call, so that
-    DistributedDataParallel sees every parameter a step uses. In the fusion stage the frozen vehicle half's
-    outputs are float16 (as a float32 output rounds there), kept while they fit `cache_bytes`."""
+    DistributedDataParallel sees every parameter a step uses. In the fusion and wire stages the frozen vehicle
+    half's outputs are float16 (as a float32 output rounds there), kept while they fit `cache_bytes`; in the wire
+    stage each collaborator's output then crosses the learned wire code as a budget would send it
+    (`through_wire`)."""
 
     def __init__(self, model, stage: str, device: torch.device, cache_bytes: int = 4 << 30):
         super().__init__()
@@ -92,7 +95,7 @@ class _Forward(torch.nn.Module):
         self.cache = BoundedCache(cache_bytes, lambda out: out.features.nbytes + out.confidence.nbytes)
 
     def _vehicle(self, record_key, inputs) -> VehicleOutput:
-        if self.stage != "fusion":
+        if self.stage not in FROZEN_VEHICLE:
             return self.model.vehicle(**to_batch(inputs, self.device))
         out = self.cache.get(record_key)
         if out is None:  # frozen: computed in eval mode, rounded to float16 whether kept or not
@@ -102,12 +105,65 @@ class _Forward(torch.nn.Module):
             self.cache[record_key] = out
         return VehicleOutput(out.features.float(), out.confidence.float())
 
-    def forward(self, sample: Sample, index: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray]:
+    def forward(
+        self, sample: Sample, index: torch.Tensor, rng: np.random.Generator
+    ) -> tuple[list[torch.Tensor], torch.Tensor, np.ndarray, dict[str, torch.Tensor]]:
+        """Logits, the ego's confidence, its labels and the wire code's own losses (wire stage; else none)."""
         frame = sample.key[:3]
         ego = self._vehicle((frame, sample.ego.cav_id), sample.ego.inputs)
         others = [self._vehicle((frame, a.cav_id), a.inputs) for a in sample.others]
+        wire: dict[str, torch.Tensor] = {}
+        if self.stage == "wire" and others:
+            request = request_of(ego.confidence)
+            sent = []
+            for record, out in zip(sample.others, others):
+                wanted = request_for_neighbour(
+                    request, sample.ego.world_from_lidar, record.world_from_lidar, self.model.cfg.feature_grid
+                )
+                received, losses = through_wire(self.model, out, torch.from_numpy(wanted).to(self.device), rng)
+                sent.append(received)
+                for k, v in losses.items():
+                    wire[k] = wire.get(k, 0.0) + v / len(others)
+            others = sent
         rel = torch.from_numpy(sample.neighbour_from_ego).float()[None].to(self.device) if others else None
-        return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels
+        return self.model.ego(ego, others, rel, sample_index=index), ego.confidence, sample.ego.labels, wire
+
+
+# stages that train with the vehicle half frozen (its outputs cached); the wire stage trains its wire encoder
+FROZEN_VEHICLE = ("fusion", "wire")
+# voxels a collaborator sends per message in the wire stage: log-uniform over this range, so that the fusion
+# learns from messages of every budget it will meet (with the request-weighted choice the graph makes)
+WIRE_VOXELS = (1024, 16384)
+# the wire code's own losses beside the occupancy loss: its decoded features and confidence against the sender's
+# (the confidence only reaches the hybrid mask, which passes no gradient), and its mean |integer| (smaller
+# integers compress better)
+WIRE_WEIGHTS = {"wire_features": 0.1, "wire_confidence": 1.0, "wire_rate": 0.01}
+
+
+def through_wire(
+    model, out: VehicleOutput, request: torch.Tensor, rng: np.random.Generator
+) -> tuple[VehicleOutput, dict[str, torch.Tensor]]:
+    """A collaborator's output (1, C, X, Y, Z) as the ego receives it through the model's wire code: the voxels
+    its request (X, Y, Z) in [0, 1] weighs highest (confidence x request, nonzero only), as many as a drawn budget
+    holds, coded and decoded with a gradient; and the code's losses."""
+    score = (out.confidence[0, 0] * request).flatten()  # (V,)
+    count = int(np.exp(rng.uniform(*np.log(WIRE_VOXELS))))
+    keep = torch.topk(score, min(count, int((score > 0).sum()))).indices
+    received = torch.zeros_like(score, dtype=torch.bool)
+    received[keep] = True
+    received = received.view(1, *out.confidence.shape[2:])  # (1, X, Y, Z)
+    code = model.vehicle.encode(out.features, out.confidence)  # (1, K, X, Y, Z)
+    decoded = model.ego.receive(code, received)
+    if not len(keep):
+        return decoded, {}
+    sent = received[:, None]  # (1, 1, X, Y, Z)
+    features, target = decoded.features.masked_select(sent), out.features.masked_select(sent)  # (C * N,)
+    losses = {
+        "wire_features": torch.mean((features - target) ** 2) / (target.var() + 1e-6),
+        "wire_confidence": torch.mean((decoded.confidence - out.confidence).masked_select(sent) ** 2),
+        "wire_rate": code.abs().masked_select(sent).mean(),
+    }
+    return decoded, {k: WIRE_WEIGHTS[k] * v for k, v in losses.items()}
 
 
 class Trainer:
@@ -125,11 +181,15 @@ class Trainer:
     ):
         self.model, self.stage, self.device, self.world = model, stage, device, world
         self.sample_fraction = sample_fraction
-        if stage == "fusion":
+        if stage in FROZEN_VEHICLE:
             if model.ego.fusion is None:
-                raise Co3sopError("--stage fusion needs a model with fusion (e.g. preset tiny, not tiny-single)")
+                raise Co3sopError(f"--stage {stage} needs a model with fusion (e.g. preset tiny, not tiny-single)")
+            if stage == "wire" and model.vehicle.wire is None:
+                raise Co3sopError("--stage wire needs a model with a wire code (--wire-rank)")
             for p in model.vehicle.parameters():
                 p.requires_grad_(False)
+            for p in model.vehicle.wire.parameters() if stage == "wire" else ():
+                p.requires_grad_(True)
         params = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
         self.forward = _Forward(model, stage, device)
@@ -143,10 +203,10 @@ class Trainer:
     def _loss(self, sample: Sample, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.model.cfg
         if cfg.head == "occformer":  # mask classification on class-guided points (model/mask_loss.py)
-            preds, confidence, labels = self.forward(sample, None)
+            preds, confidence, labels, _ = self.forward(sample, None, rng)
             labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
             parts = mask_classification_loss(preds, labels, cfg.occformer.points, rng)
-            if self.stage != "fusion":
+            if self.stage not in FROZEN_VEHICLE:
                 parts["confidence"] = confidence_loss(
                     confidence, log_scores(class_scores(*preds[-1])), downsample_labels(labels, 4, cfg.num_classes)
                 )
@@ -155,7 +215,7 @@ class Trainer:
         index = torch.from_numpy(np.sort(rng.choice(n, max(1, int(n * self.sample_fraction)), replace=False)))[None].to(
             self.device
         )
-        logits, confidence, labels = self.forward(sample, index)
+        logits, confidence, labels, wire = self.forward(sample, index, rng)
         labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
         k = self.model.cfg.num_classes
         targets = [
@@ -163,8 +223,8 @@ class Trainer:
             downsample_labels(labels, 2, k),
             torch.gather(labels.flatten(1), 1, index),
         ]
-        parts = occupancy_loss(logits, targets)
-        if self.stage != "fusion":
+        parts = {**occupancy_loss(logits, targets), **wire}
+        if self.stage not in FROZEN_VEHICLE:
             parts["confidence"] = confidence_loss(confidence, logits[0], targets[0])
         return sum(parts.values()), parts
 
@@ -172,7 +232,7 @@ class Trainer:
         """One optimisation step on this process's share of the global batch (samples[j] drawing its loss voxels
         with rngs[j]); the gradient is the mean over the global batch. Returns the batch's mean losses."""
         self.model.train()
-        if self.stage == "fusion":
+        if self.stage in FROZEN_VEHICLE:
             self.model.vehicle.eval()
         self.optimizer.zero_grad(set_to_none=True)
         logged: dict[str, float] = {}
@@ -206,8 +266,8 @@ def train(opts, command: str) -> int:
     torch.set_num_threads(opts.threads or (2 if world.size == 1 else max(1, (os.cpu_count() or 1) // world.local_size)))
     device = distributed.device_for(world, opts.device)
     seed_everything(opts.seed)
-    if opts.stage == "fusion" and not (opts.init or opts.resume):
-        raise Co3sopError("--stage fusion starts from the ego stage: give --init EGO_CHECKPOINT")
+    if opts.stage in FROZEN_VEHICLE and not (opts.init or opts.resume):
+        raise Co3sopError(f"--stage {opts.stage} starts from a trained vehicle half: give --init CHECKPOINT")
     distributed.start(world, device)
     try:
         code = _train(opts, command, world, device)
@@ -227,6 +287,8 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
         start = state["step"]
     elif opts.init:
         model, _ = load_model(opts.init)
+        if opts.stage == "wire" and model.vehicle.wire is None:
+            model = with_wire(model, WireConfig(opts.wire_rank, opts.wire_levels))
     else:
         overrides = {"range": opts.range} if opts.range else {}
         model = build_model(preset(opts.preset, **overrides))

@@ -12,8 +12,10 @@ voxels at or above a confidence threshold, or the voxels a requesting ego needs
 most: confidence x its request, Where2comm-style), optionally transform coded
 (`rank` K: the K principal directions of the voxels' features, those selected
 or, under a budget, every candidate; computed per message and sent with it, and K coefficients per voxel instead of C
-channels), then zstd; a byte budget (`max_bytes`) keeps the best-scored voxels
-that fit. Labels: uint8 grids, lossless zstd.
+channels), or a learned code (`learned`: the model's own K integers per voxel,
+model/wire.py, sent as they are: no scale, basis or confidence), then zstd; a
+byte budget (`max_bytes`) keeps the best-scored voxels that fit. Labels: uint8
+grids, lossless zstd.
 """
 
 from __future__ import annotations
@@ -73,6 +75,9 @@ class FeatureCodecConfig:
     # voxels' features, or of every candidate under a budget; the basis travels in the message): fewer bytes per
     # voxel, so more voxels under a budget
     rank: int = 0
+    # the features are a model's learned wire code (K integers per voxel in int4's or int8's range, model/wire.py),
+    # sent as they are: the receiver decodes them with the same code's decoder, which also gives the confidence
+    learned: bool = False
 
     def __post_init__(self) -> None:
         _check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
@@ -103,6 +108,13 @@ class FeatureCodecConfig:
             raise CodecError(
                 f"rank must be a whole number of components >= 0 (0: the channels as they are), got {self.rank!r}"
             )
+        if not isinstance(self.learned, bool):
+            raise CodecError(f"learned must be true or false, got {self.learned!r}")
+        if self.learned and (self.dtype not in QUANTIZED or self.rank):
+            raise CodecError(
+                f"learned: the code's integers go as int4 or int8 with no rank (got dtype {self.dtype!r}, "
+                f"rank {self.rank})"
+            )
 
     @property
     def name(self) -> str:
@@ -116,7 +128,8 @@ class FeatureCodecConfig:
             "threshold": f"conf{self.threshold:g}",
             "request": f"request{count}",
         }[self.selection]
-        return f"{self.dtype}-{sel}{f'-pca{self.rank}' if self.rank else ''}-{self.codec}"
+        transform = f"-pca{self.rank}" if self.rank else "-learned" if self.learned else ""
+        return f"{self.dtype}-{sel}{transform}-{self.codec}"
 
 
 @dataclass(frozen=True)
@@ -141,6 +154,7 @@ class EncodedFeatures:
     basis_rank: int = 0  # K > 0: values carry K coefficients per voxel; feature = basis @ coefficients + basis_mean
     basis: tuple[float, ...] = ()  # K > 0 only: (C, K) row-major
     basis_mean: tuple[float, ...] = ()  # K > 0 only: (C,)
+    learned_code: str = ""  # a learned code's name: values carry its `channels` integers per voxel, as they are
 
     @property
     def rows(self) -> int:
@@ -167,9 +181,10 @@ class EncodedFeatures:
 
 @dataclass(frozen=True)
 class DecodedFeatures:
-    features: np.ndarray  # (C, nx, ny, nz) float32; 0 where not carried
+    features: np.ndarray  # (C, nx, ny, nz) float32 (a learned code's integers: (K, nx, ny, nz)); 0 where not carried
     confidence: np.ndarray | None  # (nx, ny, nz) float32 in [0, 1]; 0 where not carried
     mask: np.ndarray  # (nx, ny, nz) bool: voxels carried
+    learned_code: str = ""  # features hold this learned code's integers, for its decoder
 
 
 @dataclass(frozen=True)
@@ -319,12 +334,15 @@ def encode_features(
     grid: GridSpec,
     cfg: FeatureCodecConfig,
     request: np.ndarray | None = None,
+    learned_code: str = "",
 ) -> EncodedFeatures:
     """Encodes a (C, nx, ny, nz) float volume and optional (nx, ny, nz) confidence in [0, 1].
 
     request: (nx, ny, nz) in [0, 1], how much a requesting ego needs each voxel, in this volume's frame
     (selection "request"; without one it falls back to the confidence alone, as "topk").
     With cfg.max_bytes the result is the largest set of best-scored voxels whose budget_bytes fit.
+    With cfg.learned the volume is the code named `learned_code` (K, nx, ny, nz), integers in the dtype's range;
+    the confidence then only chooses voxels (the code carries it).
     """
     features = np.asarray(features, dtype=np.float32)
     if features.ndim != 4 or features.shape[1:] != grid.dims or features.shape[0] < 1:
@@ -337,6 +355,10 @@ def encode_features(
         with np.errstate(over="ignore"):
             if not np.isfinite(features.astype(np.float16)).all():
                 raise CodecError("features: values beyond the float16 range (|x| > 65504); use float32 or int8")
+    if cfg.learned:
+        _check_code(features, cfg.dtype, learned_code)
+    elif learned_code:
+        raise CodecError(f"learned_code {learned_code!r} given to a codec that is not learned")
     if confidence is not None:
         confidence = np.asarray(confidence, dtype=np.float32)
         if confidence.shape != grid.dims:
@@ -350,9 +372,18 @@ def encode_features(
         if request.shape != grid.dims or not (np.isfinite(request).all() and request.min() >= 0 and request.max() <= 1):
             raise CodecError(f"request: a (nx, ny, nz) = {grid.dims} volume in [0, 1] expected")
     if cfg.max_bytes:
-        return _within_budget(features, confidence, grid, cfg, request)
+        return _within_budget(features, confidence, grid, cfg, request, learned_code)
     keep = _select(features, confidence, cfg, request)
-    return _encode(features, confidence, grid, cfg, keep, _basis(features, keep, cfg.rank))
+    return _encode(features, confidence, grid, cfg, keep, _basis(features, keep, cfg.rank), learned_code)
+
+
+def _check_code(code: np.ndarray, dtype: str, name: str) -> None:
+    """A learned code's values are its integers, within what `dtype` carries."""
+    if not name:
+        raise CodecError("learned: the code's name (learned_code) is missing")
+    levels = _LEVELS[dtype]
+    if code.size and (np.abs(code).max() > levels or not np.array_equal(code, np.rint(code))):
+        raise CodecError(f"features: a learned code's values must be integers in [-{levels}, {levels}] for {dtype}")
 
 
 def check_codec_for(cfg: FeatureCodecConfig, channels: int, grid: GridSpec) -> None:
@@ -368,7 +399,9 @@ def check_codec_for(cfg: FeatureCodecConfig, channels: int, grid: GridSpec) -> N
             raise CodecError(f"max_bytes {cfg.max_bytes}: even an empty selection takes {smallest} bytes")
 
 
-def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request) -> EncodedFeatures:
+def _within_budget(
+    features, confidence, grid: GridSpec, cfg: FeatureCodecConfig, request, learned_code: str
+) -> EncodedFeatures:
     """The most best-scored voxels whose encoding fits cfg.max_bytes: bisection on their count (the size grows
     with it, up to compression noise, so the result always fits and is within a few voxels of the largest). Each
     try costs a compression: once half of the candidates fit, all of them are tried (under a request map they often
@@ -381,7 +414,7 @@ def _within_budget(features, confidence, grid: GridSpec, cfg: FeatureCodecConfig
     basis = _basis(features, np.sort(order), cfg.rank)  # one for every count tried: that of all candidates
 
     def encoded(k: int) -> EncodedFeatures:
-        return _encode(features, confidence, grid, cfg, np.sort(order[:k]), basis)
+        return _encode(features, confidence, grid, cfg, np.sort(order[:k]), basis, learned_code)
 
     lo, hi = 0, len(order)
     best = encoded(0)
@@ -410,9 +443,11 @@ def _encode(
     cfg: FeatureCodecConfig,
     keep: np.ndarray | None,
     basis: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    learned_code: str = "",
 ) -> EncodedFeatures:
     """keep: flat indices of the voxels sent (None: all); basis: _basis's transform coding, to send the voxels as
-    its K coefficients, or None for the channels themselves."""
+    its K coefficients, or None for the channels themselves; with cfg.learned the features are the integers of the
+    code `learned_code`, sent as they are (no constants, no confidence)."""
     channels = features.shape[0]
     sent_basis = sent_mean = ()
     if basis is None:
@@ -434,7 +469,11 @@ def _encode(
         mask_raw = np.packbits(bits, bitorder="little").tobytes()
 
     scale = offset = ()
-    if cfg.dtype in QUANTIZED:
+    if cfg.learned:
+        q = values.astype(np.int8)
+        values_raw = _pack_int4(q) if cfg.dtype == "int4" else q.tobytes()
+        confidence = None  # the code carries it
+    elif cfg.dtype in QUANTIZED:
         q, s, o = _quantize(values, cfg.dtype)
         values_raw = _pack_int4(q) if cfg.dtype == "int4" else q.tobytes()
         scale, offset = tuple(s.tolist()), tuple(o.tolist())
@@ -468,6 +507,7 @@ def _encode(
         basis_rank=0 if basis is None else basis[0].shape[1],
         basis=sent_basis,
         basis_mean=sent_mean,
+        learned_code=learned_code,
     )
 
 
@@ -532,12 +572,18 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
             f"basis/basis_mean: need {channels * enc.basis_rank}/{channels if enc.basis_rank else 0} entries for "
             f"basis_rank {enc.basis_rank}, got {len(enc.basis)}/{len(enc.basis_mean)}"
         )
+    if enc.learned_code:
+        _check_learned(enc)
     raw = _decompress(
         enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes
     )
     wire = _unpack_int4(raw, rows * n) if enc.dtype == "int4" else np.frombuffer(raw, FEATURE_DTYPES[enc.dtype])
-    values = wire.reshape(rows, n).astype(np.float32)  # (C, N), or (K, N) coefficients
-    if enc.dtype in QUANTIZED:
+    values = wire.reshape(rows, n).astype(np.float32)  # (C, N), or (K, N) coefficients or code
+    if enc.learned_code:
+        levels = _LEVELS[enc.dtype]
+        if n and np.abs(values).max() > levels:
+            raise CodecError(f"values: a learned code's integers lie in [-{levels}, {levels}] for {enc.dtype}")
+    elif enc.dtype in QUANTIZED:
         if len(enc.quant_scale) != rows or len(enc.quant_offset) != rows:
             raise SizeMismatchError(
                 f"quant_scale/quant_offset: need {rows} entries each, got "
@@ -590,7 +636,27 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
             confidence[bits] = conf
             confidence = confidence.reshape(grid.dims)
         mask = bits.reshape(grid.dims)
-    return DecodedFeatures(features=features, confidence=confidence, mask=mask)
+    return DecodedFeatures(features=features, confidence=confidence, mask=mask, learned_code=enc.learned_code)
+
+
+def _check_learned(enc: EncodedFeatures) -> None:
+    """A learned code's message has its integers only: no quantisation constants, basis or confidence."""
+    if enc.dtype not in QUANTIZED:
+        raise CodecError(f"dtype: a learned code goes as int4 or int8, not {enc.dtype!r}")
+    if len(enc.learned_code) > 64:
+        raise CodecError(f"learned_code: a name of {len(enc.learned_code)} characters (at most 64)")
+    for field, value in (
+        ("quant_scale", enc.quant_scale),
+        ("quant_offset", enc.quant_offset),
+        ("basis", enc.basis),
+        ("basis_mean", enc.basis_mean),
+    ):
+        if value:
+            raise SizeMismatchError(f"{field}: must be empty with a learned code, got {len(value)} entries")
+    if enc.basis_rank:
+        raise SizeMismatchError(f"basis_rank: must be 0 with a learned code, got {enc.basis_rank}")
+    if enc.has_confidence:
+        raise SizeMismatchError("has_confidence: a learned code carries its own confidence, must be false")
 
 
 def encode_labels(

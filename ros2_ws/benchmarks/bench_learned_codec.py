@@ -1,0 +1,129 @@
+"""The learned wire code against the transform codec at the same bytes: the share of the collaboration gain each
+keeps under request maps with a byte budget per neighbour-frame, with its 95 % interval over the split's scenarios.
+
+    ros2_ws/benchmarks/bench_learned_codec.py --reference src/co3sop_nodes/checkpoints/tiny-lidar.pt \
+        --learned runs/wire/tiny-lidar-51.2m-s1-k4/model.pt --data data/bench --splits test \
+        [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--out FILE.json] [--plot FILE.png]
+
+Run with the workspace environment (`. ros2_ws/env.sh`). Both systems are scored against one reference: the
+`--reference` model (the collaborative model the learned codes were trained from) alone and with lossless features.
+Gain kept: (mIoU with the codec - reference alone) / (reference lossless - reference alone), mIoU 1..23, paired
+over the same resampled scenarios; each `--learned` model is also scored with no budget (every voxel the ego asks
+for) and with every voxel of its code (dense). The transform codec runs on the reference model (codec.dtype and
+codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
+frame's, as `evaluate --ablation codec` makes them. Prints a markdown table; --plot draws the curve of gain kept
+against bytes for both, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from co3sop_nodes.eval.evaluate import evaluate, plot_codecs
+from co3sop_nodes.eval.metrics import Bootstrap, point
+from co3sop_nodes.inference.checkpoint import load_model
+from co3sop_nodes.train.dataset import OccupancyDataset
+from co3sop_nodes.v2x.codec import FeatureCodecConfig
+
+UNBOUNDED = 2**31 - 1  # the largest codec.max_bytes: every requested voxel fits
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--reference", type=Path, required=True, help="the collaborative model (transform codec)")
+    parser.add_argument("--learned", type=Path, nargs="+", required=True, help="models with a learned wire code")
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--splits", nargs="+", default=["validate"])
+    parser.add_argument("--budgets", type=int, nargs="+", default=[4096, 8192, 16384, 32768])
+    parser.add_argument("--transform", default="int4:8", help="the transform codec: DTYPE:RANK")
+    parser.add_argument("--levels", type=int, default=256, help="request_levels of the egos")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, help="also write the result as JSON here")
+    parser.add_argument("--plot", type=Path, help="also draw the curve here (PNG)")
+    opts = parser.parse_args()
+    torch.set_num_threads(opts.threads)
+    reference, _ = load_model(opts.reference)
+    dataset = OccupancyDataset(opts.data, opts.splits, reference.cfg)
+    boot = Bootstrap(["/".join(k) for k in dataset.scenarios])
+    cache: dict = {}  # the reference's vehicle outputs, shared by its runs
+
+    def run(model, codec, cache, desc):
+        return evaluate(model, dataset, codec=codec, cache=cache, desc=desc, request_levels=opts.levels)
+
+    alone = evaluate(reference, dataset, collaborators=0, cache=cache, desc="alone")[0]
+    lossless = run(reference, FeatureCodecConfig("float32", "dense", codec="none"), cache, "lossless")[0]
+    dtype, rank = opts.transform.split(":")
+    results, rows = [], []
+
+    def add(system: str, model_path: Path, codec: FeatureCodecConfig, confusions: dict, size: float) -> None:
+        kept = boot.ratio(confusions, lossless, alone)
+        miou = point(boot.summary(confusions), "co3sop-code")
+        results.append(
+            {
+                "system": system,
+                "model": str(model_path),
+                "codec": codec.name,
+                "max_bytes": codec.max_bytes,
+                "bytes": size,
+                "miou": miou,
+                "gain_kept": kept,
+            }
+        )
+        limit = "none" if codec.max_bytes in (0, UNBOUNDED) else f"{codec.max_bytes:,}"
+        rows.append(
+            f"| {system} | {codec.name} | {limit} | {size:,.0f} | {100 * miou:.2f} | {100 * kept['ratio']:.0f} "
+            f"[{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |"
+        )
+
+    for budget in opts.budgets:
+        codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank))
+        add("transform", opts.reference, codec, *run(reference, codec, cache, codec.name))
+    for path in opts.learned:
+        model, _ = load_model(path)
+        if model.cfg.wire is None:
+            parser.error(f"--learned {path}: has no learned wire code (train --stage wire)")
+        if model.cfg.feature_grid != reference.cfg.feature_grid:
+            parser.error(f"--learned {path}: another grid than --reference's ({reference.cfg.range})")
+        own: dict = {}
+        name = f"learned K={model.cfg.wire.rank} ({path.parent.name})"
+        for budget in (*opts.budgets, UNBOUNDED):
+            codec = FeatureCodecConfig("int4", "request", max_bytes=budget, learned=True)
+            add(name, path, codec, *run(model, codec, own, codec.name))
+        dense = FeatureCodecConfig("int4", "dense", learned=True)
+        add(name, path, dense, *run(model, dense, own, dense.name))
+    title = (
+        f"{reference.cfg.name} {reference.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 "
+        f"alone {100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
+        f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}; request maps of {opts.levels} levels"
+    )
+    print(
+        "\n".join(
+            [
+                title,
+                "",
+                "| system | codec | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain kept (%) [95 % interval] |",
+                "|---|---|---:|---:|---:|---|",
+                *rows,
+            ]
+        )
+    )
+    if opts.out:
+        opts.out.parent.mkdir(parents=True, exist_ok=True)
+        opts.out.write_text(
+            json.dumps(
+                {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}, indent=2
+            )
+            + "\n"
+        )
+    if opts.plot:
+        opts.plot.parent.mkdir(parents=True, exist_ok=True)
+        points = {f"{r['system']}: {r['codec']}": r for r in results}
+        plot_codecs(opts.plot, points, title)
+
+
+if __name__ == "__main__":
+    main()
