@@ -86,7 +86,7 @@ class VehicleHalf(nn.Module):
         return VehicleOutput(features, confidence, self.encode(features, confidence))
 
     def encode(self, features: torch.Tensor, confidence: torch.Tensor) -> torch.Tensor | None:
-        """The wire code (B, K, X, Y, Z) of features (B, C, X, Y, Z) and confidence (B, 1, X, Y, Z); None without one."""
+        """The wire code (B, K, X, Y, Z) of features (B, C, X, Y, Z) and confidence (B, 1, X, Y, Z), or None."""
         return None if self.wire is None else self.wire(features, confidence)
 
     def _forward(self, images, lidar2img, occupancy) -> VehicleOutput:
