@@ -8,8 +8,10 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
 Run with the workspace environment (`. ros2_ws/env.sh`). Both systems are scored against one reference: the
 `--reference` model (the collaborative model the learned codes were trained from) alone and with lossless features.
 Gain kept: (mIoU with the codec - reference alone) / (reference lossless - reference alone), mIoU 1..23, paired
-over the same resampled scenarios; each `--learned` model is also scored with no budget (every voxel the ego asks
-for) and with every voxel of its code (dense). The transform codec runs on the reference model (codec.dtype and
+over the same resampled scenarios. A learned model's training also goes on with its head, which may change what
+its ego does alone: its own collaboration gain is (mIoU with the codec - that model alone) / (reference lossless -
+reference alone), the column the goal reads. Each `--learned` model is also scored with no budget (every voxel the
+ego asks for) and with every voxel of its code (dense). The transform codec runs on the reference model (codec.dtype and
 codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
 frame's, as `evaluate --ablation codec` makes them. Prints a markdown table; --plot draws the curve of gain kept
 against bytes for both, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
@@ -59,29 +61,35 @@ def main() -> None:
     dtype, rank = opts.transform.split(":")
     results, rows = [], []
 
-    def add(system: str, model_path: Path, codec: FeatureCodecConfig, confusions: dict, size: float) -> None:
+    def interval(r: dict) -> str:
+        return f"{100 * r['ratio']:.0f} [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}]"
+
+    def add(system: str, path: Path, codec: FeatureCodecConfig, own_alone: dict, confusions: dict, size: float):
         kept = boot.ratio(confusions, lossless, alone)
+        own = boot.gain_ratio(confusions, own_alone, lossless, alone)
         miou = point(boot.summary(confusions), "co3sop-code")
         results.append(
             {
                 "system": system,
-                "model": str(model_path),
+                "model": str(path),
                 "codec": codec.name,
                 "max_bytes": codec.max_bytes,
                 "bytes": size,
                 "miou": miou,
+                "alone_miou": point(boot.summary(own_alone), "co3sop-code"),
                 "gain_kept": kept,
+                "own_gain_kept": own,
             }
         )
         limit = "none" if codec.max_bytes in (0, UNBOUNDED) else f"{codec.max_bytes:,}"
         rows.append(
-            f"| {system} | {codec.name} | {limit} | {size:,.0f} | {100 * miou:.2f} | {100 * kept['ratio']:.0f} "
-            f"[{100 * kept['ci95'][0]:.0f}, {100 * kept['ci95'][1]:.0f}] |"
+            f"| {system} | {codec.name} | {limit} | {size:,.0f} | {100 * miou:.2f} | "
+            f"{100 * results[-1]['alone_miou']:.2f} | {interval(kept)} | {interval(own)} |"
         )
 
     for budget in opts.budgets:
         codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank))
-        add("transform", opts.reference, codec, *run(reference, codec, cache, codec.name))
+        add("transform", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
     for path in opts.learned:
         model, _ = load_model(path)
         if model.cfg.wire is None:
@@ -90,11 +98,12 @@ def main() -> None:
             parser.error(f"--learned {path}: another grid than --reference's ({reference.cfg.range})")
         own: dict = {}
         name = f"learned K={model.cfg.wire.rank} ({path.parent.name})"
+        own_alone = evaluate(model, dataset, collaborators=0, cache=own, desc=f"{name} alone")[0]
         for budget in (*opts.budgets, UNBOUNDED):
             codec = FeatureCodecConfig("int4", "request", max_bytes=budget, learned=True)
-            add(name, path, codec, *run(model, codec, own, codec.name))
+            add(name, path, codec, own_alone, *run(model, codec, own, codec.name))
         dense = FeatureCodecConfig("int4", "dense", learned=True)
-        add(name, path, dense, *run(model, dense, own, dense.name))
+        add(name, path, dense, own_alone, *run(model, dense, own, dense.name))
     title = (
         f"{reference.cfg.name} {reference.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 "
         f"alone {100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
@@ -105,8 +114,9 @@ def main() -> None:
             [
                 title,
                 "",
-                "| system | codec | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | gain kept (%) [95 % interval] |",
-                "|---|---|---:|---:|---:|---|",
+                "| system | codec | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | its model alone | "
+                "gain kept vs the reference alone (%) [95 % interval] | its own gain kept (%) [95 % interval] |",
+                "|---|---|---:|---:|---:|---:|---|---|",
                 *rows,
             ]
         )

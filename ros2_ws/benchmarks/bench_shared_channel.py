@@ -1,7 +1,7 @@
 """Every CAV an ego on one shared V2X channel: CAVs x medium rate, per ego, against the same graph with no channel.
 
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [--cavs 2 3 4 5] [--medium 3 6 12] [--answers union each]
-        [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--reference CKPT]
+        [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--reference CKPT] [--multicast]
         [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each number of CAVs N (the bag's first N),
@@ -16,7 +16,10 @@ measures, and an ego behind its input skips frames, which `score` counts as empt
   has one: the alone and lossless runs are then --reference's), each message's budget (codec.max_bytes) its share of the
   medium: 80 % of the M Mbit/s at 10 Hz, less the request maps (N x (N-1) a frame), split over the copies of
   feature messages DDS sends (one per ego a message reaches, unicast): N x (N-1) a frame with one message for every
-  ego (union), N x (N-1)^2 with a message for each ego (each: every ego receives every ego's message). A cell whose
+  ego (union), N x (N-1)^2 with a message for each ego (each: every ego receives every ego's message); with
+  --multicast (`demo --channel-multicast`) each message (and each request map) crosses the medium once: N feature
+  messages a frame (union), N x (N-1) (each).
+  A cell whose
   budget holds no voxel (the vehicle would refuse the codec) is listed, not run.
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
 current, which `score` counts as empty predictions), neighbour-frames fused (% of those
@@ -76,12 +79,13 @@ def carries_features(codec: FeatureCodecConfig, cfg) -> bool:
     return True
 
 
-def budget(medium_mbit: float, cavs: int, answer: str, levels: int) -> int:
+def budget(medium_mbit: float, cavs: int, answer: str, levels: int, multicast: bool = False) -> int:
     """Bytes one message may take: the medium's payload bytes per frame, less every ego's request map to every
-    vehicle, over the copies of feature messages DDS sends (one per ego a message reaches)."""
-    payload = SHARE * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (cavs - 1) * REQUEST_BYTES[levels]
-    copies = cavs * (cavs - 1) * ((cavs - 1) if answer == "each" else 1)
-    return int(payload / copies)
+    vehicle, over the copies of feature messages DDS sends (one per ego a message reaches, or a vehicle a request map
+    reaches; one for all of them with multicast)."""
+    payload = SHARE * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (1 if multicast else cavs - 1) * REQUEST_BYTES[levels]
+    messages = cavs * ((cavs - 1) if answer == "each" else 1)
+    return int(payload / (messages * (1 if multicast else cavs - 1)))
 
 
 def kept_share(kept: float, gain: float) -> str:
@@ -157,6 +161,9 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("results/bench_shared_channel"))
     parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it")
     parser.add_argument(
+        "--multicast", action="store_true", help="feature messages multicast (demo --channel-multicast): sent once each"
+    )
+    parser.add_argument(
         "--reference",
         help="the model of the alone and lossless runs (default: --model): the one a learned code was trained from",
     )
@@ -191,7 +198,7 @@ def main() -> int:
         lossless = run(demo, opts, opts.out / f"{n}cavs-lossless", n, ceiling, reference)
         for medium in opts.medium:
             for answer in opts.answers:
-                size = budget(medium, n, answer, opts.request_levels)
+                size = budget(medium, n, answer, opts.request_levels, opts.multicast)
                 if not carries_features(codec_of(size, cfg), cfg):
                     rows.append(
                         f"| {n} | {medium:g} | {answer} | {size:,} | | | not run: a message of this budget carries "
@@ -199,7 +206,9 @@ def main() -> int:
                     )
                     continue
                 codec = [f"{p}:={str(getattr(codec_of(size, cfg), f)).lower()}" for p, f in CODEC_FIELDS.items()]
-                extra = [*opts_rate, "--channel-rate", f"{medium:g}", "--channel-shared", "--params", *codec]
+                medium_args = ["--channel-rate", f"{medium:g}", "--channel-shared"]
+                medium_args += ["--channel-multicast"] if opts.multicast else []
+                extra = [*opts_rate, *medium_args, "--params", *codec]
                 extra += [f"request_answer:={answer}", "--ego-params", levels]
                 cell = run(demo, opts, opts.out / f"{n}cavs-{medium:g}mbit-{answer}", n, extra, opts.model)
                 for cav, ego in sorted(cell["egos"].items()):

@@ -204,7 +204,10 @@ def run_graph(
 
 @pytest.mark.parametrize(
     "codec",
-    [FeatureCodecConfig("float32", "dense", codec="none"), FeatureCodecConfig("int8", "topk", topk=1024)],
+    [  # a sparse quantised message's path is also the learned code's test's
+        FeatureCodecConfig("float32", "dense", codec="none"),
+        pytest.param(FeatureCodecConfig("int8", "topk", topk=1024), marks=pytest.mark.heavy),
+    ],
     ids=lambda c: c.name,
 )
 def test_graph_predictions_equal_offline_evaluation(graph, scenario, codec):

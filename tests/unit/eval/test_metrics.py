@@ -138,6 +138,18 @@ def test_paired_difference_is_zero_against_itself_and_positive_for_a_better_run(
     assert gain["co3sop-code"]["ci95"][1] - gain["co3sop-code"]["ci95"][0] < (hi_b - lo_b) + (hi_w - lo_w)
 
 
+def test_gain_ratios_share_one_reference_gain():
+    alone, mid, full = (scenario_confusions(4, hit_rate=h) for h in (0.5, 0.7, 0.9))  # same truths per scenario
+    boot = Bootstrap(list(alone), draws=300)
+    kept = boot.ratio(mid, full, alone)
+    assert 0 < kept["ratio"] < 1 and kept["ci95"][0] <= kept["ratio"] <= kept["ci95"][1]
+    assert boot.gain_ratio(mid, alone, full, alone) == kept  # the same base on both sides: ratio itself
+    # a run measured against its own better base keeps less of the same reference gain
+    own = boot.gain_ratio(full, mid, full, alone)
+    assert own["ratio"] == pytest.approx(1 - kept["ratio"])
+    assert boot.gain_ratio(full, full, full, alone)["ratio"] == 0
+
+
 def test_bootstrap_refuses_a_run_without_every_scenario():
     runs = scenario_confusions(4)
     boot = Bootstrap(list(runs) + ["test/missing"], draws=10)

@@ -129,14 +129,20 @@ def main(args: list[str] | None = None) -> int:
         "channel), not each on a link of its own",
     )
     parser.add_argument(
+        "--channel-multicast",
+        action="store_true",
+        help="with --channel-rate: feature messages go to one multicast group, each sent once for every ego it "
+        "reaches (as a radio broadcasts), not as a copy to each",
+    )
+    parser.add_argument(
         "--egos",
         choices=EGOS,
         default=DEFAULTS.egos,
         help="which CAVs run an ego: the first (default) or all, each then also a collaborator of the others",
     )
     opts = parser.parse_args(args)
-    if opts.channel_rate is None and (opts.channel_loss or opts.channel_shared):
-        parser.error("--channel-loss and --channel-shared need --channel-rate")
+    if opts.channel_rate is None and (opts.channel_loss or opts.channel_shared or opts.channel_multicast):
+        parser.error("--channel-loss, --channel-shared and --channel-multicast need --channel-rate")
     if opts.rate is not None and not opts.rate > 0:
         parser.error(f"--rate {opts.rate}: must be above 0")
     if opts.frames < 1:

@@ -168,12 +168,18 @@ class Bootstrap:
     def ratio(self, run: dict, full: dict, base: dict, score: str = "co3sop-code") -> dict:
         """{"ratio": (run - base) / (full - base), "ci95": [low, high]}: the share of full's gain over base that run
         keeps (a codec against the lossless one and no collaborator), paired over the same resampled scenarios."""
-        a, f, b = (self._resampled(c)[score] for c in (run, full, base))
-        pa, pf, pb = (point(pooled(c).summary(), score) for c in (run, full, base))
+        return self.gain_ratio(run, base, full, base, score)
+
+    def gain_ratio(self, run: dict, run_base: dict, full: dict, base: dict, score: str = "co3sop-code") -> dict:
+        """{"ratio": (run - run_base) / (full - base), "ci95": [low, high]}: run's gain over its own base as a share
+        of full's over base (another model's collaboration against the reference's), paired over the same resampled
+        scenarios."""
+        a, ab, f, b = (self._resampled(c)[score] for c in (run, run_base, full, base))
+        pa, pab, pf, pb = (point(pooled(c).summary(), score) for c in (run, run_base, full, base))
         with np.errstate(divide="ignore", invalid="ignore"):
             return {
-                "ratio": (pa - pb) / (pf - pb) if pf != pb else float("nan"),
-                "ci95": _percentiles((a - b) / (f - b)),
+                "ratio": (pa - pab) / (pf - pb) if pf != pb else float("nan"),
+                "ci95": _percentiles((a - ab) / (f - b)),
             }
 
 

@@ -6,8 +6,10 @@ import os
 import re
 import sys
 import time
+import xml.etree.ElementTree as ET
 from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 
 import rclpy
 from ament_index_python.packages import get_package_share_directory
@@ -176,7 +178,41 @@ def fastdds_profile_path(name: str = "fastdds.xml") -> str:
     return os.path.join(get_package_share_directory(PACKAGE), "config", name)
 
 
-def channel_environment(member: str | None) -> dict[str, str]:
+# On a channel with multicast, the readers of feature messages listen on this group: a writer then sends each sample
+# once for every reader, as a radio broadcasts (unicast, it sends a copy to each)
+V2X_MULTICAST_GROUP = "239.255.67.1"
+_PROFILES_NS = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
+CHANNEL_PROFILES = ("fastdds_onboard.xml", "fastdds_udp.xml")
+
+
+def v2x_multicast_port() -> int:
+    """The group's port: RTPS's user-data multicast port of the domain (odd, as user data's are: the channel keeps
+    even ports, discovery's, off the radio)."""
+    domain = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return 7401 + 250 * (int(domain) if domain.isdigit() else 0)
+
+
+def multicast_profiles(folder: Path, topics: list[str]) -> Path:
+    """The channel's Fast DDS profiles written to `folder`, each with every reader of `topics` (full names) listening
+    on the V2X multicast group (rmw_fastrtps applies a data_reader profile named as a subscription's topic); `folder`
+    goes to channel_environment."""
+    folder.mkdir(parents=True, exist_ok=True)
+    ET.register_namespace("", _PROFILES_NS)
+    for name in CHANNEL_PROFILES:
+        tree = ET.parse(fastdds_profile_path(name))
+        profiles = tree.getroot().find(f"{{{_PROFILES_NS}}}profiles")
+        tree.getroot().insert(0, ET.Comment(f" {name} with the feature readers on the V2X multicast group (demo) "))
+        for topic in topics:
+            reader = ET.SubElement(profiles, f"{{{_PROFILES_NS}}}data_reader", profile_name=topic)
+            listen = ET.SubElement(reader, f"{{{_PROFILES_NS}}}multicastLocatorList")
+            udp = ET.SubElement(ET.SubElement(listen, f"{{{_PROFILES_NS}}}locator"), f"{{{_PROFILES_NS}}}udpv4")
+            ET.SubElement(udp, f"{{{_PROFILES_NS}}}address").text = V2X_MULTICAST_GROUP
+            ET.SubElement(udp, f"{{{_PROFILES_NS}}}port").text = str(v2x_multicast_port())
+        tree.write(folder / name, encoding="UTF-8", xml_declaration=True)
+    return folder
+
+
+def channel_environment(member: str | None, profiles: Path | None = None) -> dict[str, str]:
     """What a DDS process of an emulated V2X channel (v2x/channel.py) needs: discovery past localhost and the Fast DDS
     profile of where it runs. The ego's car (member "ego": the fusion node, its own encoder, the recorder) and the
     machine's side (None: the simulator, which stands for the ego's sensors too, and the launcher): shared memory
@@ -184,9 +220,10 @@ def channel_environment(member: str | None) -> dict[str, str]:
     crosses a network stack. A neighbour: UDP only (fastdds_udp.xml), so everything it exchanges crosses a link
     (shared memory would bypass them: every namespace sees the same /dev/shm). All UDP takes RTPS messages of at
     most 1400 bytes: Fast DDS sizes its receive buffers by that limit, so a process sending larger datagrams would
-    reach nobody."""
-    profile = "fastdds_onboard.xml" if member in ("ego", None) else "fastdds_udp.xml"
-    return {"FASTRTPS_DEFAULT_PROFILES_FILE": fastdds_profile_path(profile), "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
+    reach nobody. `profiles`: a folder of multicast_profiles to take them from instead of the shipped ones."""
+    profile = CHANNEL_PROFILES[0] if member in ("ego", None) else CHANNEL_PROFILES[1]
+    path = str(profiles / profile) if profiles is not None else fastdds_profile_path(profile)
+    return {"FASTRTPS_DEFAULT_PROFILES_FILE": path, "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
 
 
 def configure_environment() -> None:

@@ -24,7 +24,7 @@ from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
-from co3sop_nodes.ros.dds import channel_environment
+from co3sop_nodes.ros.dds import channel_environment, multicast_profiles
 from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
@@ -147,6 +147,7 @@ class DemoOptions:
     channel_rate: float | None = None
     channel_loss: float = 0.0
     channel_shared: bool = False
+    channel_multicast: bool = False
     egos: str = "first"
 
 
@@ -173,21 +174,25 @@ def run_demo(opts: DemoOptions) -> int:
     model.use(path)
     if opts.rate is None:
         opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos))
-    channel = None
+    channel, profiles = None, None
     if opts.channel_rate is not None:
         # rate and queue in real time: at play rate r a link carries r times the bytes per second, and a packet
         # may wait 1 / r times as long (200 ms of real time)
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100, Link.queue_ms / opts.rate)
         channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
-        os.environ.update(channel_environment(None))  # before any DDS participant, the supervisor's included
+        if opts.channel_multicast:  # what every CAV hears: the vehicles' features and the egos' request maps
+            requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
+            profiles = multicast_profiles(opts.out / "dds", [*map(topics.voxel_features, cavs), *requests])
+        os.environ.update(channel_environment(None, profiles))  # before any DDS participant, the supervisor's included
         say(
             f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} "
             f"Mbit/s of real time "
             f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
             + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
+            + ("; features and request maps multicast, each sent once for all" if opts.channel_multicast else "")
         )
     with channel or contextlib.nullcontext():
-        return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, t0)
+        return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, profiles, t0)
 
 
 def frames_accounted(supervisor: Supervisor, ego: NodeSpec) -> int:
@@ -226,6 +231,7 @@ def _graph(
     frames: int,
     mcap: Path,
     channel: Channel | None,
+    profiles: Path | None,
     t0: float,
 ) -> int:
     """The nodes started (inside the channel's namespaces where there is one), the bag played, the recording scored."""
@@ -253,7 +259,7 @@ def _graph(
         """A node started in its car: on a channel, in that car's namespace with its DDS profile."""
         argv = [executable(spec.executable), *spec.ros_arguments()]
         if channel and spec.car is not None:
-            return Process(label, channel.wrap(spec.car, argv), echo, channel_environment(spec.car))
+            return Process(label, channel.wrap(spec.car, argv), echo, channel_environment(spec.car, profiles))
         return Process(label, argv, echo)
 
     recorder = start(graph.recorder, "recorder")

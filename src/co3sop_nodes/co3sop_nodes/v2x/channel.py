@@ -8,7 +8,8 @@ rate-limited by a token bucket (tc `tbf`) and, where a loss rate is given,
 thinned by an nftables rule on its device's egress dropping that share of its
 packets at random (`numgen random`). With a shared medium, every CAV's transmissions also count against
 one rate for all of them together, as on one radio channel: a single nftables limit (a named `limit` object)
-on what the hub's bridge forwards from any CAV drops what exceeds it, as frames lost on a crowded channel.
+on what enters the hub's bridge from any CAV drops what exceeds it, as frames lost on a crowded channel (counted
+once per transmission: a multicast frame the bridge copies to every CAV crossed the medium once).
 Every byte between CAVs then crosses a shaped link, over UDP:
 the processes use a Fast DDS profile without shared memory (which would bypass
 the link, /dev/shm being shared by all namespaces). The radio carries what a CAV
@@ -285,7 +286,8 @@ class Channel:
             _nft(ns, rules)
 
     def _share(self, medium: Link) -> None:
-        """One token bucket for every member's transmissions, on the hub's bridge (the machine's side unshaped).
+        """One token bucket for every member's transmissions, where they enter the hub's bridge (prerouting: once per
+        frame, before the bridge copies a multicast one to each port; the machine's side unshaped).
         What the members send together beyond the rate passes up to the medium's `queue_ms` of it (its burst: as a
         radio's senders would wait that long for the channel), beyond that it is dropped; nftables' bucket holds one
         second of the rate besides, so the rate holds over windows of about a second."""
@@ -295,7 +297,7 @@ class Channel:
         rules = (
             "table bridge medium {\n"
             f" limit air {{ rate over {round(rate)} bytes/second burst {burst} bytes }}\n"
-            " chain forward {\n  type filter hook forward priority 0; policy accept;\n"
+            " chain transmissions {\n  type filter hook prerouting priority 0; policy accept;\n"
             f'{_on_radio(self.host_address, self.subnet)} iifname {{ {members} }} limit name "air" counter drop\n'
             " }\n}\n"
         )
@@ -303,7 +305,7 @@ class Channel:
 
     def dropped_by_medium(self) -> int:
         """Packets the shared medium dropped so far (its rate exceeded by the members together)."""
-        return _counted(self.hub, "bridge", "medium", "forward")
+        return _counted(self.hub, "bridge", "medium", "transmissions")
 
     def dropped(self, member: str) -> int:
         """Packets the loss rule dropped on `member`'s transmit side so far."""
