@@ -4,6 +4,7 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
     ros2_ws/benchmarks/bench_learned_codec.py --reference src/co3sop_nodes/checkpoints/tiny-lidar.pt \
         --learned runs/wire/tiny-lidar-51.2m-s1-k4/model.pt --data data/bench --splits test \
         [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--out FILE.json] [--plot FILE.png]
+    ros2_ws/benchmarks/bench_learned_codec.py --replot FILE.json --plot FILE.png   # the table and curve again
 
 Run with the workspace environment (`. ros2_ws/env.sh`). Both systems are scored against one reference: the
 `--reference` model (the collaborative model the learned codes were trained from) alone and with lossless features.
@@ -13,8 +14,8 @@ its ego does alone: its own collaboration gain is (mIoU with the codec - that mo
 reference alone), the column the goal reads. Each `--learned` model is also scored with no budget (every voxel the
 ego asks for) and with every voxel of its code (dense). The transform codec runs on the reference model (codec.dtype and
 codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
-frame's, as `evaluate --ablation codec` makes them. Prints a markdown table; --plot draws the curve of gain kept
-against bytes for both, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
+frame's, as `evaluate --ablation codec` makes them. Prints a markdown table; --plot draws the curve of each system's
+own gain kept against bytes, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
 """
 
 from __future__ import annotations
@@ -36,9 +37,9 @@ UNBOUNDED = 2**31 - 1  # the largest codec.max_bytes: every requested voxel fits
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--reference", type=Path, required=True, help="the collaborative model (transform codec)")
-    parser.add_argument("--learned", type=Path, nargs="+", required=True, help="models with a learned wire code")
-    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--reference", type=Path, help="the collaborative model (transform codec)")
+    parser.add_argument("--learned", type=Path, nargs="+", help="models with a learned wire code")
+    parser.add_argument("--data", type=Path)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--budgets", type=int, nargs="+", default=[4096, 8192, 16384, 32768])
     parser.add_argument("--transform", default="int4:8", help="the transform codec: DTYPE:RANK")
@@ -46,7 +47,22 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
     parser.add_argument("--plot", type=Path, help="also draw the curve here (PNG)")
+    parser.add_argument("--replot", type=Path, help="print and draw a previous run's JSON instead of measuring")
     opts = parser.parse_args()
+    if opts.replot:
+        measured = json.loads(opts.replot.read_text())
+    elif opts.reference and opts.learned and opts.data:
+        measured = measure(opts, parser)
+    else:
+        parser.error("--reference, --learned and --data (or --replot)")
+    report(measured, opts.plot)
+    if opts.out:
+        opts.out.parent.mkdir(parents=True, exist_ok=True)
+        opts.out.write_text(json.dumps(measured, indent=2) + "\n")
+
+
+def measure(opts, parser) -> dict:
+    """Every run of the comparison: {"title", "reference", "splits", "runs": [one dict per system and codec]}."""
     torch.set_num_threads(opts.threads)
     reference, _ = load_model(opts.reference)
     dataset = OccupancyDataset(opts.data, opts.splits, reference.cfg)
@@ -59,15 +75,9 @@ def main() -> None:
     alone = evaluate(reference, dataset, collaborators=0, cache=cache, desc="alone")[0]
     lossless = run(reference, FeatureCodecConfig("float32", "dense", codec="none"), cache, "lossless")[0]
     dtype, rank = opts.transform.split(":")
-    results, rows = [], []
-
-    def interval(r: dict) -> str:
-        return f"{100 * r['ratio']:.0f} [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}]"
+    results = []
 
     def add(system: str, path: Path, codec: FeatureCodecConfig, own_alone: dict, confusions: dict, size: float):
-        kept = boot.ratio(confusions, lossless, alone)
-        own = boot.gain_ratio(confusions, own_alone, lossless, alone)
-        miou = point(boot.summary(confusions), "co3sop-code")
         results.append(
             {
                 "system": system,
@@ -75,16 +85,11 @@ def main() -> None:
                 "codec": codec.name,
                 "max_bytes": codec.max_bytes,
                 "bytes": size,
-                "miou": miou,
+                "miou": point(boot.summary(confusions), "co3sop-code"),
                 "alone_miou": point(boot.summary(own_alone), "co3sop-code"),
-                "gain_kept": kept,
-                "own_gain_kept": own,
+                "gain_kept": boot.ratio(confusions, lossless, alone),
+                "own_gain_kept": boot.gain_ratio(confusions, own_alone, lossless, alone),
             }
-        )
-        limit = "none" if codec.max_bytes in (0, UNBOUNDED) else f"{codec.max_bytes:,}"
-        rows.append(
-            f"| {system} | {codec.name} | {limit} | {size:,.0f} | {100 * miou:.2f} | "
-            f"{100 * results[-1]['alone_miou']:.2f} | {interval(kept)} | {interval(own)} |"
         )
 
     for budget in opts.budgets:
@@ -109,10 +114,33 @@ def main() -> None:
         f"alone {100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
         f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}; request maps of {opts.levels} levels"
     )
+    return {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}
+
+
+def label(run: dict) -> str:
+    """A run's codec as a reader reads it (a request with no budget: every voxel the ego asked for)."""
+    return run["codec"].replace(f"request{UNBOUNDED // 1024}KB", "request-all")
+
+
+def report(measured: dict, plot: Path | None) -> None:
+    """The table (stdout) and, where `plot` is given, the curve of each system's own gain kept against bytes."""
+
+    def interval(r: dict) -> str:
+        return f"{100 * r['ratio']:.0f} [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}]"
+
+    def limit(r: dict) -> str:
+        return "none" if r["max_bytes"] in (0, UNBOUNDED) else f"{r['max_bytes']:,}"
+
+    rows = [
+        f"| {r['system']} | {label(r)} | {limit(r)} | "
+        f"{r['bytes']:,.0f} | {100 * r['miou']:.2f} | {100 * r['alone_miou']:.2f} | {interval(r['gain_kept'])} | "
+        f"{interval(r['own_gain_kept'])} |"
+        for r in measured["runs"]
+    ]
     print(
         "\n".join(
             [
-                title,
+                measured["title"],
                 "",
                 "| system | codec | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | its model alone | "
                 "gain kept vs the reference alone (%) [95 % interval] | its own gain kept (%) [95 % interval] |",
@@ -121,18 +149,10 @@ def main() -> None:
             ]
         )
     )
-    if opts.out:
-        opts.out.parent.mkdir(parents=True, exist_ok=True)
-        opts.out.write_text(
-            json.dumps(
-                {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}, indent=2
-            )
-            + "\n"
-        )
-    if opts.plot:
-        opts.plot.parent.mkdir(parents=True, exist_ok=True)
-        points = {f"{r['system']}: {r['codec']}": r for r in results}
-        plot_codecs(opts.plot, points, title)
+    if plot:
+        plot.parent.mkdir(parents=True, exist_ok=True)
+        points = {f"{r['system']}: {label(r)}": {**r, "gain_kept": r["own_gain_kept"]} for r in measured["runs"]}
+        plot_codecs(plot, points, measured["title"] + "; each system's own gain kept")
 
 
 if __name__ == "__main__":
