@@ -140,6 +140,41 @@ def test_a_shared_medium_limits_the_members_together_and_is_removed():
     assert ours(os.getpid()) == []
 
 
+MULTICAST_RECEIVE = """
+import socket, struct
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.bind(("0.0.0.0", 47003)); s.settimeout(3)
+s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, struct.pack("4s4s", socket.inet_aton("{group}"), bytes(4)))
+n = 0
+try:
+    while True:
+        s.recv(2000); n += 1
+except socket.timeout:
+    pass
+print(n)
+"""
+MULTICAST_SEND = """
+import socket, time
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+t0 = time.monotonic()
+for i in range(1400):  # 1.4 MB in 2 s
+    s.sendto(b"x" * 1000, ("{group}", 47003))
+    time.sleep(max(0.0, t0 + i * 2 / 1400 - time.monotonic()))
+"""
+
+
+def test_a_multicast_frame_crosses_the_shared_medium_once():
+    """What one member multicasts reaches every other member (the bridge copies it to each port) and counts once
+    against the shared medium: 0.7 MB/s to two receivers stays within an 8 Mbit/s (1 MB/s) medium, where counting
+    each copy would exceed it."""
+    group = "239.255.67.9"
+    with Channel({m: Link(50.0) for m in ("ego", "cav1", "cav2")}, shared=Link(8.0)) as channel:
+        receivers = [in_namespace(channel, m, MULTICAST_RECEIVE.format(group=group)) for m in ("ego", "cav2")]
+        time.sleep(0.5)
+        assert in_namespace(channel, "cav1", MULTICAST_SEND.format(group=group)).wait(60) == 0
+        assert [int(r.communicate(timeout=30)[0]) for r in receivers] == [1400, 1400]
+        assert channel.dropped_by_medium() == 0
+
+
 def test_channel_is_removed_when_its_user_fails():
     with pytest.raises(RuntimeError):
         with Channel({"ego": Link(10.0)}):
@@ -320,12 +355,13 @@ def test_demo_through_a_lossy_channel(scenario, tmp_path):
 def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
     """Three CAVs, each an ego and a collaborator of the others, on one shared medium (12 Mbit/s of real time for
     all of them together): each vehicle answers both other egos' request maps (2 levels, about 0.2 KB) with one
-    message (16 KB, int4, rank 8) and feeds its own ego losslessly on board (3.2 MB a frame, which the medium could
-    not carry); every ego fuses
-    both neighbours, and the recording and the score hold every ego's frames."""
+    message (16 KB, int4, rank 8), multicast (one transmission for both), and feeds its own ego losslessly on board
+    (3.2 MB a frame, which the medium could not carry); every ego fuses both neighbours, and the recording and the
+    score hold every ego's frames."""
     out = tmp_path / "all"
     codec = ["codec.selection:=request", "codec.dtype:=int4", "codec.rank:=8", "codec.max_bytes:=16384"]
     extra = ["--rate", "0.1", "--channel-rate", "12", "--channel-loss", "0", "--channel-shared", "--egos", "all"]
+    extra += ["--channel-multicast"]
     egos = ["--ego-params", "request_levels:=2", "stay_current:=false"]  # every frame fused, however late
     proc = demo(scenario, out, *extra, "--params", *codec, "request_answer:=union", *egos)
     text = proc.communicate(timeout=400)[0]
