@@ -26,13 +26,12 @@ from pathlib import Path
 
 import torch
 
+from co3sop_nodes.eval.codec_comparison import UNBOUNDED, comparison_table, label
 from co3sop_nodes.eval.evaluate import evaluate, plot_codecs
 from co3sop_nodes.eval.metrics import Bootstrap, point
 from co3sop_nodes.inference.checkpoint import load_model
 from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
-
-UNBOUNDED = 2**31 - 1  # the largest codec.max_bytes: every requested voxel fits
 
 
 def main() -> None:
@@ -117,38 +116,9 @@ def measure(opts, parser) -> dict:
     return {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}
 
 
-def label(run: dict) -> str:
-    """A run's codec as a reader reads it (a request with no budget: every voxel the ego asked for)."""
-    return run["codec"].replace(f"request{UNBOUNDED // 1024}KB", "request-all")
-
-
 def report(measured: dict, plot: Path | None) -> None:
     """The table (stdout) and, where `plot` is given, the curve of each system's own gain kept against bytes."""
-
-    def interval(r: dict) -> str:
-        return f"{100 * r['ratio']:.0f} [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}]"
-
-    def limit(r: dict) -> str:
-        return "none" if r["max_bytes"] in (0, UNBOUNDED) else f"{r['max_bytes']:,}"
-
-    rows = [
-        f"| {r['system']} | {label(r)} | {limit(r)} | "
-        f"{r['bytes']:,.0f} | {100 * r['miou']:.2f} | {100 * r['alone_miou']:.2f} | {interval(r['gain_kept'])} | "
-        f"{interval(r['own_gain_kept'])} |"
-        for r in measured["runs"]
-    ]
-    print(
-        "\n".join(
-            [
-                measured["title"],
-                "",
-                "| system | codec | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | its model alone | "
-                "gain kept vs the reference alone (%) [95 % interval] | its own gain kept (%) [95 % interval] |",
-                "|---|---|---:|---:|---:|---:|---|---|",
-                *rows,
-            ]
-        )
-    )
+    print("\n".join(comparison_table(measured)))
     if plot:
         plot.parent.mkdir(parents=True, exist_ok=True)
         points = {f"{r['system']}: {label(r)}": {**r, "gain_kept": r["own_gain_kept"]} for r in measured["runs"]}

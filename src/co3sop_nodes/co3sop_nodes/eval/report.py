@@ -15,6 +15,7 @@ import yaml
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.eval.codec_comparison import comparison_table
 from co3sop_nodes.eval.evaluate import distance_table
 from co3sop_nodes.eval.metrics import SCORES, Bootstrap, confusions_of, markdown_table, point
 from co3sop_nodes.eval.observed import observed_table
@@ -572,6 +573,27 @@ def validate_section(results: Path) -> list[str]:
     return out + [""]
 
 
+def wire_code_section(results: Path) -> list[str]:
+    """Learned wire codes against the transform codec on `test` (bench_learned_codec.py's --out JSON,
+    RESULTS/codec/learned-<range>-test.json)."""
+    found = sorted((results / "codec").glob("learned-*-test.json"))
+    if not found:
+        return []
+    out = [
+        "## A code learned for the V2X wire against the transform codec",
+        "",
+        "The same byte budgets per neighbour-frame under request maps; both scored against the model the code was",
+        "trained from (`--reference`), alone and with lossless features. A learned model's head trains on with its",
+        "code, which changes its ego alone: its own gain kept, (with the codec - that model alone) / (reference",
+        "lossless - reference alone), is the one to read; intervals paired over the test scenarios",
+        '(`ros2_ws/benchmarks/bench_learned_codec.py`; BENCHMARKS.md, "V2X: a code learned for the wire").',
+        "",
+    ]
+    for path in found:
+        out += [*comparison_table(json.loads(path.read_text())), ""]
+    return out
+
+
 def levers_section(results: Path) -> list[str]:
     """Single-agent checkpoints scored alone on `validate` (RESULTS/validate/<choice>/evaluation.json: one `evaluate`
     call with several --model and --collaborators 0), each row paired with the first and with the row above."""
@@ -778,6 +800,7 @@ def render(results: Path, command: str, target: Goals | None = None) -> str:
         *precision_section(results),
         *validate_section(results),
         *levers_section(results),
+        *wire_code_section(results),
         *observed_section(results),
     ]
     for (preset, rng, steps), seeds in runs.items():
