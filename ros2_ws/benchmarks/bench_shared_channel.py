@@ -178,6 +178,7 @@ def main() -> int:
         f"Every CAV an ego; bag {opts.bag}; model {opts.model} (alone and lossless: {reference}); request maps of "
         f"{opts.request_levels} levels, "
         + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
+        + (", features and request maps multicast" if opts.multicast else ", unicast")
         + ", each message's budget its share of the medium (see the script).",
         "",
         "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | frames missed | "

@@ -140,18 +140,12 @@ def test_a_shared_medium_limits_the_members_together_and_is_removed():
     assert ours(os.getpid()) == []
 
 
-MULTICAST_RECEIVE = """
-import socket, struct
-s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.bind(("0.0.0.0", 47003)); s.settimeout(3)
-s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, struct.pack("4s4s", socket.inet_aton("{group}"), bytes(4)))
-n = 0
-try:
-    while True:
-        s.recv(2000); n += 1
-except socket.timeout:
-    pass
-print(n)
-"""
+# the receiver joined to a multicast group as well
+MULTICAST_RECEIVE = RECEIVE.replace("47001", "47003").replace(
+    "n = 0\n",
+    "s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton('{group}') + bytes(4))\nn = 0\n",
+    1,
+)
 MULTICAST_SEND = """
 import socket, time
 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

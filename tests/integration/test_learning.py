@@ -364,7 +364,8 @@ def street_split(tmp_path_factory):
 
 
 def shipped_models() -> list[Path]:
-    return sorted(shipped_checkpoint().parent.glob("*.pt"))
+    """The shipped models with a vehicle half of their own (tiny-lidar-wire's is tiny-lidar's, frozen)."""
+    return sorted(p for p in shipped_checkpoint().parent.glob("*.pt") if p.stem != "tiny-lidar-wire")
 
 
 @pytest.mark.parametrize("model", [p.name for p in shipped_models()])

@@ -291,7 +291,8 @@ def test_score_and_recover_explain_bad_files(tmp_path):
         (["demo", "--model", "/nowhere/model.pt"], "--model /nowhere/model.pt: no such checkpoint"),
         (
             ["demo", "--model", "no-such-model"],
-            "--model 'no-such-model': neither a checkpoint file nor a shipped model (small, tiny, tiny-lidar)",
+            "--model 'no-such-model': neither a checkpoint file nor a shipped model (small, tiny, tiny-lidar, "
+            "tiny-lidar-wire)",
         ),
         (
             ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:=bogus"],

@@ -93,9 +93,10 @@ def test_every_shipped_checkpoint_is_installed_small_and_loads(name):
     assert path.stat().st_size <= 5 * 2**20
     model, data = load_model(path)
     stages = [h["stage"] for h in data["meta"]["history"]]
-    # the two stages in order, each possibly resumed or extended
+    # the two stages in order (then a wire code's, where it has one), each possibly resumed or extended
     assert model.cfg.name == name and stages[0] == "ego" and "fusion" in stages
-    assert stages == sorted(stages, key=["ego", "fusion"].index)
+    assert stages == sorted(stages, key=["ego", "fusion", "wire"].index)
+    assert ("wire" in stages) == (model.cfg.wire is not None)
     assert all("--seed" in h["command"] for h in data["meta"]["history"])
 
 

@@ -73,6 +73,7 @@ def test_with_wire_keeps_every_other_weight():
     plain = lidar_model(None)
     wired = with_wire(plain, WireConfig(2, 3))
     assert wired.cfg.wire == WireConfig(2, 3) and wired.vehicle.wire is not None and wired.ego.wire is not None
+    assert wired.cfg.name == f"{plain.cfg.name}-wire"
     theirs = plain.state_dict()
     for key, value in wired.state_dict().items():
         if ".wire." not in key:

@@ -219,9 +219,9 @@ def build_model(cfg: ModelConfig) -> Co3SOP:
 
 
 def with_wire(model: Co3SOP, wire: WireConfig) -> Co3SOP:
-    """`model` with a new wire code `wire` (its encoder and decoder freshly initialised, every other weight kept):
-    what the wire stage starts from."""
-    out = build_model(replace(model.cfg, wire=wire))
+    """`model` with a new wire code `wire` (its encoder and decoder freshly initialised, every other weight kept),
+    named `<name>-wire`: what the wire stage starts from."""
+    out = build_model(replace(model.cfg, wire=wire, name=f"{model.cfg.name}-wire"))
     missing, unexpected = out.load_state_dict(model.state_dict(), strict=False)
     assert not unexpected and all(k.split(".")[1] == "wire" for k in missing), (missing, unexpected)
     return out
