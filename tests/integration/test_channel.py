@@ -333,6 +333,11 @@ def test_demo_through_a_lossy_channel(scenario, tmp_path):
     assert len(dropped) == 3 and all(int(n) > 0 for n in dropped.values()), out
     used, late = fused_per_frame(out)
     assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 2, out
+    assert ours(proc.pid) == []
+
+
+@pytest.mark.heavy
+def test_features_too_large_for_the_channel_leave_the_ego_alone_and_named(scenario, tmp_path):
     # dense float16 features (~1 MB a frame) do not fit 27 Mbit/s: the ego still publishes every frame, alone,
     # and its diagnostics name the neighbours it discovered but got no frame from in time
     dense = ["--params", "codec.dtype:=float16", "--ego-params", "max_wait:=1.0", "stay_current:=false"]

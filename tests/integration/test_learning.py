@@ -363,12 +363,14 @@ def street_split(tmp_path_factory):
     return out
 
 
-def shipped_models() -> list[Path]:
-    """The shipped models with a vehicle half of their own (tiny-lidar-wire's is tiny-lidar's, frozen)."""
-    return sorted(p for p in shipped_checkpoint().parent.glob("*.pt") if p.stem != "tiny-lidar-wire")
+def shipped_models() -> list:
+    """The shipped models with a vehicle half of their own (tiny-lidar-wire's is tiny-lidar's, frozen) as test
+    parameters; the GPU-sized `small` (the slowest on 2 cores) runs with the heavy tests."""
+    found = sorted(p.name for p in shipped_checkpoint().parent.glob("*.pt") if p.stem != "tiny-lidar-wire")
+    return [pytest.param(n, marks=pytest.mark.heavy) if n == "small.pt" else n for n in found]
 
 
-@pytest.mark.parametrize("model", [p.name for p in shipped_models()])
+@pytest.mark.parametrize("model", shipped_models())
 def test_shipped_models_use_their_sensors(street_split, tmp_path, model):
     """Input controls: every shipped model beats itself with blank sensors by a clear margin, with intervals."""
     result = tool(
@@ -394,7 +396,7 @@ def test_shipped_models_use_their_sensors(street_split, tmp_path, model):
     assert "Paired differences" in result.stdout and "95 % interval" in result.stdout
 
 
-@pytest.mark.parametrize("model", [p.name for p in shipped_models()])
+@pytest.mark.parametrize("model", shipped_models())
 def test_fast_paths_equal_their_references_on_real_samples(street_split, model):
     """On generated scenes with the shipped weights: the vehicle half and the ego's fusion at inference (compiled
     sampler, warp) against their training paths, and the head's compiled kernel and PyTorch loop against dense
