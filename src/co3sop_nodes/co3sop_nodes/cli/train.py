@@ -10,8 +10,9 @@ at once. `wire` starts from a collaborative checkpoint and trains a code for
 the V2X wire (K integers per voxel, --wire-rank) with the fusion and the head
 behind it, each collaborator's voxels chosen by the ego's request as a byte
 budget would (vehicle features frozen); vehicles send it with codec.learned.
-Every CAV of every frame is the ego in turn. Progress bar, CSV log (log.csv), loss plot (loss.png), resumable training state (state.pt, written
-atomically every --save-every steps; --resume continues it) and the exported
+Every CAV of every frame is the ego in turn. Progress bar, CSV log (log.csv),
+loss plot (loss.png), resumable training state (state.pt, written atomically
+every --save-every steps; --resume continues it) and the exported
 model (model.pt, float16 weights + config + the command that made it).
 `--device` picks CPU (the default without a GPU) or a CUDA GPU. `--batch B`
 is the samples each process takes per step, as DistributedDataParallel users
