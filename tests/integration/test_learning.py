@@ -136,6 +136,16 @@ def test_train_stages_resume_and_evaluate(small_split):
     rates = [float(r["lr"]) for r in csv.DictReader((out / "fusion" / "log.csv").open())]
     assert rates == [2e-3, 1e-3]  # cosine from --lr towards 0 at --steps
     assert (out / "fusion" / "model.pt").stat().st_size < 5 * 2**20
+    # the wire stage: a code of rank 2 behind the frozen vehicle half; its losses have columns from the first row
+    # on, whether or not that step's sample had a collaborator
+    wire = tool(
+        "train", *common, "--stage", "wire", "--init", str(out / "fusion" / "model.pt"), "--wire-rank", "2",
+        "--steps", "2", "--out", str(out / "wire"),
+    )  # fmt: skip
+    assert wire.returncode == 0, wire.stderr
+    header = (out / "wire" / "log.csv").read_text().splitlines()[0].split(",")
+    assert {"wire_features", "wire_confidence", "wire_rate"} <= set(header)
+    assert load_model(out / "wire" / "model.pt")[0].cfg.wire.rank == 2
     result = tool(
         "evaluate",
         "--model",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 
-from co3sop_nodes.train.log import keep_log_until
+from co3sop_nodes.train.log import keep_log_until, log_header
 
 
 def write_log(path, steps):
@@ -31,3 +31,10 @@ def test_a_resume_drops_the_steps_logged_after_the_saved_state(tmp_path):
 def test_a_run_without_a_log_has_nothing_to_drop(tmp_path):
     keep_log_until(tmp_path / "log.csv", 3)
     assert not (tmp_path / "log.csv").exists()
+
+
+def test_a_resumed_run_writes_under_the_logs_own_columns(tmp_path):
+    log = tmp_path / "log.csv"
+    assert log_header(log) is None  # a new run: its first row names the columns
+    write_log(log, range(1, 3))
+    assert log_header(log) == ["step", "stage", "loss", "seconds"]

@@ -25,6 +25,14 @@ def keep_log_until(csv_path: Path, step: int) -> None:
         tmp.replace(csv_path)  # atomic: an interruption leaves the whole log
 
 
+def log_header(csv_path: Path) -> list[str] | None:
+    """The columns of a run's log.csv, None where it has none yet: a resumed run writes its rows under them."""
+    if not csv_path.is_file():
+        return None
+    with open(csv_path, newline="") as f:
+        return next(csv.reader(f), None)
+
+
 def plot_losses(csv_path: Path, png_path: Path) -> None:
     import matplotlib
 

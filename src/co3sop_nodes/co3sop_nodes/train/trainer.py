@@ -28,7 +28,7 @@ from co3sop_nodes.model.occformer import class_scores, log_scores
 from co3sop_nodes.train import distributed
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
 from co3sop_nodes.train.loader import StepSamples, step_loader
-from co3sop_nodes.train.log import keep_log_until, plot_losses
+from co3sop_nodes.train.log import keep_log_until, log_header, plot_losses
 from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 
 
@@ -329,7 +329,8 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
     log_path = opts.out / "log.csv"
     if world.main:
         keep_log_until(log_path, start)
-    fields = None
+    fields = log_header(log_path) if world.main else None
+    writer = None
     # one sample per step in one process: the voxels of the loss drawn from one stream (as every earlier run);
     # otherwise each sample's from its place in the order, whichever process takes it
     rng = np.random.default_rng(opts.seed + start)
@@ -360,13 +361,14 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
                 "step": step + 1,
                 "stage": opts.stage,
                 **parts,
+                # a wire stage's step whose sample has no collaborator has no wire losses: its columns stay empty
+                **{k: "" for k in (WIRE_WEIGHTS if opts.stage == "wire" else ()) if k not in parts},
                 "lr": lr,
                 "seconds": round(time.time() - t0, 2),
                 "data_wait_seconds": round(waited, 2),
             }
-            if fields is None:
-                fields = list(row)
-                writer = csv.DictWriter(log, fieldnames=fields, extrasaction="ignore")
+            if writer is None:
+                writer = csv.DictWriter(log, fieldnames=fields or list(row), extrasaction="ignore")
                 if log.tell() == 0:
                     writer.writeheader()
             writer.writerow(row)
