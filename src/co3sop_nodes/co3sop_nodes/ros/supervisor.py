@@ -47,7 +47,8 @@ class Supervisor:
         configure_environment()
         self._alive = alive
         self._context = Context()
-        rclpy.init(context=self._context)
+        # not the launcher's command line: its node parameters (x:=y) are for the nodes it starts, not remaps
+        rclpy.init(args=[], context=self._context)
         self.node = rclpy.create_node(name, context=self._context)
         self._lock = threading.Lock()
         self._clients: dict[str, object] = {}  # service name -> its client (see _call)
