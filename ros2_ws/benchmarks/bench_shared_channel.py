@@ -11,11 +11,11 @@ measures, and an ego behind its input skips frames, which `score` counts as empt
 - with no channel, every ego alone (ego parameter max_collaborators 0): the floor of each ego's score;
 - with no channel and lossless features (float32, dense): the ceiling;
 - on one shared medium of M Mbit/s of real time (`--channel-shared`, scaled by the play rate, so the bytes per frame
-  are real time's), per answer mode (vehicle parameter request_answer): request maps of
+  are real time's, as are DDS's reliability timers and the egos' waits for a neighbour: `demo`), per answer mode (vehicle parameter request_answer): request maps of
   --request-levels levels, int4 coefficients at rank 8 (or the model's learned wire code, codec.learned, where it
   has one: the alone and lossless runs are then --reference's, and the gain on the channel is counted from the
   model's own egos alone), each message's budget (codec.max_bytes) its share of the
-  medium: 80 % of the M Mbit/s at 10 Hz, less the request maps (N x (N-1) a frame), split over the copies of
+  medium: --payload-share (60 %) of the M Mbit/s at 10 Hz, less the request maps (N x (N-1) a frame), split over the copies of
   feature messages DDS sends (one per ego a message reaches, unicast): N x (N-1) a frame with one message for every
   ego (union), N x (N-1)^2 with a message for each ego (each: every ego receives every ego's message); with
   --multicast (`demo --channel-multicast`) each message (and each request map) crosses the medium once: N feature
@@ -29,7 +29,8 @@ p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy 
 received, its collaboration gain (lossless - alone, mIoU 1..23), the gain on the channel (channel - alone) and the
 share kept where the gain is at least half a point (every ego together: the gains summed), on this one scene (no
 interval: `evaluate` and choose_rank.py have them over a split's scenarios); per vehicle, the bytes it sent per
-frame. Prints a markdown table (also OUT/bench_shared_channel.md and .json). Resumable: a run
+frame; the medium: packets it dropped (beyond its queue), KB it carried a frame of the bag and its load (the
+share of its rate used from the channel's start to the graph's stop, start-up included). Prints a markdown table (also OUT/bench_shared_channel.md and .json). Resumable: a run
 whose OUT/<cell>/cell.json exists is read, not run again.
 """
 
@@ -56,7 +57,9 @@ from co3sop_nodes.v2x.codec import FeatureCodecConfig, check_codec_for
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 FRAME_RATE = 10.0  # Hz: the sensors' rate, at which the medium's bytes per frame are counted
-SHARE = 0.8  # of the medium for payloads: the rest for RTPS headers, heartbeats and acknowledgements
+# of the medium for payloads by default: the rest for RTPS headers, heartbeats, acknowledgements and slack, as the
+# messages of every CAV queue on it at each frame's start and must cross within the frame
+PAYLOAD_SHARE = 0.6
 # a request map's bytes at 51.2 m (tiny-lidar's 64x64x6 feature grid): about 17 KB at 256 levels, 1.6-2.0 KB at 4,
 # 0.2 KB at 2 (measured on the demo scene's frames)
 REQUEST_BYTES = {256: 17_500, 4: 2_000, 2: 260}
@@ -80,11 +83,13 @@ def carries_features(codec: FeatureCodecConfig, cfg) -> bool:
     return True
 
 
-def budget(medium_mbit: float, cavs: int, answer: str, levels: int, multicast: bool = False) -> int:
-    """Bytes one message may take: the medium's payload bytes per frame, less every ego's request map to every
-    vehicle, over the copies of feature messages DDS sends (one per ego a message reaches, or a vehicle a request map
-    reaches; one for all of them with multicast)."""
-    payload = SHARE * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (1 if multicast else cavs - 1) * REQUEST_BYTES[levels]
+def budget(
+    medium_mbit: float, cavs: int, answer: str, levels: int, multicast: bool = False, share: float = PAYLOAD_SHARE
+) -> int:
+    """Bytes one message may take: the medium's payload bytes per frame (`share` of it), less every ego's request map
+    to every vehicle, over the copies of feature messages DDS sends (one per ego a message reaches, or a vehicle a
+    request map reaches; one for all of them with multicast)."""
+    payload = share * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (1 if multicast else cavs - 1) * REQUEST_BYTES[levels]
     messages = cavs * ((cavs - 1) if answer == "each" else 1)
     return int(payload / (messages * (1 if multicast else cavs - 1)))
 
@@ -120,7 +125,8 @@ def run(demo: str, opts, out: Path, cavs: int, extra: list[str], model: str) -> 
     done = run_demo(argv)
     diagnostics = json.loads((out / "diagnostics.json").read_text())
     score = json.loads((out / "score.json").read_text())
-    medium = re.search(r"packets the shared medium dropped [^:]*: (\d+)", done.stdout)
+    carried = re.search(r"the shared medium carried [0-9.,]+ KB, ([0-9.,]+) KB a frame \((\d+) % of", done.stdout)
+    medium = re.search(r"packets it dropped [^:]*: (\d+)", done.stdout)
     rate = float(re.search(r"playing the bag at rate ([0-9.]+)", done.stdout).group(1))
     egos = {}
     for name, reports in diagnostics.items():
@@ -142,7 +148,14 @@ def run(demo: str, opts, out: Path, cavs: int, extra: list[str], model: str) -> 
         for name, reports in diagnostics.items()
         if name.startswith("vehicle")
     }
-    cell = {"rate": rate, "egos": egos, "sent": sent, "medium_drops": int(medium.group(1)) if medium else None}
+    cell = {
+        "rate": rate,
+        "egos": egos,
+        "sent": sent,
+        "medium_drops": int(medium.group(1)) if medium else None,
+        "medium_kb": float(carried.group(1).replace(",", "")) if carried else None,
+        "medium_load": int(carried.group(2)) if carried else None,
+    }
     kept.write_text(json.dumps(cell, indent=1) + "\n")
     return cell
 
@@ -158,6 +171,12 @@ def main() -> int:
     )
     parser.add_argument(
         "--rate-scale", type=float, default=0.5, help="the play rate: the demo's measured one for N CAVs times this"
+    )
+    parser.add_argument(
+        "--payload-share", type=float, default=PAYLOAD_SHARE, help="of the medium's bytes a frame for the messages"
+    )
+    parser.add_argument(
+        "--answer-ms", type=float, help="demo --channel-answer-ms (default: the demo's, the medium's queue time)"
     )
     parser.add_argument("--out", type=Path, default=Path("results/bench_shared_channel"))
     parser.add_argument("--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it")
@@ -179,13 +198,14 @@ def main() -> int:
         f"{opts.request_levels} levels, "
         + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
         + (", features and request maps multicast" if opts.multicast else ", unicast")
+        + ("" if opts.answer_ms is None else f", DDS readers answering heartbeats after {opts.answer_ms:g} ms")
         + ", each message's budget its share of the medium (see the script).",
         "",
         "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | frames missed | "
         "neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | "
         "collaboration gain, lossless (points) | gain on the channel (points) | gain kept (%) | "
-        "vehicle's message bytes per frame | packets the medium dropped |",
-        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "vehicle's message bytes per frame | packets the medium dropped | medium: KB a frame (% of its rate) |",
+        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     results = []
     for n in opts.cavs:
@@ -202,19 +222,24 @@ def main() -> int:
         lossless = run(demo, opts, opts.out / f"{n}cavs-lossless", n, ceiling, reference)
         for medium in opts.medium:
             for answer in opts.answers:
-                size = budget(medium, n, answer, opts.request_levels, opts.multicast)
+                size = budget(medium, n, answer, opts.request_levels, opts.multicast, opts.payload_share)
                 if not carries_features(codec_of(size, cfg), cfg):
                     rows.append(
                         f"| {n} | {medium:g} | {answer} | {size:,} | | | not run: a message of this budget carries "
-                        "no voxel (the request maps and the basis take it) | | | | | | | | |"
+                        "no voxel (the request maps and the basis take it) | | | | | | | | | |"
                     )
                     continue
                 codec = [f"{p}:={str(getattr(codec_of(size, cfg), f)).lower()}" for p, f in CODEC_FIELDS.items()]
                 medium_args = ["--channel-rate", f"{medium:g}", "--channel-shared"]
                 medium_args += ["--channel-multicast"] if opts.multicast else []
+                medium_args += [] if opts.answer_ms is None else ["--channel-answer-ms", f"{opts.answer_ms:g}"]
                 extra = [*opts_rate, *medium_args, "--params", *codec]
                 extra += [f"request_answer:={answer}", "--ego-params", levels]
-                cell = run(demo, opts, opts.out / f"{n}cavs-{medium:g}mbit-{answer}", n, extra, opts.model)
+                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B" + (
+                    "" if opts.answer_ms is None else f"-{opts.answer_ms:g}ms"
+                )
+                cell = run(demo, opts, opts.out / name, n, extra, opts.model)
+                load = "-" if cell.get("medium_load") is None else f"{cell['medium_kb']:,.0f} ({cell['medium_load']})"
                 for cav, ego in sorted(cell["egos"].items()):
                     ceiling = lossless["egos"][cav]["miou23"]
                     ego["gain"] = ceiling - alone["egos"][cav]["miou23"]
@@ -224,7 +249,8 @@ def main() -> int:
                         f"{ego['missed']} | {100 * ego['fused']:.0f} | "
                         f"{ego['latency_p50']:.0f} / {ego['latency_p95']:.0f} | "
                         f"{ego['bytes']:,.0f} | {100 * ego['gain']:+.2f} | {100 * ego['kept']:+.2f} | "
-                        f"{kept_share(ego['kept'], ego['gain'])} | {cell['sent'][cav]:,.0f} | {cell['medium_drops']} |"
+                        f"{kept_share(ego['kept'], ego['gain'])} | {cell['sent'][cav]:,.0f} | {cell['medium_drops']} | "
+                        f"{load} |"
                     )
                 egos = cell["egos"].values()
                 rows.append(
@@ -232,7 +258,7 @@ def main() -> int:
                     f"{sum(e['missed'] for e in egos)} | {100 * np.mean([e['fused'] for e in egos]):.0f} | | | "
                     f"{100 * sum(e['gain'] for e in egos):+.2f} | "
                     f"{100 * sum(e['kept'] for e in egos):+.2f} | "
-                    f"{kept_share(sum(e['kept'] for e in egos), sum(e['gain'] for e in egos))} | | |"
+                    f"{kept_share(sum(e['kept'] for e in egos), sum(e['gain'] for e in egos))} | | | |"
                 )
                 results.append(
                     {

@@ -192,22 +192,65 @@ def v2x_multicast_port() -> int:
     return 7401 + 250 * (int(domain) if domain.isdigit() else 0)
 
 
-def multicast_profiles(folder: Path, topics: list[str]) -> Path:
-    """The channel's Fast DDS profiles written to `folder`, each with every reader of `topics` (full names) listening
-    on the V2X multicast group (rmw_fastrtps applies a data_reader profile named as a subscription's topic); `folder`
-    goes to channel_environment."""
+# Fast DDS's reliability timers (its defaults, seconds): the writer's heartbeat period and delays, the reader's
+# responses. On a channel slowed by the play rate they run on the wall clock, which the link's rate and queue do
+# not: at rate 0.05 a 3 s heartbeat period is 150 ms of the channel's time, and every repair and acknowledgement
+# it triggers (of the features, the request maps, and ROS's own graph information, which also crosses the radio)
+# adds to a medium already full. channel_profiles scales them as the channel is scaled.
+WRITER_TIMES = {"initialHeartbeatDelay": 0.012, "heartbeatPeriod": 3.0, "nackResponseDelay": 0.005}
+READER_TIMES = {"initialAcknackDelay": 0.07, "heartbeatResponseDelay": 0.005}
+
+
+def channel_profiles(
+    folder: Path,
+    time_scale: float = 1.0,
+    answer_s: float | None = None,
+    multicast_topics: list[str] = (),
+    harness_topics: list[str] = (),
+) -> Path:
+    """The channel's Fast DDS profiles written to `folder` (which goes to channel_environment): every writer's and
+    reader's reliability timers (WRITER_TIMES, READER_TIMES; the default data_writer and data_reader profiles) times
+    `time_scale` (1 / the play rate), a reader's answer to a heartbeat after `answer_s` of real time instead of Fast
+    DDS's default where given (on a shared medium, its queue time: what a packet may still take to arrive); every
+    reader of `multicast_topics` (full names) listens on the V2X multicast group (rmw_fastrtps applies a data_writer
+    or data_reader profile named as a publisher's or a subscription's topic). `harness_topics` keep Fast DDS's own
+    timers: what the cars send to the machine's side (the recorder, the launcher) is off the radio and unslowed, and
+    a repair there, slowed, could come after the graph stopped."""
+    if not time_scale > 0:
+        raise Co3sopError(f"time_scale must be positive, got {time_scale}")
     folder.mkdir(parents=True, exist_ok=True)
     ET.register_namespace("", _PROFILES_NS)
+    tag = lambda name: f"{{{_PROFILES_NS}}}{name}"
+    reader_times = READER_TIMES if answer_s is None else {**READER_TIMES, "heartbeatResponseDelay": answer_s}
+
+    def times(parent: ET.Element, defaults: dict[str, float], scale: float = time_scale) -> ET.Element:
+        element = ET.SubElement(parent, tag("times"))
+        for name, seconds in defaults.items():
+            sec, nanosec = divmod(round(seconds * scale * 1e9), 1_000_000_000)
+            duration = ET.SubElement(element, tag(name))
+            ET.SubElement(duration, tag("sec")).text = str(sec)
+            ET.SubElement(duration, tag("nanosec")).text = str(nanosec)
+        return parent
+
     for name in CHANNEL_PROFILES:
         tree = ET.parse(fastdds_profile_path(name))
-        profiles = tree.getroot().find(f"{{{_PROFILES_NS}}}profiles")
-        tree.getroot().insert(0, ET.Comment(f" {name} with the feature readers on the V2X multicast group (demo) "))
-        for topic in topics:
-            reader = ET.SubElement(profiles, f"{{{_PROFILES_NS}}}data_reader", profile_name=topic)
-            listen = ET.SubElement(reader, f"{{{_PROFILES_NS}}}multicastLocatorList")
-            udp = ET.SubElement(ET.SubElement(listen, f"{{{_PROFILES_NS}}}locator"), f"{{{_PROFILES_NS}}}udpv4")
-            ET.SubElement(udp, f"{{{_PROFILES_NS}}}address").text = V2X_MULTICAST_GROUP
-            ET.SubElement(udp, f"{{{_PROFILES_NS}}}port").text = str(v2x_multicast_port())
+        profiles = tree.getroot().find(tag("profiles"))
+        comment = f" {name} with reliability timers x {time_scale:g} (the channel's play rate)"
+        tree.getroot().insert(
+            0, ET.Comment(comment + (", the radio's readers multicast " if multicast_topics else " "))
+        )
+        default = {"profile_name": "v2x_default", "is_default_profile": "true"}
+        times(ET.SubElement(profiles, tag("data_writer"), **default), WRITER_TIMES)
+        times(ET.SubElement(profiles, tag("data_reader"), **default), reader_times)
+        for topic in harness_topics:
+            times(ET.SubElement(profiles, tag("data_writer"), profile_name=topic), WRITER_TIMES, 1.0)
+            times(ET.SubElement(profiles, tag("data_reader"), profile_name=topic), READER_TIMES, 1.0)
+        for topic in multicast_topics:
+            reader = times(ET.SubElement(profiles, tag("data_reader"), profile_name=topic), reader_times)
+            listen = ET.SubElement(reader, tag("multicastLocatorList"))
+            udp = ET.SubElement(ET.SubElement(listen, tag("locator")), tag("udpv4"))
+            ET.SubElement(udp, tag("address")).text = V2X_MULTICAST_GROUP
+            ET.SubElement(udp, tag("port")).text = str(v2x_multicast_port())
         tree.write(folder / name, encoding="UTF-8", xml_declaration=True)
     return folder
 
@@ -220,7 +263,7 @@ def channel_environment(member: str | None, profiles: Path | None = None) -> dic
     crosses a network stack. A neighbour: UDP only (fastdds_udp.xml), so everything it exchanges crosses a link
     (shared memory would bypass them: every namespace sees the same /dev/shm). All UDP takes RTPS messages of at
     most 1400 bytes: Fast DDS sizes its receive buffers by that limit, so a process sending larger datagrams would
-    reach nobody. `profiles`: a folder of multicast_profiles to take them from instead of the shipped ones."""
+    reach nobody. `profiles`: a folder of channel_profiles to take them from instead of the shipped ones."""
     profile = CHANNEL_PROFILES[0] if member in ("ego", None) else CHANNEL_PROFILES[1]
     path = str(profiles / profile) if profiles is not None else fastdds_profile_path(profile)
     return {"FASTRTPS_DEFAULT_PROFILES_FILE": path, "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}

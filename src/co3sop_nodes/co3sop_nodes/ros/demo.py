@@ -24,11 +24,12 @@ from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
-from co3sop_nodes.ros.dds import channel_environment, multicast_profiles
+from co3sop_nodes.ros.dds import channel_environment, channel_profiles
 from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
 from co3sop_nodes.v2x.channel import Channel, Link
+from co3sop_nodes.v2x.ego_pairing import PairingConfig
 from co3sop_nodes.viz.foxglove import write_layout
 
 # a scene whose three CAVs all stay within 30 m of the ego over its 10 frames (most seeds spread them 50-100 m
@@ -148,6 +149,7 @@ class DemoOptions:
     channel_loss: float = 0.0
     channel_shared: bool = False
     channel_multicast: bool = False
+    channel_answer_ms: float | None = None  # None: the shared medium's queue time, or Fast DDS's own
     egos: str = "first"
 
 
@@ -180,9 +182,27 @@ def run_demo(opts: DemoOptions) -> int:
         # may wait 1 / r times as long (200 ms of real time)
         link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100, Link.queue_ms / opts.rate)
         channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
+        multicast = []
         if opts.channel_multicast:  # what every CAV hears: the vehicles' features and the egos' request maps
             requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
-            profiles = multicast_profiles(opts.out / "dds", [*map(topics.voxel_features, cavs), *requests])
+            multicast = [*map(topics.voxel_features, cavs), *requests]
+        # on a shared medium a reader answers a heartbeat after the medium's queue time: answered at once, it names
+        # fragments that still arrive, and their repairs crowd the medium (BENCHMARKS.md); on a link of its own, a
+        # lost fragment is asked for again at Fast DDS's own delay
+        answer_after = Link.queue_ms / 1000 if opts.channel_shared else None
+        if opts.channel_answer_ms is not None:
+            answer_after = opts.channel_answer_ms / 1000
+        outputs = [topics.EGO_OCCUPANCY, topics.EGO_POINTS, topics.EGO_TRUTH_POINTS]
+        harness = [topics.ego_output(t, c if opts.egos == "all" else None) for t in outputs for c in egos]
+        profiles = channel_profiles(
+            opts.out / "dds", 1 / opts.rate, answer_after, multicast, [*harness, topics.DIAGNOSTICS]
+        )
+        # the egos' waits for the link, slowed as it is: a neighbour's frame may take a frame of real time on it,
+        # and a neighbour is live while it was heard within five (where the ego's own defaults are shorter)
+        frame = bag_period(bag, frames) / opts.rate
+        waits = {"max_wait": max(PairingConfig.max_wait_s, frame)}
+        waits["neighbour_timeout"] = max(PairingConfig.neighbour_timeout_ns / 1e9, 5 * frame)
+        opts.ego_params = {**{k: round(v, 3) for k, v in waits.items()}, **opts.ego_params}
         os.environ.update(channel_environment(None, profiles))  # before any DDS participant, the supervisor's included
         say(
             f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} "
@@ -190,6 +210,7 @@ def run_demo(opts: DemoOptions) -> int:
             f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
             + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
             + ("; features and request maps multicast, each sent once for all" if opts.channel_multicast else "")
+            + f"; egos wait up to {opts.ego_params['max_wait']:g} s for a neighbour's frame"
         )
     with channel or contextlib.nullcontext():
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, profiles, t0)
@@ -343,8 +364,11 @@ def _graph(
     if channel and opts.channel_loss:
         say("packets dropped by the channel: " + ", ".join(f"{m} {channel.dropped(m)}" for m in channel.links))
     if channel and opts.channel_shared:
+        carried = channel.carried_by_medium()
         say(
-            f"packets the shared medium dropped (its rate exceeded by the CAVs together): {channel.dropped_by_medium()}"
+            f"the shared medium carried {carried / 1e3:,.1f} KB, {carried / frames / 1e3:,.1f} KB a frame "
+            f"({100 * channel.medium_load():.0f} % of what it could carry while the graph ran); "
+            f"packets it dropped (more than its queue held): {channel.dropped_by_medium()}"
         )
     code = score_recording(mcap, opts.out)
     layout = write_layout(opts.out / "foxglove_layout.json", cavs[0], every)

@@ -6,10 +6,12 @@ hub namespace; the machine's own namespace (the simulator: player, launcher)
 joins the bridge unshaped. A CAV's radio is its namespace's transmit side:
 rate-limited by a token bucket (tc `tbf`) and, where a loss rate is given,
 thinned by an nftables rule on its device's egress dropping that share of its
-packets at random (`numgen random`). With a shared medium, every CAV's transmissions also count against
-one rate for all of them together, as on one radio channel: a single nftables limit (a named `limit` object)
-on what enters the hub's bridge from any CAV drops what exceeds it, as frames lost on a crowded channel (counted
-once per transmission: a multicast frame the bridge copies to every CAV crossed the medium once).
+packets at random (`numgen random`). With a shared medium, every CAV's transmissions also pass through one
+queue for all of them together, as on one radio channel: what enters the hub's bridge from any CAV for the radio
+is redirected to one device (an `ifb`) whose token bucket carries it at the medium's rate, once per transmission
+(a multicast frame the bridge then copies to every CAV crossed the medium once). CAVs transmitting at once wait
+for each other, as a radio's senders wait for a free channel (an ideal MAC: no collisions, no back-off slots);
+what waits longer than the medium's queue is dropped.
 Every byte between CAVs then crosses a shaped link, over UDP:
 the processes use a Fast DDS profile without shared memory (which would bypass
 the link, /dev/shm being shared by all namespaces). The radio carries what a CAV
@@ -173,6 +175,7 @@ class Channel:
         self.host_address = next(hosts)  # the machine's end
         self.addresses = {name: next(hosts) for name in self.links}
         self._made: list[str] = []
+        self.started = 0.0  # time.monotonic() when the channel was built
         self._reaper: subprocess.Popen | None = None
 
     def namespace(self, member: str) -> str:
@@ -184,6 +187,7 @@ class Channel:
 
     def __enter__(self) -> Channel:
         remove_stale()
+        self.started = time.monotonic()
         try:
             self._build()
         except BaseException:
@@ -255,24 +259,17 @@ class Channel:
         """The radio on eth0's transmit side: an HTB tree whose class for the other CAVs (`subnet` but the machine's
         end `host`, and multicast) leads to the link's token bucket; the rest (the machine's side, discovery) goes
         unlimited."""
-        rate = f"{link.rate_mbit * 1000:.0f}kbit"
-        # bucket: 10 ms of the rate (the kernel refills it per timer tick), at least a few full-size packets
-        burst = max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
         tc = ("tc", "qdisc", "add", "dev", "eth0")
         unlimited = ("htb", "rate", "10gbit", "burst", "1mb", "cburst", "1mb", "quantum", "60000")
         _run(*tc, "root", "handle", "1:", "htb", "default", "20", ns=ns)
         for cls in ("1:10", "1:20"):
             _run("tc", "class", "add", "dev", "eth0", "parent", "1:", "classid", cls, *unlimited, ns=ns)
-        _run(
-            *tc, "parent", "1:10", "tbf", "rate", rate, "burst", str(burst), "latency", f"{link.queue_ms:.0f}ms", ns=ns
-        )
-        radio = (("match", "ip", "dst", str(subnet)), ("match", "ip", "dst", "224.0.0.0/4"))
-        harness = (DISCOVERY_U32, ("match", "ip", "dst", f"{host}/32"))
-        for prio, (match, flow) in enumerate([*((m, "1:20") for m in harness), *((m, "1:10") for m in radio)], 1):
+        _run(*tc, "parent", "1:10", *_token_bucket(link), ns=ns)
+        for prio, (match, action) in enumerate(_radio_filters(host, subnet, ("flowid", "1:20"), ("flowid", "1:10")), 1):
             _run(
                 *("tc", "filter", "add", "dev", "eth0", "parent", "1:", "protocol", "ip", "prio", str(prio), "u32"),
                 *match,
-                *("flowid", flow),
+                *action,
                 ns=ns,
             )
         if link.loss > 0:
@@ -286,26 +283,42 @@ class Channel:
             _nft(ns, rules)
 
     def _share(self, medium: Link) -> None:
-        """One token bucket for every member's transmissions, where they enter the hub's bridge (prerouting: once per
-        frame, before the bridge copies a multicast one to each port; the machine's side unshaped).
-        What the members send together beyond the rate passes up to the medium's `queue_ms` of it (its burst: as a
-        radio's senders would wait that long for the channel), beyond that it is dropped; nftables' bucket holds one
-        second of the rate besides, so the rate holds over windows of about a second."""
-        rate = medium.rate_mbit * 1e6 / 8  # bytes/s
-        burst = max(4096, int(rate * medium.queue_ms / 1000))
-        members = ", ".join(f'"{m}"' for m in self.links)
-        rules = (
-            "table bridge medium {\n"
-            f" limit air {{ rate over {round(rate)} bytes/second burst {burst} bytes }}\n"
-            " chain transmissions {\n  type filter hook prerouting priority 0; policy accept;\n"
-            f'{_on_radio(self.host_address, self.subnet)} iifname {{ {members} }} limit name "air" counter drop\n'
-            " }\n}\n"
-        )
-        _nft(self.hub, rules)
+        """One queue for every member's transmissions: what enters the hub from any member's port for the radio is
+        redirected (tc ingress, once per frame, before the bridge copies a multicast one to each port; the machine's
+        side and discovery pass) to one device, `air`, whose token bucket sends it on at the medium's rate and
+        returns it to the bridge. Members transmitting together wait for each other, as a radio's senders wait for a
+        free channel, up to the medium's `queue_ms`; beyond that the medium drops (tail drop, counted)."""
+        _run("ip", "link", "add", "air", "type", "ifb", ns=self.hub)
+        _run("ip", "link", "set", "air", "up", ns=self.hub)
+        _run("tc", "qdisc", "add", "dev", "air", "root", *_token_bucket(medium), ns=self.hub)
+        onto_air = ("action", "mirred", "egress", "redirect", "dev", "air")
+        for port in self.links:
+            _run("tc", "qdisc", "add", "dev", port, "handle", "ffff:", "ingress", ns=self.hub)
+            for prio, (match, action) in enumerate(
+                _radio_filters(self.host_address, self.subnet, ("flowid", "ffff:1"), onto_air), 1
+            ):
+                _run(
+                    *("tc", "filter", "add", "dev", port, "parent", "ffff:", "protocol", "ip", "prio", str(prio)),
+                    "u32",
+                    *match,
+                    *action,
+                    ns=self.hub,
+                )
 
     def dropped_by_medium(self) -> int:
-        """Packets the shared medium dropped so far (its rate exceeded by the members together)."""
-        return _counted(self.hub, "bridge", "medium", "transmissions")
+        """Packets the shared medium dropped so far (more than its queue held: the members together past its rate)."""
+        return _qdisc_stat(self.hub, "air", "dropped")
+
+    def carried_by_medium(self) -> int:
+        """Bytes the shared medium carried so far (each transmission once)."""
+        return _qdisc_stat(self.hub, "air", "bytes")
+
+    def medium_load(self) -> float:
+        """The share of what the shared medium could have carried since the channel was built that it carried."""
+        if self.shared is None:
+            raise ChannelError("this channel has no shared medium")
+        seconds = time.monotonic() - self.started
+        return self.carried_by_medium() / (self.shared.rate_mbit * 1e6 / 8 * seconds)
 
     def dropped(self, member: str) -> int:
         """Packets the loss rule dropped on `member`'s transmit side so far."""
@@ -328,6 +341,31 @@ def _on_radio(host, subnet) -> str:
     goes over the radio: to another CAV (an address of `subnet` but the machine's end `host`) or to a multicast
     group."""
     return f"  udp dport & 1 == 0 accept\n  ip daddr != {host} ip daddr {{ {subnet}, 224.0.0.0/4 }}"
+
+
+def _token_bucket(link: Link) -> tuple[str, ...]:
+    """tc's tbf arguments for `link`: its rate, a queue of its `queue_ms`, a bucket of 10 ms of the rate (the kernel
+    refills it per timer tick) and at least a few full-size packets."""
+    burst = max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
+    return ("tbf", "rate", f"{link.rate_mbit * 1000:.0f}kbit", "burst", str(burst), "latency", f"{link.queue_ms:.0f}ms")
+
+
+def _radio_filters(host, subnet, harness: tuple[str, ...], radio: tuple[str, ...]) -> list[tuple[tuple, tuple]]:
+    """tc u32 (match, action) pairs in priority order: discovery and the machine's end `host` take `harness`, the
+    other CAVs (`subnet`) and multicast groups `radio`."""
+    return [
+        (DISCOVERY_U32, harness),
+        (("match", "ip", "dst", f"{host}/32"), harness),
+        (("match", "ip", "dst", str(subnet)), radio),
+        (("match", "ip", "dst", "224.0.0.0/4"), radio),
+    ]
+
+
+def _qdisc_stat(ns: str, device: str, field: str) -> int:
+    """A counter of `device`'s root qdisc ("bytes", "pkt", "dropped"; 0 where there is none)."""
+    done = _run("tc", "-s", "qdisc", "show", "dev", device, ns=ns, check=False)
+    m = re.search(r"Sent (\d+) bytes (\d+) pkt \(dropped (\d+)", done.stdout)
+    return int(m.group(("bytes", "pkt", "dropped").index(field) + 1)) if m else 0
 
 
 def _nft(ns: str, rules: str) -> None:
