@@ -2,7 +2,7 @@
 
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [--cavs 2 3 4 5] [--medium 3 6 12] [--answers union each]
         [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--reference CKPT] [--multicast]
-        [--out results/bench_shared_channel]
+        [--payload-share 0.6] [--answer-ms MS] [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each number of CAVs N (the bag's first N),
 `demo --egos all` runs every CAV's ego and vehicle, at one play rate for N (the rate the demo measures for N
@@ -10,27 +10,27 @@ vehicles and N egos, times --rate-scale: the codec and the channel cost more tha
 measures, and an ego behind its input skips frames, which `score` counts as empty):
 - with no channel, every ego alone (ego parameter max_collaborators 0): the floor of each ego's score;
 - with no channel and lossless features (float32, dense): the ceiling;
-- on one shared medium of M Mbit/s of real time (`--channel-shared`, scaled by the play rate, so the bytes per frame
-  are real time's, as are DDS's reliability timers and the egos' waits for a neighbour: `demo`), per answer mode (vehicle parameter request_answer): request maps of
-  --request-levels levels, int4 coefficients at rank 8 (or the model's learned wire code, codec.learned, where it
-  has one: the alone and lossless runs are then --reference's, and the gain on the channel is counted from the
-  model's own egos alone), each message's budget (codec.max_bytes) its share of the
-  medium: --payload-share (60 %) of the M Mbit/s at 10 Hz, less the request maps (N x (N-1) a frame), split over the copies of
-  feature messages DDS sends (one per ego a message reaches, unicast): N x (N-1) a frame with one message for every
-  ego (union), N x (N-1)^2 with a message for each ego (each: every ego receives every ego's message); with
-  --multicast (`demo --channel-multicast`) each message (and each request map) crosses the medium once: N feature
-  messages a frame (union), N x (N-1) (each).
-  A cell whose
-  budget holds no voxel (the vehicle would refuse the codec) is listed, not run.
+- on one shared medium of M Mbit/s of real time (`--channel-shared`, scaled by the play rate, so the bytes per
+  frame are real time's, as are DDS's reliability timers and the egos' waits for a neighbour: `demo`), per answer
+  mode (vehicle parameter request_answer): request maps of --request-levels levels, int4 coefficients at rank 8
+  (or the model's learned wire code, codec.learned, where it has one: the alone and lossless runs are then
+  --reference's, and the gain on the channel is counted from the model's own egos alone), each message's budget
+  (codec.max_bytes) its share of the medium: --payload-share (60 %) of the M Mbit/s at 10 Hz, less the request
+  maps (N x (N-1) a frame), split over the copies of feature messages DDS sends (one per ego a message reaches,
+  unicast): N x (N-1) a frame with one message for every ego (union), N x (N-1)^2 with a message for each ego
+  (each: every ego receives every ego's message); with --multicast (`demo --channel-multicast`) each message (and
+  each request map) crosses the medium once: N feature messages a frame (union), N x (N-1) (each). A cell whose
+  budget holds no voxel (the vehicle would refuse the codec) is listed, not run. M = 0: no channel and no
+  budget (every voxel an ego asks for), the codec's ceiling in the graph.
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
-current, which `score` counts as empty predictions), neighbour-frames fused (% of those
-within comm range: fused, late or never received), latency
-p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy published), bytes per neighbour-frame
-received, its collaboration gain (lossless - alone, mIoU 1..23), the gain on the channel (channel - alone) and the
-share kept where the gain is at least half a point (every ego together: the gains summed), on this one scene (no
-interval: `evaluate` and choose_rank.py have them over a split's scenarios); per vehicle, the bytes it sent per
-frame; the medium: packets it dropped (beyond its queue), KB it carried a frame of the bag and its load (the
-share of its rate used from the channel's start to the graph's stop, start-up included). Prints a markdown table (also OUT/bench_shared_channel.md and .json). Resumable: a run
+current, which `score` counts as empty predictions), neighbour-frames fused (% of those within comm range: fused,
+late or never received), latency p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy
+published), bytes per neighbour-frame received, its collaboration gain (lossless - alone, mIoU 1..23), the gain
+on the channel (channel - alone) and the share kept where the gain is at least half a point (every ego together:
+the gains summed), on this one scene (no interval: `evaluate` and choose_rank.py have them over a split's
+scenarios); per vehicle, the bytes it sent per frame; the medium: packets it dropped (beyond its queue), KB it
+carried a frame of the bag and its load (the share of its rate used from the channel's start to the graph's
+stop, start-up included). Prints a markdown table (also OUT/bench_shared_channel.md and .json). Resumable: a run
 whose OUT/<cell>/cell.json exists is read, not run again.
 """
 
@@ -48,6 +48,7 @@ from bench_channel import run_demo
 from bench_graph import measure_diagnostics
 
 from co3sop_nodes.common.errors import CodecError
+from co3sop_nodes.eval.codec_comparison import UNBOUNDED
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros.demo import bag_period, measured_rate
@@ -89,6 +90,8 @@ def budget(
     """Bytes one message may take: the medium's payload bytes per frame (`share` of it), less every ego's request map
     to every vehicle, over the copies of feature messages DDS sends (one per ego a message reaches, or a vehicle a
     request map reaches; one for all of them with multicast)."""
+    if medium_mbit == 0:  # no channel: every voxel an ego asks for
+        return UNBOUNDED
     payload = share * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (1 if multicast else cavs - 1) * REQUEST_BYTES[levels]
     messages = cavs * ((cavs - 1) if answer == "each" else 1)
     return int(payload / (messages * (1 if multicast else cavs - 1)))
@@ -164,7 +167,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--bag", type=Path, required=True, help="a CAV bag with at least max(--cavs) CAVs")
     parser.add_argument("--cavs", type=int, nargs="+", default=[2, 3, 4, 5])
-    parser.add_argument("--medium", type=float, nargs="+", default=[3, 6, 12], help="shared rate, Mbit/s real time")
+    parser.add_argument(
+        "--medium",
+        type=float,
+        nargs="+",
+        default=[3, 6, 12],
+        help="shared rate, Mbit/s real time; 0: no channel, every voxel an ego asks for (the codec's graph ceiling)",
+    )
     parser.add_argument("--answers", nargs="+", choices=REQUEST_ANSWERS, default=["union"])
     parser.add_argument(
         "--request-levels", type=int, choices=sorted(REQUEST_BYTES), default=4, help="the egos' request_levels"
@@ -223,16 +232,19 @@ def main() -> int:
         for medium in opts.medium:
             for answer in opts.answers:
                 size = budget(medium, n, answer, opts.request_levels, opts.multicast, opts.payload_share)
+                shown, size_shown = (f"{medium:g}", f"{size:,}") if medium else ("none", "every voxel asked for")
                 if not carries_features(codec_of(size, cfg), cfg):
                     rows.append(
-                        f"| {n} | {medium:g} | {answer} | {size:,} | | | not run: a message of this budget carries "
+                        f"| {n} | {shown} | {answer} | {size_shown} | | | not run: a message of this budget carries "
                         "no voxel (the request maps and the basis take it) | | | | | | | | | |"
                     )
                     continue
                 codec = [f"{p}:={str(getattr(codec_of(size, cfg), f)).lower()}" for p, f in CODEC_FIELDS.items()]
-                medium_args = ["--channel-rate", f"{medium:g}", "--channel-shared"]
-                medium_args += ["--channel-multicast"] if opts.multicast else []
-                medium_args += [] if opts.answer_ms is None else ["--channel-answer-ms", f"{opts.answer_ms:g}"]
+                medium_args = ["--channel-rate", f"{medium:g}", "--channel-shared"] if medium else []
+                medium_args += ["--channel-multicast"] if opts.multicast and medium else []
+                medium_args += (
+                    [] if opts.answer_ms is None or not medium else ["--channel-answer-ms", f"{opts.answer_ms:g}"]
+                )
                 extra = [*opts_rate, *medium_args, "--params", *codec]
                 extra += [f"request_answer:={answer}", "--ego-params", levels]
                 name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B" + (
@@ -245,7 +257,7 @@ def main() -> int:
                     ego["gain"] = ceiling - alone["egos"][cav]["miou23"]
                     ego["kept"] = ego["miou23"] - own_alone["egos"][cav]["miou23"]
                     rows.append(
-                        f"| {n} | {medium:g} | {answer} | {size:,} | {cell['rate']:g} | {cav} | "
+                        f"| {n} | {shown} | {answer} | {size_shown} | {cell['rate']:g} | {cav} | "
                         f"{ego['missed']} | {100 * ego['fused']:.0f} | "
                         f"{ego['latency_p50']:.0f} / {ego['latency_p95']:.0f} | "
                         f"{ego['bytes']:,.0f} | {100 * ego['gain']:+.2f} | {100 * ego['kept']:+.2f} | "
@@ -254,7 +266,7 @@ def main() -> int:
                     )
                 egos = cell["egos"].values()
                 rows.append(
-                    f"| {n} | {medium:g} | {answer} | {size:,} | {cell['rate']:g} | all | "
+                    f"| {n} | {shown} | {answer} | {size_shown} | {cell['rate']:g} | all | "
                     f"{sum(e['missed'] for e in egos)} | {100 * np.mean([e['fused'] for e in egos]):.0f} | | | "
                     f"{100 * sum(e['gain'] for e in egos):+.2f} | "
                     f"{100 * sum(e['kept'] for e in egos):+.2f} | "

@@ -176,44 +176,50 @@ def run_demo(opts: DemoOptions) -> int:
     model.use(path)
     if opts.rate is None:
         opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos))
-    channel, profiles = None, None
-    if opts.channel_rate is not None:
-        # rate and queue in real time: at play rate r a link carries r times the bytes per second, and a packet
-        # may wait 1 / r times as long (200 ms of real time)
-        link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100, Link.queue_ms / opts.rate)
-        channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
-        multicast = []
-        if opts.channel_multicast:  # what every CAV hears: the vehicles' features and the egos' request maps
-            requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
-            multicast = [*map(topics.voxel_features, cavs), *requests]
-        # on a shared medium a reader answers a heartbeat after the medium's queue time: answered at once, it names
-        # fragments that still arrive, and their repairs crowd the medium (BENCHMARKS.md); on a link of its own, a
-        # lost fragment is asked for again at Fast DDS's own delay
-        answer_after = Link.queue_ms / 1000 if opts.channel_shared else None
-        if opts.channel_answer_ms is not None:
-            answer_after = opts.channel_answer_ms / 1000
-        outputs = [topics.EGO_OCCUPANCY, topics.EGO_POINTS, topics.EGO_TRUTH_POINTS]
-        harness = [topics.ego_output(t, c if opts.egos == "all" else None) for t in outputs for c in egos]
-        profiles = channel_profiles(
-            opts.out / "dds", 1 / opts.rate, answer_after, multicast, [*harness, topics.DIAGNOSTICS]
-        )
-        # the egos' waits for the link, slowed as it is: a neighbour's frame may take a frame of real time on it,
-        # and a neighbour is live while it was heard within five (where the ego's own defaults are shorter)
-        frame = bag_period(bag, frames) / opts.rate
-        waits = {"max_wait": max(PairingConfig.max_wait_s, frame)}
-        waits["neighbour_timeout"] = max(PairingConfig.neighbour_timeout_ns / 1e9, 5 * frame)
-        opts.ego_params = {**{k: round(v, 3) for k, v in waits.items()}, **opts.ego_params}
-        os.environ.update(channel_environment(None, profiles))  # before any DDS participant, the supervisor's included
-        say(
-            f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} "
-            f"Mbit/s of real time "
-            f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
-            + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
-            + ("; features and request maps multicast, each sent once for all" if opts.channel_multicast else "")
-            + f"; egos wait up to {opts.ego_params['max_wait']:g} s for a neighbour's frame"
-        )
+    channel, profiles = _open_channel(opts, bag, frames, cavs, egos) if opts.channel_rate is not None else (None, None)
     with channel or contextlib.nullcontext():
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, profiles, t0)
+
+
+def _open_channel(opts: DemoOptions, bag: Path, frames: int, cavs: list[int], egos: list[int]) -> tuple[Channel, Path]:
+    """The emulated V2X channel of `opts` (not yet built: a context manager) and its Fast DDS profiles, everything
+    on it slowed with the play rate; sets this process's DDS environment and the egos' waits."""
+    # rate and queue in real time: at play rate r a link carries r times the bytes per second, and a packet
+    # may wait 1 / r times as long (200 ms of real time)
+    link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100, Link.queue_ms / opts.rate)
+    channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
+    multicast = []
+    if opts.channel_multicast:  # what every CAV hears: the vehicles' features and the egos' request maps
+        requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
+        multicast = [*map(topics.voxel_features, cavs), *requests]
+    # on a shared medium a reader answers a heartbeat after the medium's queue time: answered at once, it names
+    # fragments that still arrive, and their repairs crowd the medium (BENCHMARKS.md); on a link of its own, a
+    # lost fragment is asked for again at Fast DDS's own delay
+    answer_after = Link.queue_ms / 1000 if opts.channel_shared else None
+    if opts.channel_answer_ms is not None:
+        answer_after = opts.channel_answer_ms / 1000
+    outputs = [topics.EGO_OCCUPANCY, topics.EGO_POINTS, topics.EGO_TRUTH_POINTS]
+    harness = [topics.ego_output(t, c if opts.egos == "all" else None) for t in outputs for c in egos]
+    profiles = channel_profiles(
+        opts.out / "dds", 1 / opts.rate, answer_after, multicast, [*harness, topics.DIAGNOSTICS]
+    )
+    # the egos' waits for the link, slowed as it is: a neighbour's frame may take a frame of real time on it,
+    # and a neighbour is live while it was heard within five (where the ego's own defaults are shorter)
+    frame = bag_period(bag, frames) / opts.rate
+    waits = {"max_wait": max(PairingConfig.max_wait_s, frame)}
+    waits["neighbour_timeout"] = max(PairingConfig.neighbour_timeout_ns / 1e9, 5 * frame)
+    opts.ego_params = {**{k: round(v, 3) for k, v in waits.items()}, **opts.ego_params}
+    os.environ.update(channel_environment(None, profiles))  # before any DDS participant, the supervisor's included
+    say(
+        f"emulated V2X channel: each CAV transmits at {link.rate_mbit:g} Mbit/s ({opts.channel_rate:g} "
+        f"Mbit/s of real time "
+        f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
+        + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
+        + ("; features and request maps multicast, each sent once for all" if opts.channel_multicast else "")
+        + f"; egos wait up to {opts.ego_params['max_wait']:g} s for a neighbour's frame"
+        + ("" if answer_after is None else f"; DDS readers answer a heartbeat after {1e3 * answer_after:g} ms")
+    )
+    return channel, profiles
 
 
 def frames_accounted(supervisor: Supervisor, ego: NodeSpec) -> int:
