@@ -97,6 +97,16 @@ def budget(
     return int(payload / (messages * (1 if multicast else cavs - 1)))
 
 
+def channel_args(medium_mbit: float, opts) -> list[str]:
+    """demo's options for one shared medium of `medium_mbit` Mbit/s of real time (none for 0: no channel)."""
+    if not medium_mbit:
+        return []
+    args = ["--channel-rate", f"{medium_mbit:g}", "--channel-shared"] + (
+        ["--channel-multicast"] if opts.multicast else []
+    )
+    return args + ([] if opts.answer_ms is None else ["--channel-answer-ms", f"{opts.answer_ms:g}"])
+
+
 def kept_share(kept: float, gain: float) -> str:
     """The share of a collaboration gain kept, in %, where the gain is at least MIN_GAIN (else the ratio means
     nothing: an ego whose neighbours add nothing)."""
@@ -240,16 +250,10 @@ def main() -> int:
                     )
                     continue
                 codec = [f"{p}:={str(getattr(codec_of(size, cfg), f)).lower()}" for p, f in CODEC_FIELDS.items()]
-                medium_args = ["--channel-rate", f"{medium:g}", "--channel-shared"] if medium else []
-                medium_args += ["--channel-multicast"] if opts.multicast and medium else []
-                medium_args += (
-                    [] if opts.answer_ms is None or not medium else ["--channel-answer-ms", f"{opts.answer_ms:g}"]
-                )
-                extra = [*opts_rate, *medium_args, "--params", *codec]
+                extra = [*opts_rate, *channel_args(medium, opts), "--params", *codec]
                 extra += [f"request_answer:={answer}", "--ego-params", levels]
-                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B" + (
-                    "" if opts.answer_ms is None else f"-{opts.answer_ms:g}ms"
-                )
+                answer_delay = "" if opts.answer_ms is None or not medium else f"-{opts.answer_ms:g}ms"
+                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}"
                 cell = run(demo, opts, opts.out / name, n, extra, opts.model)
                 load = "-" if cell.get("medium_load") is None else f"{cell['medium_kb']:,.0f} ({cell['medium_load']})"
                 for cav, ego in sorted(cell["egos"].items()):

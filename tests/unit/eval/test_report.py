@@ -24,6 +24,7 @@ from co3sop_nodes.eval.report import (
     table2_section,
     training,
     why_short,
+    wire_code_section,
     write_report,
 )
 from co3sop_nodes.model.config import PRESETS
@@ -287,3 +288,12 @@ def test_goals_come_from_the_protocol_recipe_and_a_bad_one_is_named(tmp_path):
         read_goals(recipe)
     shutil.copytree(SHIPPED / "tiny-lidar-76.8m-s1", tmp_path / "tiny-lidar-76.8m-s1")
     assert "protocol's goals" not in render(tmp_path, "report")  # no recipe given: no goals section
+
+
+@pytest.mark.parametrize("text", ["{not json", '{"title": "t"}'])
+def test_a_broken_learned_codec_result_is_named_not_a_traceback(tmp_path, text):
+    damaged = tmp_path / "codec" / "learned-51.2m-test.json"
+    damaged.parent.mkdir()
+    damaged.write_text(text)
+    with pytest.raises(Co3sopError, match=re.escape(str(damaged))):
+        wire_code_section(tmp_path)

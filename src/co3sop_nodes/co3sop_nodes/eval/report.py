@@ -49,6 +49,7 @@ NEEDS = {
     "distance": ("title", "command", "bins"),
     "precision": (*ABLATION, "command", "float32", "device", "label_agreement", "voxels"),
     "observed": ("splits", "range", "samples", "all", "classes"),
+    "learned codec": ("title", "runs"),
 }
 # beside the scored runs
 META = {
@@ -93,7 +94,8 @@ def _missing_gains(gains: object, where: str) -> list[str]:
 
 
 def read_json(path: Path, kind: str) -> dict:
-    """`evaluate`'s (or observed.py's) JSON of one kind at `path`, checked for the fields this page reads."""
+    """`evaluate`'s (or observed.py's, or bench_learned_codec.py's) JSON of one kind at `path`, checked for the fields
+    this page reads."""
     try:
         data = json.loads(path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -113,7 +115,7 @@ def read_json(path: Path, kind: str) -> dict:
         missing += _missing_gains(
             {f"{b}.difference": v.get("difference") if isinstance(v, dict) else None for b, v in bins.items()}, "bins"
         )
-    elif not missing and kind != "observed":
+    elif not missing and kind not in ("observed", "learned codec"):  # theirs: a table each, checked where it's made
         runs = {k: v for k, v in data.items() if k not in META}
         missing += _missing_runs(runs)
         if kind != "evaluation":
@@ -590,7 +592,7 @@ def wire_code_section(results: Path) -> list[str]:
         "",
     ]
     for path in found:
-        out += [*comparison_table(json.loads(path.read_text())), ""]
+        out += [*comparison_table(read_json(path, "learned codec")), ""]
     return out
 
 
