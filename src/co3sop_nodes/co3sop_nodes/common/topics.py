@@ -16,6 +16,7 @@ EGO_TRUTH_POINTS = (
 )
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray: per-frame status of the ego and each vehicle
 TF = "/tf"
+CLOCK = "/clock"  # rosgraph_msgs/Clock: the bag's time, from the player
 TF_STATIC = "/tf_static"
 WORLD_FRAME = "map"
 # Benchmark range -> topic suffix (as Co3SOP's label folders: additional_25m, ...)

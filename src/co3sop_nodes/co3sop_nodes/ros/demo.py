@@ -11,6 +11,7 @@ import signal
 import subprocess
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, r
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import channel_environment, channel_profiles
-from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe
+from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe, played_topics
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
 from co3sop_nodes.v2x.channel import Channel, Link
@@ -56,11 +57,13 @@ def executable(name: str) -> str:
 
 
 class Process:
-    """A child process whose output is echoed with a prefix (or swallowed)."""
+    """A child process whose output is echoed with a prefix (or swallowed, but for its last warnings, kept to explain
+    a failure)."""
 
     def __init__(self, label: str, argv: list[str], echo: bool = True, env: dict[str, str] | None = None):
         self.label = label
         self._echo = echo
+        self.warnings: deque[str] = deque(maxlen=3)
         self.proc = subprocess.Popen(
             argv,
             stdout=subprocess.PIPE,
@@ -74,6 +77,8 @@ class Process:
 
     def _read(self) -> None:
         for line in self.proc.stdout:
+            if "[WARN]" in line or "[ERROR]" in line:
+                self.warnings.append(line.strip())
             if self._echo:
                 print(f"  [{self.label}] {line.rstrip()}", flush=True)
 
@@ -87,6 +92,12 @@ class Process:
                 self.proc.wait()
         self._reader.join(5)
         return self.proc.returncode
+
+
+def warned(*processes: Process | None) -> str:
+    """The last warnings of `processes`, for an error message ("" if none warned)."""
+    lines = [f"[{p.label}] {w}" for p in processes if p is not None for w in p.warnings]
+    return "; their last warnings:\n  " + "\n  ".join(lines) if lines else ""
 
 
 def bag_period(bag: Path, frames: int) -> float:
@@ -176,12 +187,16 @@ def run_demo(opts: DemoOptions) -> int:
     model.use(path)
     if opts.rate is None:
         opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos))
-    channel, profiles = _open_channel(opts, bag, frames, cavs, egos) if opts.channel_rate is not None else (None, None)
+    channel, profiles = (
+        _open_channel(opts, bag, frames, cavs, egos, sensors) if opts.channel_rate is not None else (None, None)
+    )
     with channel or contextlib.nullcontext():
         return _graph(opts, checkpoint, sensors, bag, cavs, frames, mcap, channel, profiles, t0)
 
 
-def _open_channel(opts: DemoOptions, bag: Path, frames: int, cavs: list[int], egos: list[int]) -> tuple[Channel, Path]:
+def _open_channel(
+    opts: DemoOptions, bag: Path, frames: int, cavs: list[int], egos: list[int], sensors: str
+) -> tuple[Channel, Path]:
     """The emulated V2X channel of `opts` (not yet built: a context manager) and its Fast DDS profiles, everything
     on it slowed with the play rate; sets this process's DDS environment and the egos' waits."""
     # rate and queue in real time: at play rate r a link carries r times the bytes per second, and a packet
@@ -198,11 +213,14 @@ def _open_channel(opts: DemoOptions, bag: Path, frames: int, cavs: list[int], eg
     answer_after = Link.queue_ms / 1000 if opts.channel_shared else None
     if opts.channel_answer_ms is not None:
         answer_after = opts.channel_answer_ms / 1000
+    # off the radio, at Fast DDS's own timers: the egos' outputs and /diagnostics (to the machine's side), each car's
+    # sensors (the simulator stands for them: the player's last messages must be repaired before it exits) and an
+    # ego's own features on board
     outputs = [topics.EGO_OCCUPANCY, topics.EGO_POINTS, topics.EGO_TRUTH_POINTS]
     harness = [topics.ego_output(t, c if opts.egos == "all" else None) for t in outputs for c in egos]
-    profiles = channel_profiles(
-        opts.out / "dds", 1 / opts.rate, answer_after, multicast, [*harness, topics.DIAGNOSTICS]
-    )
+    harness += [*played_topics(cavs, sensors), topics.CLOCK, topics.DIAGNOSTICS]
+    harness += [topics.local_features(c) for c in egos] if opts.egos == "all" else []
+    profiles = channel_profiles(opts.out / "dds", 1 / opts.rate, answer_after, multicast, harness)
     # the egos' waits for the link, slowed as it is: a neighbour's frame may take a frame of real time on it,
     # and a neighbour is live while it was heard within five (where the ego's own defaults are shorter)
     frame = bag_period(bag, frames) / opts.rate
@@ -333,7 +351,11 @@ def _graph(
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
         say(f"bag played; waiting for the ego{'s' if every else ''} to fuse the last frames")
         accounted = lambda: all(frames_accounted(supervisor, ego) >= frames for ego in graph.egos)
-        supervisor.wait(f"every ego to fuse (or skip) all {frames} frames", accounted, timeout=120)
+        try:
+            supervisor.wait(f"every ego to fuse (or skip) all {frames} frames", accounted, timeout=120)
+        except Co3sopError as exc:
+            counts = ", ".join(f"{status_of(e)} {frames_accounted(supervisor, e)}" for e in graph.egos)
+            raise Co3sopError(f"{exc} (frames fused or skipped: {counts}){warned(player, *nodes.values())}") from None
     finally:
         for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
             if p is not None:

@@ -22,6 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 
+from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.data.bags import open_reader
 from co3sop_nodes.messages import time_msg
@@ -63,7 +64,7 @@ class Player(Node):
         if not conns:
             raise DatasetError(f"{opts.bag}: no topic to play (asked for: {opts.topics or 'all'})")
         self._conns = conns
-        self._clock = self.create_publisher(Clock, "/clock", 10)
+        self._clock = self.create_publisher(Clock, topics.CLOCK, 10)
         self._start_ns = self._reader.start_time + int(opts.start * 1e9)
         self._duration_ns = self._reader.end_time - self._reader.start_time
         self._loops = 0
