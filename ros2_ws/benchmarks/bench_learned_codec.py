@@ -3,7 +3,8 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
 
     ros2_ws/benchmarks/bench_learned_codec.py --reference src/co3sop_nodes/checkpoints/tiny-lidar.pt \
         --learned runs/wire/tiny-lidar-51.2m-s1-k4/model.pt --data data/bench --splits test \
-        [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--out FILE.json] [--plot FILE.png]
+        [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--request-frame previous|current]
+        [--out FILE.json] [--plot FILE.png]
     ros2_ws/benchmarks/bench_learned_codec.py --replot FILE.json --plot FILE.png   # the table and curve again
 
 Run with the workspace environment (`. ros2_ws/env.sh`). Both systems are scored against one reference: the
@@ -14,7 +15,8 @@ its ego does alone: its own collaboration gain is (mIoU with the codec - that mo
 reference alone), the column the goal reads. Each `--learned` model is also scored with no budget (every voxel the
 ego asks for) and with every voxel of its code (dense). The transform codec runs on the reference model (codec.dtype and
 codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
-frame's, as `evaluate --ablation codec` makes them. Prints a markdown table; --plot draws the curve of each system's
+frame's, as `evaluate --ablation codec` makes them, or with --request-frame current the ego's map of the same frame
+(the vehicles' request_wait: a frame waits for the map made of it). Prints a markdown table; --plot draws the curve of each system's
 own gain kept against bytes, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
 """
 
@@ -27,7 +29,7 @@ from pathlib import Path
 import torch
 
 from co3sop_nodes.eval.codec_comparison import UNBOUNDED, comparison_table, label
-from co3sop_nodes.eval.evaluate import evaluate, plot_codecs
+from co3sop_nodes.eval.evaluate import REQUEST_FRAMES, evaluate, plot_codecs
 from co3sop_nodes.eval.metrics import Bootstrap, point
 from co3sop_nodes.inference.checkpoint import load_model
 from co3sop_nodes.train.dataset import OccupancyDataset
@@ -43,6 +45,12 @@ def main() -> None:
     parser.add_argument("--budgets", type=int, nargs="+", default=[4096, 8192, 16384, 32768])
     parser.add_argument("--transform", default="int4:8", help="the transform codec: DTYPE:RANK")
     parser.add_argument("--levels", type=int, default=256, help="request_levels of the egos")
+    parser.add_argument(
+        "--request-frame",
+        choices=REQUEST_FRAMES,
+        default="previous",
+        help="the egos' maps a frame answers: of which frame",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
     parser.add_argument("--plot", type=Path, help="also draw the curve here (PNG)")
@@ -69,7 +77,15 @@ def measure(opts, parser) -> dict:
     cache: dict = {}  # the reference's vehicle outputs, shared by its runs
 
     def run(model, codec, cache, desc):
-        return evaluate(model, dataset, codec=codec, cache=cache, desc=desc, request_levels=opts.levels)
+        return evaluate(
+            model,
+            dataset,
+            codec=codec,
+            cache=cache,
+            desc=desc,
+            request_levels=opts.levels,
+            request_frame=opts.request_frame,
+        )
 
     alone = evaluate(reference, dataset, collaborators=0, cache=cache, desc="alone")[0]
     lossless = run(reference, FeatureCodecConfig("float32", "dense", codec="none"), cache, "lossless")[0]
@@ -111,7 +127,8 @@ def measure(opts, parser) -> dict:
     title = (
         f"{reference.cfg.name} {reference.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 "
         f"alone {100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
-        f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}; request maps of {opts.levels} levels"
+        f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}; request maps of {opts.levels} levels, "
+        + ("each frame answering the ego's map of it" if opts.request_frame == "current" else "of the previous frame")
     )
     return {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}
 

@@ -2,7 +2,7 @@
 
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [--cavs 2 3 4 5] [--medium 3 6 12] [--answers union each]
         [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--reference CKPT] [--multicast]
-        [--payload-share 0.6] [--answer-ms MS] [--out results/bench_shared_channel]
+        [--payload-share 0.6] [--answer-ms MS] [--request-wait 0.5] [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each number of CAVs N (the bag's first N),
 `demo --egos all` runs every CAV's ego and vehicle, at one play rate for N (the rate the demo measures for N
@@ -21,7 +21,9 @@ measures, and an ego behind its input skips frames, which `score` counts as empt
   (each: every ego receives every ego's message); with --multicast (`demo --channel-multicast`) each message (and
   each request map) crosses the medium once: N feature messages a frame (union), N x (N-1) (each). A cell whose
   budget holds no voxel (the vehicle would refuse the codec) is listed, not run. M = 0: no channel and no
-  budget (every voxel an ego asks for), the codec's ceiling in the graph.
+  budget (every voxel an ego asks for), the codec's ceiling in the graph. With --request-wait F each vehicle's
+  frame waits up to F of a frame period for the request map every ego makes of that frame (vehicle parameter
+  request_wait, in real time at the play rate); without, a frame answers the maps of the egos' previous frame.
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
 current, which `score` counts as empty predictions), neighbour-frames fused (% of those within comm range: fused,
 late or never received), latency p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy
@@ -206,6 +208,12 @@ def main() -> int:
         "--reference",
         help="the model of the alone and lossless runs (default: --model): the one a learned code was trained from",
     )
+    parser.add_argument(
+        "--request-wait",
+        type=float,
+        default=0.0,
+        help="of a frame period: how long a vehicle's frame waits for the egos' maps of it (0: answers earlier maps)",
+    )
     opts = parser.parse_args()
     reference = opts.reference or opts.model
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
@@ -218,6 +226,11 @@ def main() -> int:
         + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
         + (", features and request maps multicast" if opts.multicast else ", unicast")
         + ("" if opts.answer_ms is None else f", DDS readers answering heartbeats after {opts.answer_ms:g} ms")
+        + (
+            f", each frame answering the egos' maps of it (waiting up to {opts.request_wait:g} of a frame)"
+            if opts.request_wait
+            else ", each frame answering the egos' maps of their previous frame"
+        )
         + ", each message's budget its share of the medium (see the script).",
         "",
         "| CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | frames missed | "
@@ -251,9 +264,13 @@ def main() -> int:
                     continue
                 codec = [f"{p}:={str(getattr(codec_of(size, cfg), f)).lower()}" for p, f in CODEC_FIELDS.items()]
                 extra = [*opts_rate, *channel_args(medium, opts), "--params", *codec]
-                extra += [f"request_answer:={answer}", "--ego-params", levels]
+                extra += [f"request_answer:={answer}"]
+                if opts.request_wait:  # of sensor time, in real time at the play rate
+                    extra += [f"request_wait:={opts.request_wait * period / float(rate):.3f}"]
+                extra += ["--ego-params", levels]
                 answer_delay = "" if opts.answer_ms is None or not medium else f"-{opts.answer_ms:g}ms"
-                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}"
+                wait = f"-wait{opts.request_wait:g}" if opts.request_wait else ""
+                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}{wait}"
                 cell = run(demo, opts, opts.out / name, n, extra, opts.model)
                 load = "-" if cell.get("medium_load") is None else f"{cell['medium_kb']:,.0f} ({cell['medium_load']})"
                 for cav, ego in sorted(cell["egos"].items()):

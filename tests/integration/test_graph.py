@@ -296,8 +296,9 @@ def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[st
     ids=["channels", "rank8", "rank8-int4-burst"],
 )
 def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dtype, rank, budget, burst):
-    """A request map reaches the vehicles (a stand-in's from before the first frame, then the ego's own after each
-    frame); each vehicle answers it with the voxels it weighs highest under its byte budget, addressed to the ego;
+    """A request map reaches the vehicles (a stand-in's from before the first frame, then the ego's own of each
+    frame, sent as the ego's own frame arrives, which each vehicle's frame waits for: request_wait, ended when the map
+    comes); each vehicle answers it with the voxels it weighs highest under its byte budget, addressed to the ego;
     what arrives is what the same computation gives offline, byte for byte, and only where the ego asked. With
     codec.rank the message carries 8 coefficients per voxel (int4: two per byte) and its own basis; with
     codec.burst_bytes the budget is an average per message (a token bucket, full at the start), what a message leaves
@@ -311,6 +312,7 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
         f"codec.burst_bytes:={burst}",
         f"codec.rank:={rank}",
         "request_timeout:=60.0",
+        "request_wait:=5.0",
         "comm_range:=1000.0",
     ]  # every neighbour answers, near or far
     torch.set_num_threads(1)
@@ -351,12 +353,18 @@ def test_request_maps_round_trip_within_budget_and_bit_exact(graph, scenario, dt
     features = recorded_messages(mcap, r"/cav_\d+/voxel_features", VoxelFeatures)
     addressed = [(t, m) for t, m in features if m.addressed]
     assert addressed and all(m.recipient_id == cavs[0] for _, m in addressed)  # the only ego
-    used = {}  # (vehicle, frame stamp) -> the request stamp it answered
+    used, waited = {}, {}  # (vehicle, frame stamp) -> the request stamp it answered, and the ms it waited for one
     for name, statuses in read_recording(mcap).diagnostics.items():
         if name.startswith("vehicle ") and not name.endswith(links.SUFFIX):
             for status in statuses:
+                key = int(name.split("_")[1]), int(status["stamp"])
+                waited[key] = float(status["request_wait_ms"])
                 for item in filter(None, status["request_stamps"].split(",")):
-                    used[int(name.split("_")[1]), int(status["stamp"])] = int(item.split(":")[1])
+                    used[key] = int(item.split(":")[1])
+    # every frame answers the ego's map of that very frame, which came (the first: the stand-in's, or the ego's if
+    # the ego's own encoder was quicker than the vehicle's)
+    assert all(asked == stamp or (stamp, asked) == (first, stand_in) for (_, stamp), asked in used.items()), used
+    assert all(waited[key] < 5000 for key in used), waited
     assert len(addressed) >= FRAMES * (len(cavs) - 1)  # every neighbour frame (the ego's own encoder is not asked)
     carried, budgets, spent = 0, {}, {}
     for _, msg in sorted(

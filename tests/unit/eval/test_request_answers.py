@@ -92,3 +92,22 @@ def test_requests_reach_the_vehicles_with_the_egos_levels(monkeypatch):
     torch.manual_seed(0)
     evaluation.evaluate(build_model(CFG).eval(), dataset(), codec=CODEC, request_levels=2)
     assert levels and set(levels) == {2}
+
+
+def test_a_frame_answers_the_request_of_its_own_frame_where_it_waits_for_it(encoded):
+    """request_frame "current": every frame, the first included, weighs each ego's map of that same frame."""
+    torch.manual_seed(0)
+    model, data = build_model(CFG).eval(), dataset()
+    cache = evaluation.vehicle_cache()
+    evaluation.evaluate(model, data, codec=CODEC, cache=cache, request_frame="current")
+    assert len(encoded) == 12 and all(r is not None for r in encoded)  # 2 frames x 3 egos x 2 senders
+    grid = CFG.feature_grid
+    for t, frame in enumerate(data.frames):
+        for ego in range(3):
+            out = cache[(t, ego, "real")]
+            need = evaluation.decode_request(evaluation.encode_request(evaluation.request_of(out.confidence), grid))
+            for sender in (s for s in range(3) if s != ego):
+                wanted = request_for_neighbour(need, frame.poses[ego], frame.poses[sender], grid)
+                assert sum(np.array_equal(got, wanted) for got in encoded) >= 1
+    with pytest.raises(evaluation.Co3sopError, match="request_frame 'next'"):
+        evaluation.evaluate(model, data, codec=CODEC, cache=cache, request_frame="next")

@@ -83,3 +83,23 @@ def test_a_union_of_requests_asks_the_most_any_ego_asks():
     b = np.array([[[0.3, 0.1]], [[0.0, 0.9]]], np.float32)
     assert np.array_equal(union_request([a, b]), np.array([[[0.3, 0.5]], [[1.0, 0.9]]], np.float32))
     assert np.array_equal(union_request([a]), a)
+
+
+def test_a_frame_waits_for_the_maps_made_for_it_from_the_egos_it_serves_only():
+    b = book()
+    live = ["/e1", "/e2", "/own", "/far", "/quiet"]
+    assert b.awaiting(0, live, first=True) == live  # the first frame waits for every ego yet unheard
+    assert b.awaiting(0, live, first=False) == []  # later frames only for those heard from
+    b.offer("/e1", 1, request(10, t=0.0), HERE, alive)
+    b.offer("/e2", 2, request(20, t=0.0), HERE, alive)
+    b.offer("/far", 9, request(120, t=0.0), HERE, alive)  # refused: never waited for
+    b.heard("/own", 0)  # this vehicle's own ego: not served, not waited for
+    assert b.awaiting(0, live, first=False) == []  # every map of this frame is in
+    assert b.awaiting(int(0.1 * S), live, first=False) == ["/e1", "/e2"]  # the next frame's are not
+    b.offer("/e1", 1, request(10, t=0.1), HERE, alive)
+    assert b.awaiting(int(0.1 * S), live, first=False) == ["/e2"]
+    assert b.awaiting(int(0.14 * S), ["/e1"], first=False) == []  # within half a frame: the same frame's map
+    assert b.awaiting(int(1.2 * S), live, first=False) == []  # an ego silent for longer than the timeout
+    assert b.awaiting(int(0.2 * S), ["/e2"], first=False) == ["/e2"]
+    b.release("/e2")
+    assert b.awaiting(int(0.2 * S), ["/e2"], first=False) == []

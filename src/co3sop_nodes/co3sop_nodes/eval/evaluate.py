@@ -31,6 +31,9 @@ from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 from co3sop_nodes.v2x.sender_requests import union_request
 
+# the frame whose request maps a frame answers: the one before (a map reaches a neighbour a frame late), or its own
+REQUEST_FRAMES = ("previous", "current")
+
 
 def data_origin(root: Path) -> dict:
     """The evaluated data as the results page names it: its root, and whether this project's simulator wrote
@@ -66,6 +69,7 @@ def evaluate(
     indices: list[int] | None = None,
     request_levels: int = 256,
     request_answer: str = "each",
+    request_frame: str = "previous",
 ) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
@@ -79,8 +83,12 @@ def evaluate(
     every one); `request_levels`: the levels a request map's need is sent with (the ego's parameter);
     `request_answer`: "each" (a message per ego, chosen by its request) or "union" (a sender's one message for every
     agent of the frame, each an ego, chosen by the union of their requests within the communication range: the
-    vehicle's parameter request_answer where every CAV runs an ego).
+    vehicle's parameter request_answer where every CAV runs an ego); `request_frame`: the frame whose request maps a
+    frame answers, "previous" (the graph's default: a map reaches a neighbour a frame late) or "current" (the
+    vehicles' request_wait: a frame waits for the maps made of it).
     """
+    if request_frame not in REQUEST_FRAMES:
+        raise Co3sopError(f"request_frame {request_frame!r}: one of {', '.join(REQUEST_FRAMES)}")
     early = model.cfg.early_fusion
     if early and codec is not None:
         raise Co3sopError(
@@ -120,13 +128,14 @@ def evaluate(
                 return None
             return next((k for k, c in enumerate(dataset.frames[frame - 1].cav_ids) if c == cav), None)
 
-        def previous_request(frame: int, cav: int) -> tuple[np.ndarray, np.ndarray] | None:
-            """(request, world_from_ego) of `cav` one frame before `frame` in the same scenario, if it was there."""
-            j = previous_frame(frame, cav)
+        def request_made(frame: int, cav: int) -> tuple[np.ndarray, np.ndarray] | None:
+            """(request, world_from_ego) of `cav` that frame `frame` answers (of `frame`, or of the frame before in
+            the same scenario, if it was there)."""
+            made, j = (frame, position[cav]) if request_frame == "current" else (frame - 1, previous_frame(frame, cav))
             if j is None:
                 return None
-            sent = encode_request(request_of(vehicle(cav, frame - 1, j).confidence), grid, levels=request_levels)
-            return decode_request(sent), dataset.frames[frame - 1].poses[j]  # as the vehicle receives it
+            sent = encode_request(request_of(vehicle(cav, made, j).confidence), grid, levels=request_levels)
+            return decode_request(sent), dataset.frames[made].poses[j]  # as the vehicle receives it
 
         others = sample.others
         if (
@@ -149,9 +158,9 @@ def evaluate(
             others = []
         else:
             ego = vehicle(sample.ego.cav_id)
-        # a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on a
-        # scenario's first frame: the neighbour then weighs by its own confidence alone)
-        request = previous_request(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
+        # by default a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on
+        # a scenario's first frame: the neighbour then weighs by its own confidence alone)
+        request = request_made(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
         union = request_answer == "union" and request is not None
 
         def union_wanted(record) -> np.ndarray | None:
@@ -159,7 +168,7 @@ def evaluate(
             requests = {
                 cav: r
                 for cav in dataset.frames[f].cav_ids
-                if cav != record.cav_id and (r := previous_request(f, cav)) is not None
+                if cav != record.cav_id and (r := request_made(f, cav)) is not None
             }
             near = nearest_collaborators(record.world_from_lidar, {cav: r[1] for cav, r in requests.items()})
             asks = [request_for_neighbour(*requests[cav], record.world_from_lidar, grid) for cav in near]

@@ -160,7 +160,7 @@ PARAMS = (
     Param(
         "request_maps",
         bool,
-        "publish /ego/request_map after each frame (vehicles with codec.selection request use it)",
+        "publish /ego/request_map as each own frame arrives (vehicles with codec.selection request use it)",
         True,
         True,
     ),
@@ -497,10 +497,19 @@ class Ego(ManagedNode):
             return self.drops(topic, "payload", str(exc))
         if topic == self.own_topic:
             self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
+            if self.request_maps:
+                self._publish_request(stamp, out.confidence, pose)
         record = Received(agent, stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
         with self._worker.lock:
             self.pairing.add(topic, stamp, record, wall, time.monotonic())
             self._worker.wake()
+
+    def _publish_request(self, stamp: int, confidence: torch.Tensor, pose: Pose) -> None:
+        """Where this own frame is unsure (v2x/request_map.py), as it arrives: the vehicles answer it with this
+        frame (those that wait for it: request_wait) or their next."""
+        need = encode_request(request_of(confidence), self.cfg.feature_grid, levels=self.request_levels)
+        frame = topics.lidar_frame(self.ego_id)
+        self._request.publish(request_msg(RCLPY, need, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id, pose=pose))
 
     # --- fusing ------------------------------------------------------------------------------------
 
@@ -561,18 +570,6 @@ class Ego(ManagedNode):
         if self.publish_points:
             cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
             self._points.publish(point_cloud_msg(RCLPY, cloud, stamp_ns=stamp, frame_id=frame))
-        if self.request_maps:  # for the vehicles' next frame: where this one was unsure (v2x/request_map.py)
-            need = encode_request(request_of(ego.out.confidence), self.cfg.feature_grid, levels=self.request_levels)
-            self._request.publish(
-                request_msg(
-                    RCLPY,
-                    need,
-                    stamp_ns=stamp,
-                    frame_id=frame,
-                    agent_id=self.ego_id,
-                    pose=Pose.from_matrix(ego.world_from_lidar),
-                )
-            )
         t3 = time.perf_counter()
         self.published += 1
         out_of_range = [a for a in matched if a not in chosen]

@@ -166,6 +166,16 @@ PARAMS = (
         choices=REQUEST_ANSWERS,
     ),
     Param(
+        "request_wait",
+        float,
+        "s: with codec.selection request, how long an encoded frame waits for the request map made for it by every "
+        "ego that sent one lately (an ego sends it as its own frame arrives: request, then answer, in one frame); "
+        "0: answered with the latest maps held, from an earlier frame",
+        0.0,
+        True,
+        (0.0, 60.0),
+    ),
+    Param(
         "local_features",
         bool,
         "also publish the features losslessly on voxel_features/local, for the ego on this car when every CAV runs "
@@ -236,6 +246,7 @@ CODEC_FIELDS = {
     "codec.learned": "learned",
 }
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
+ANSWERING = ("request_timeout", "comm_range", "max_egos", "request_answer", "request_wait")  # how requests are served
 # the ego on board gets the features as they are
 LOSSLESS_CODEC = FeatureCodecConfig("float32", "dense", codec="none")
 
@@ -277,9 +288,7 @@ class Vehicle(ManagedNode):
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self._code = code_id(self.model)
         self.codec = FeatureCodecConfig()
-        self._apply(
-            {name: p[name] for name in (*CODEC_FIELDS, "request_timeout", "comm_range", "max_egos", "request_answer")}
-        )
+        self._apply({name: p[name] for name in (*CODEC_FIELDS, *ANSWERING)})
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
         self.cameras = p["cameras"]
@@ -350,6 +359,8 @@ class Vehicle(ManagedNode):
         if new and len(self._request_subs) + len(new) > limit:
             for topic in [t for t in self._request_subs if self.count_publishers(t) == 0]:
                 self.destroy_subscription(self._request_subs.pop(topic))
+                with self._worker.lock:
+                    self._requests.release(topic)
         for name in new:
             if len(self._request_subs) >= limit:
                 self.drops(
@@ -377,14 +388,28 @@ class Vehicle(ManagedNode):
         except Co3sopError as exc:
             return self.drops(topic, "request", str(exc))
         if msg.agent_id == self.agent_id:  # a vehicle that is also an ego does not serve itself
+            with self._worker.lock:
+                self._requests.heard(topic, stamp_ns(msg.header.stamp))
+                self._worker.wake()
             return
         request = Request(need, pose.matrix(), stamp_ns(msg.header.stamp))
         with self._worker.lock:
             refused = self._requests.offer(
                 topic, msg.agent_id, request, self._pose, lambda t: self.count_publishers(t) > 0
             )
+            self._worker.wake()  # a frame may be waiting for it
         if refused is not None:
             self.drops(topic, refused.kind, refused.reason)
+
+    def _await_requests(self, stamp: int) -> float:
+        """On the worker, with request_wait: waits (at most that long) for this frame's request map from every ego
+        that sends them (sender_requests.RequestBook.awaiting); the ms waited."""
+        if self.codec.selection != "request" or self.request_wait <= 0:
+            return 0.0
+        t0, first = time.perf_counter(), self.published == 0
+        live = [t for t in list(self._request_subs) if self.count_publishers(t) > 0]
+        self._worker.wait_for(lambda: not self._requests.awaiting(stamp, live, first), self.request_wait)
+        return 1e3 * (time.perf_counter() - t0)
 
     def _recipients(self, stamp: int, world_from_lidar: np.ndarray) -> dict[int, Request]:
         """The egos whose requests this frame answers: with selection "request", the nearest with a fresh request."""
@@ -415,7 +440,7 @@ class Vehicle(ManagedNode):
         """The run-time parameters in `values` (at start, and on `ros2 param set`): the codec's are checked against
         this model's features (a codec that could encode no message is refused) and used from the next frame on;
         the others are read where they are used."""
-        for name in ("request_timeout", "comm_range", "max_egos", "request_answer"):
+        for name in ANSWERING:
             if name in values:
                 setattr(self, name, values[name])
         if self._requests is not None:
@@ -516,21 +541,6 @@ class Vehicle(ManagedNode):
         with torch.inference_mode():
             out = self.model.vehicle(**to_batch(inputs, self.model.path.torch_device))
         t2 = time.perf_counter()
-        # one message per requesting ego, its voxels weighed by that ego's request moved into this frame, or one for
-        # all weighed by the union of their requests; with no request, one for all by the codec's own selection
-        fg, recipients = self.cfg.feature_grid, self._recipients(stamp, world_from_lidar)
-        wanted = {
-            ego: request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg) for ego, r in recipients.items()
-        }
-        try:
-            if self.request_answer == "union" and wanted:
-                messages = [(None, self._encode_for(out, None, union_request(list(wanted.values()))))]
-            else:
-                messages = [(ego, self._encode_for(out, ego, need)) for ego, need in wanted.items()]
-            messages = messages or [(None, self._encode_for(out, None, None))]
-            local = encode_output(out, fg, LOSSLESS_CODEC) if self._local is not None else None
-        except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
-            return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
 
         def message(enc, ego: int | None):
             return features_msg(
@@ -543,13 +553,30 @@ class Vehicle(ManagedNode):
                 recipient_id=ego,
             )
 
+        fg = self.cfg.feature_grid
+        try:
+            # the ego on board first: it requests from the others as its frame arrives, and this frame may wait
+            if self._local is not None:
+                self._local.publish(message(encode_output(out, fg, LOSSLESS_CODEC), None))
+            waited_ms = self._await_requests(stamp)
+            # one message per requesting ego, its voxels weighed by that ego's request moved into this frame, or one
+            # for all weighed by the union of their requests; with no request, one for all by the codec's own choice
+            recipients = self._recipients(stamp, world_from_lidar)
+            wanted = {
+                ego: request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)
+                for ego, r in recipients.items()
+            }
+            if self.request_answer == "union" and wanted:
+                messages = [(None, self._encode_for(out, None, union_request(list(wanted.values()))))]
+            else:
+                messages = [(ego, self._encode_for(out, ego, need)) for ego, need in wanted.items()]
+            messages = messages or [(None, self._encode_for(out, None, None))]
+        except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
+            return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
         msgs = [message(enc, ego) for ego, enc in messages]
-        on_board = message(local, None) if local is not None else None
         t3 = time.perf_counter()
         for msg in msgs:
             self._pub.publish(msg)
-        if on_board is not None:
-            self._local.publish(on_board)
         published_wall = time.time_ns()
         self.published += 1
         values = {
@@ -558,7 +585,8 @@ class Vehicle(ManagedNode):
             "published_wall_ns": published_wall,
             "inputs_ms": f"{1e3 * (t1 - t0):.1f}",
             "encoder_ms": f"{1e3 * (t2 - t1):.1f}",
-            "codec_ms": f"{1e3 * (t3 - t2):.1f}",
+            "codec_ms": f"{1e3 * (t3 - t2) - waited_ms:.1f}",
+            "request_wait_ms": f"{waited_ms:.1f}",
             "payload_bytes": sum(enc.payload_bytes for _, enc in messages),
             "recipients": ",".join(f"{ego}:{enc.budget_bytes}" for ego, enc in messages if ego is not None),
             "request_stamps": ",".join(f"{ego}:{r.stamp}" for ego, r in recipients.items()),

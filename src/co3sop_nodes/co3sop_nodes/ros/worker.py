@@ -46,6 +46,13 @@ class Worker:
         """Call with `lock` held."""
         self._cond.notify()
 
+    def wait_for(self, ready: Callable[[], bool], timeout_s: float) -> bool:
+        """From a job: waits, at most `timeout_s`, until `ready()` (checked under `lock` whenever a callback wakes the
+        worker) or the worker stops; whether it is ready."""
+        with self._cond:
+            self._cond.wait_for(lambda: ready() or not self._running, timeout_s)
+            return ready()
+
     def _loop(self) -> None:
         while True:
             with self._cond:

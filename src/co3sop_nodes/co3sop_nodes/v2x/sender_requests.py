@@ -11,6 +11,14 @@ rate; a request stamped beyond that ahead of the frame is not served), at most
 so a flood of far or made-up ids cannot push out the near egos a vehicle
 serves), and a frame answers at most `max_egos` of them, nearest first. The vehicle node feeds it
 and counts every refusal by its kind.
+
+A frame may also wait for the requests made for it (an ego sends its map as
+its own frame of that stamp arrives: Where2comm's request, then answer, in
+one frame): `awaiting` names the request topics whose map of the frame's
+stamp has not come yet, among those heard from within `timeout` whose last
+request was served (not refused, not the vehicle's own ego's); a topic never
+heard from is waited for by the vehicle's first frame only, so an ego that
+publishes no map costs one wait.
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ import numpy as np
 
 # how a vehicle answers several egos' requests: a message for each, or one for all
 REQUEST_ANSWERS = ("each", "union")
+# a request map is the one made for a frame when their stamps are this close (sensors of one tick, half a 10 Hz frame)
+SAME_FRAME_NS = 50_000_000
 
 
 def union_request(needs: list[np.ndarray]) -> np.ndarray:
@@ -55,6 +65,7 @@ class RequestBook:
         self._requests: dict[int, Request] = {}  # ego -> its latest request, oldest first
         self._topics: dict[int, str] = {}  # ego -> the topic its requests are taken from
         self._now: int | None = None  # sensor time of the newest frame served
+        self._heard: dict[str, tuple[int, bool]] = {}  # topic -> (stamp of its last map, whether frames wait for it)
 
     def __len__(self) -> int:
         return len(self._requests)
@@ -68,6 +79,11 @@ class RequestBook:
         has_publisher: Callable[[str], bool],
     ) -> Refusal | None:
         """Keeps `request` as `ego`'s latest, or says why not. world_from_lidar: the vehicle's newest pose, if known."""
+        refused = self._offer(topic, ego, request, world_from_lidar, has_publisher)
+        self.heard(topic, request.stamp, awaited=refused is None)
+        return refused
+
+    def _offer(self, topic, ego, request, world_from_lidar, has_publisher) -> Refusal | None:
         if self._now is not None:
             self.expire(self._now)
         bound = self._topics.get(ego)
@@ -109,3 +125,25 @@ class RequestBook:
             and r.stamp - stamp_ns <= self.timeout_ns
         )
         return {ego: self._requests[ego] for _, ego in near[: self.max_egos]}
+
+    def heard(self, topic: str, stamp_ns: int, awaited: bool = False) -> None:
+        """A request map of sensor time `stamp_ns` came on `topic` (`offer` notes its own; the vehicle notes its own
+        ego's, which it does not serve, with awaited False)."""
+        self._heard[topic] = (stamp_ns, awaited)
+
+    def release(self, topic: str) -> None:
+        """`topic` is no longer subscribed."""
+        self._heard.pop(topic, None)
+
+    def awaiting(self, stamp_ns: int, topics: list[str], first: bool) -> list[str]:
+        """Of the request topics `topics` (those with a publisher), the ones whose map for the frame of sensor time
+        `stamp_ns` a frame still waits for; `first`: the vehicle's first frame (it also waits for topics never
+        heard from)."""
+        waiting = []
+        for topic in topics:
+            if (heard := self._heard.get(topic)) is None:
+                if first:
+                    waiting.append(topic)
+            elif heard[1] and heard[0] < stamp_ns - SAME_FRAME_NS and stamp_ns - heard[0] <= self.timeout_ns:
+                waiting.append(topic)
+        return waiting
