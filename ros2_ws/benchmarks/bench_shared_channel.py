@@ -2,7 +2,7 @@
 
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [--cavs 2 3 4 5] [--medium 3 6 12] [--answers union each]
         [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT] [--reference CKPT] [--multicast]
-        [--payload-share 0.6] [--answer-ms MS] [--request-wait 0.5] [--out results/bench_shared_channel]
+        [--payload-share 0.6] [--answer-ms MS] [--request-wait 0.5] [--maps-first] [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each number of CAVs N (the bag's first N),
 `demo --egos all` runs every CAV's ego and vehicle, at one play rate for N (the rate the demo measures for N
@@ -24,6 +24,8 @@ measures, and an ego behind its input skips frames, which `score` counts as empt
   budget (every voxel an ego asks for), the codec's ceiling in the graph. With --request-wait F each vehicle's
   frame waits up to F of a frame period for the request map every ego makes of that frame (vehicle parameter
   request_wait, in real time at the play rate); without, a frame answers the maps of the egos' previous frame.
+  With --maps-first (and --multicast) the request maps cross the medium before the features waiting on it
+  (`demo --channel-maps-first`).
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
 current, which `score` counts as empty predictions), neighbour-frames fused (% of those within comm range: fused,
 late or never received), latency p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy
@@ -106,6 +108,7 @@ def channel_args(medium_mbit: float, opts) -> list[str]:
     args = ["--channel-rate", f"{medium_mbit:g}", "--channel-shared"] + (
         ["--channel-multicast"] if opts.multicast else []
     )
+    args += ["--channel-maps-first"] if opts.maps_first else []
     return args + ([] if opts.answer_ms is None else ["--channel-answer-ms", f"{opts.answer_ms:g}"])
 
 
@@ -214,7 +217,12 @@ def main() -> int:
         default=0.0,
         help="of a frame period: how long a vehicle's frame waits for the egos' maps of it (0: answers earlier maps)",
     )
+    parser.add_argument(
+        "--maps-first", action="store_true", help="request maps cross the medium first (needs --multicast)"
+    )
     opts = parser.parse_args()
+    if opts.maps_first and not opts.multicast:
+        parser.error("--maps-first needs --multicast")
     reference = opts.reference or opts.model
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
     model = load_graph_model(resolve_checkpoint(opts.model, "--model"))[0].use(inference_path("cpu", "auto"))
@@ -226,6 +234,7 @@ def main() -> int:
         + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
         + (", features and request maps multicast" if opts.multicast else ", unicast")
         + ("" if opts.answer_ms is None else f", DDS readers answering heartbeats after {opts.answer_ms:g} ms")
+        + (", request maps crossing the medium first" if opts.maps_first else "")
         + (
             f", each frame answering the egos' maps of it (waiting up to {opts.request_wait:g} of a frame)"
             if opts.request_wait
@@ -270,7 +279,8 @@ def main() -> int:
                 extra += ["--ego-params", levels]
                 answer_delay = "" if opts.answer_ms is None or not medium else f"-{opts.answer_ms:g}ms"
                 wait = f"-wait{opts.request_wait:g}" if opts.request_wait else ""
-                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}{wait}"
+                first = "-mapsfirst" if opts.maps_first and medium else ""
+                name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}{wait}{first}"
                 cell = run(demo, opts, opts.out / name, n, extra, opts.model)
                 load = "-" if cell.get("medium_load") is None else f"{cell['medium_kb']:,.0f} ({cell['medium_load']})"
                 for cav, ego in sorted(cell["egos"].items()):

@@ -175,6 +175,47 @@ def test_members_transmitting_at_once_wait_for_the_medium_rather_than_lose():
         assert 0.12 < float(spread) < 0.5, spread  # 160 KB at 1 MB/s; the members' own 50 Mbit/s links: 26 ms
 
 
+PRIORITY_RECEIVE = """
+import select, socket, time
+socks = {}
+for port in (47005, 47007):
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.bind(("0.0.0.0", port)); socks[s] = port
+burst, first = [], None
+while select.select(list(socks), [], [], 3)[0]:
+    for s in select.select(list(socks), [], [], 0)[0]:
+        s.recv(2000)
+        if socks[s] == 47007:
+            first = time.monotonic()
+        else:
+            burst.append(time.monotonic())
+print(len(burst), first - burst[0], burst[-1] - burst[0])
+"""
+# the burst's socket holds every packet it queued (a full send buffer would hold back the small one)
+PRIORITY_SEND = """
+import socket
+s, p = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+for i in range(150):
+    s.sendto(b"x" * 1000, ("{address}", 47005))
+p.sendto(b"request", ("{address}", 47007))
+"""
+
+
+def test_packets_to_a_priority_port_cross_the_shared_medium_first():
+    """A member sends 150 KB, then one small packet to a priority port, onto an 8 Mbit/s (1 MB/s) medium: the burst
+    takes about 150 ms to cross, the small packet jumps its queue and arrives within the first tens of ms (its
+    member's own 50 Mbit/s link holds it 24 ms behind the burst); a channel without shared medium refuses the ports."""
+    with Channel({m: Link(50.0) for m in ("ego", "cav1")}, shared=Link(8.0), priority_ports=(47007,)) as channel:
+        receiver = in_namespace(channel, "ego", PRIORITY_RECEIVE)
+        time.sleep(0.5)
+        assert in_namespace(channel, "cav1", PRIORITY_SEND.format(address=channel.addresses["ego"])).wait(60) == 0
+        count, ahead, spread = receiver.communicate(timeout=30)[0].split()
+        assert int(count) == 150 and channel.dropped_by_medium() == 0
+        assert float(spread) > 0.12 and float(ahead) < 0.08, (ahead, spread)
+    with pytest.raises(ch.ChannelError, match="priority_ports"):
+        Channel({"ego": Link(8.0)}, priority_ports=(47007,))
+
+
 # the receiver joined to a multicast group as well
 MULTICAST_RECEIVE = RECEIVE.replace("47001", "47003").replace(
     "n = 0\n",

@@ -17,6 +17,7 @@ from co3sop_nodes.ros.dds import (
     channel_profiles,
     fastdds_profile_path,
     v2x_multicast_port,
+    v2x_priority_port,
 )
 
 NS = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
@@ -84,3 +85,15 @@ def test_reliability_timers_run_as_slow_as_the_channel(tmp_path):
 def test_a_time_scale_that_is_not_positive_is_refused(tmp_path):
     with pytest.raises(Co3sopError, match="time_scale"):
         channel_profiles(tmp_path, 0.0)
+
+
+def test_priority_topics_listen_on_the_group_port_the_medium_carries_first(tmp_path, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", "0")
+    topics = ["/cav_1/voxel_features", "/cav_1/ego/request_map"]
+    folder = channel_profiles(tmp_path / "dds", multicast_topics=topics, priority_topics=topics[1:])
+    readers = ET.parse(folder / CHANNEL_PROFILES[1]).getroot().findall("p:profiles/p:data_reader", NS)
+    ports = {r.get("profile_name"): r.find("p:multicastLocatorList/p:locator/p:udpv4/p:port", NS) for r in readers}
+    assert int(ports[topics[0]].text) == v2x_multicast_port() == 7401
+    assert int(ports[topics[1]].text) == v2x_priority_port() == 7403  # odd (user data), unused by the mapping
+    with pytest.raises(Co3sopError, match="not multicast"):
+        channel_profiles(tmp_path / "bad", multicast_topics=topics[:1], priority_topics=topics[1:])

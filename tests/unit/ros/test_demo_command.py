@@ -19,6 +19,7 @@ NS = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
         (["--channel-answer-ms", "5"], "need --channel-rate"),
         (["--channel-shared"], "need --channel-rate"),
         (["--channel-rate", "6", "--channel-answer-ms", "-1"], "--channel-answer-ms -1.0: 0 to 10000"),
+        (["--channel-rate", "6", "--channel-shared", "--channel-maps-first"], "--channel-maps-first needs"),
     ],
 )
 def test_channel_options_are_refused_by_name(argv, message, capsys):

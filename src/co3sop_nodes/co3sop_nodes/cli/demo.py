@@ -135,6 +135,12 @@ def main(args: list[str] | None = None) -> int:
         "reaches (as a radio broadcasts), not as a copy to each",
     )
     parser.add_argument(
+        "--channel-maps-first",
+        action="store_true",
+        help="with --channel-shared and --channel-multicast: the egos' request maps cross the medium before the "
+        "features waiting on it (as 802.11p sends short control frames first)",
+    )
+    parser.add_argument(
         "--channel-answer-ms",
         type=float,
         metavar="MS",
@@ -158,6 +164,8 @@ def main(args: list[str] | None = None) -> int:
         parser.error(
             "--channel-loss, --channel-shared, --channel-multicast and --channel-answer-ms need --channel-rate"
         )
+    if opts.channel_maps_first and not (opts.channel_shared and opts.channel_multicast):
+        parser.error("--channel-maps-first needs --channel-shared and --channel-multicast (a group's port goes first)")
     if opts.channel_answer_ms is not None and not 0 <= opts.channel_answer_ms <= 10_000:
         parser.error(f"--channel-answer-ms {opts.channel_answer_ms}: 0 to 10000")
     if opts.rate is not None and not opts.rate > 0:

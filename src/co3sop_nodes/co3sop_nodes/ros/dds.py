@@ -192,6 +192,12 @@ def v2x_multicast_port() -> int:
     return 7401 + 250 * (int(domain) if domain.isdigit() else 0)
 
 
+def v2x_priority_port() -> int:
+    """The group's port for the topics a shared medium carries first (Channel's priority_ports): odd, unused by the
+    standard mapping (between the multicast user-data port and the first unicast metatraffic port)."""
+    return v2x_multicast_port() + 2
+
+
 # Fast DDS's reliability timers (its defaults, seconds): the writer's heartbeat period and delays, the reader's
 # responses. On a channel slowed by the play rate they run on the wall clock, which the link's rate and queue do
 # not: at rate 0.05 a 3 s heartbeat period is 150 ms of the channel's time, and every repair and acknowledgement
@@ -207,17 +213,21 @@ def channel_profiles(
     answer_s: float | None = None,
     multicast_topics: list[str] = (),
     harness_topics: list[str] = (),
+    priority_topics: list[str] = (),
 ) -> Path:
     """The channel's Fast DDS profiles written to `folder` (which goes to channel_environment): every writer's and
     reader's reliability timers (WRITER_TIMES, READER_TIMES; the default data_writer and data_reader profiles) times
     `time_scale` (1 / the play rate), a reader's answer to a heartbeat after `answer_s` of real time instead of Fast
     DDS's default where given (on a shared medium, its queue time: what a packet may still take to arrive); every
     reader of `multicast_topics` (full names) listens on the V2X multicast group (rmw_fastrtps applies a data_writer
-    or data_reader profile named as a publisher's or a subscription's topic). `harness_topics` keep Fast DDS's own
+    or data_reader profile named as a publisher's or a subscription's topic), those of `priority_topics` (among them) on
+    the group's v2x_priority_port, which a shared medium carries first. `harness_topics` keep Fast DDS's own
     timers: what the cars send to the machine's side (the recorder, the launcher) is off the radio and unslowed, and
     a repair there, slowed, could come after the graph stopped."""
     if not time_scale > 0:
         raise Co3sopError(f"time_scale must be positive, got {time_scale}")
+    if stray := set(priority_topics) - set(multicast_topics):
+        raise Co3sopError(f"priority topics {sorted(stray)} are not multicast: only a group's port can be put first")
     folder.mkdir(parents=True, exist_ok=True)
     ET.register_namespace("", _PROFILES_NS)
     tag = lambda name: f"{{{_PROFILES_NS}}}{name}"
@@ -250,7 +260,8 @@ def channel_profiles(
             listen = ET.SubElement(reader, tag("multicastLocatorList"))
             udp = ET.SubElement(ET.SubElement(listen, tag("locator")), tag("udpv4"))
             ET.SubElement(udp, tag("address")).text = V2X_MULTICAST_GROUP
-            ET.SubElement(udp, tag("port")).text = str(v2x_multicast_port())
+            port = v2x_priority_port() if topic in priority_topics else v2x_multicast_port()
+            ET.SubElement(udp, tag("port")).text = str(port)
         tree.write(folder / name, encoding="UTF-8", xml_declaration=True)
     return folder
 

@@ -25,7 +25,7 @@ from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
-from co3sop_nodes.ros.dds import channel_environment, channel_profiles
+from co3sop_nodes.ros.dds import channel_environment, channel_profiles, v2x_priority_port
 from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe, played_topics
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
@@ -161,6 +161,7 @@ class DemoOptions:
     channel_shared: bool = False
     channel_multicast: bool = False
     channel_answer_ms: float | None = None  # None: the shared medium's queue time, or Fast DDS's own
+    channel_maps_first: bool = False  # the egos' request maps cross the shared medium first
     egos: str = "first"
 
 
@@ -202,11 +203,13 @@ def _open_channel(
     # rate and queue in real time: at play rate r a link carries r times the bytes per second, and a packet
     # may wait 1 / r times as long (200 ms of real time)
     link = Link(opts.channel_rate * opts.rate, opts.channel_loss / 100, Link.queue_ms / opts.rate)
-    channel = Channel({car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None)
-    multicast = []
-    if opts.channel_multicast:  # what every CAV hears: the vehicles' features and the egos' request maps
-        requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
-        multicast = [*map(topics.voxel_features, cavs), *requests]
+    first = (v2x_priority_port(),) if opts.channel_maps_first else ()
+    channel = Channel(
+        {car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None, priority_ports=first
+    )
+    requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
+    # what every CAV hears: the vehicles' features and the egos' request maps
+    multicast = [*map(topics.voxel_features, cavs), *requests] if opts.channel_multicast else []
     # on a shared medium a reader answers a heartbeat after the medium's queue time: answered at once, it names
     # fragments that still arrive, and their repairs crowd the medium (BENCHMARKS.md); on a link of its own, a
     # lost fragment is asked for again at Fast DDS's own delay
@@ -220,7 +223,9 @@ def _open_channel(
     harness = [topics.ego_output(t, c if opts.egos == "all" else None) for t in outputs for c in egos]
     harness += [*played_topics(cavs, sensors), topics.CLOCK, topics.DIAGNOSTICS]
     harness += [topics.local_features(c) for c in egos] if opts.egos == "all" else []
-    profiles = channel_profiles(opts.out / "dds", 1 / opts.rate, answer_after, multicast, harness)
+    profiles = channel_profiles(
+        opts.out / "dds", 1 / opts.rate, answer_after, multicast, harness, requests if opts.channel_maps_first else ()
+    )
     # the egos' waits for the link, slowed as it is: a neighbour's frame may take a frame of real time on it,
     # and a neighbour is live while it was heard within five (where the ego's own defaults are shorter)
     frame = bag_period(bag, frames) / opts.rate
@@ -234,6 +239,7 @@ def _open_channel(
         f"at rate {opts.rate:g}), {opts.channel_loss:g} % of its packets lost"
         + ("; all of them together on one medium of that rate" if opts.channel_shared else "")
         + ("; features and request maps multicast, each sent once for all" if opts.channel_multicast else "")
+        + ("; request maps cross the medium first" if opts.channel_maps_first else "")
         + f"; egos wait up to {opts.ego_params['max_wait']:g} s for a neighbour's frame"
         + ("" if answer_after is None else f"; DDS readers answer a heartbeat after {1e3 * answer_after:g} ms")
     )

@@ -11,7 +11,9 @@ queue for all of them together, as on one radio channel: what enters the hub's b
 is redirected to one device (an `ifb`) whose token bucket carries it at the medium's rate, once per transmission
 (a multicast frame the bridge then copies to every CAV crossed the medium once). CAVs transmitting at once wait
 for each other, as a radio's senders wait for a free channel (an ideal MAC: no collisions, no back-off slots);
-what waits longer than the medium's queue is dropped.
+what waits longer than the medium's queue is dropped. UDP to `priority_ports` crosses the medium before anything
+else waiting, as 802.11p's access categories send short control frames first (the demo puts the egos' request maps
+there).
 Every byte between CAVs then crosses a shaped link, over UDP:
 the processes use a Fast DDS profile without shared memory (which would bypass
 the link, /dev/shm being shared by all namespaces). The radio carries what a CAV
@@ -153,8 +155,17 @@ class Channel:
     """Namespaces for `links` (member name -> its Link) joined through a bridge; the machine's namespace joins
     unshaped. Use as a context manager; `wrap(member, argv)` runs a command inside a member."""
 
-    def __init__(self, links: dict[str, Link], subnet: str | None = None, shared: Link | None = None):
-        """`shared`: one medium all members transmit on together (its rate; its loss is each member's own)."""
+    def __init__(
+        self,
+        links: dict[str, Link],
+        subnet: str | None = None,
+        shared: Link | None = None,
+        priority_ports: tuple[int, ...] = (),
+    ):
+        """`shared`: one medium all members transmit on together (its rate; its loss is each member's own);
+        `priority_ports`: UDP destination ports whose packets it carries first."""
+        if priority_ports and shared is None:
+            raise ChannelError("priority_ports order a shared medium's queue: give the channel one")
         if not links:
             raise ChannelError("a channel needs at least one member")
         if missing := missing_tools():
@@ -166,7 +177,7 @@ class Channel:
         for name in links:
             if not re.fullmatch(r"[a-z0-9]{1,12}", name):
                 raise ChannelError(f"member name {name!r}: 1-12 lower-case letters or digits")
-        self.links, self.shared = dict(links), shared
+        self.links, self.shared, self.priority_ports = dict(links), shared, tuple(priority_ports)
         self.pid = os.getpid()
         self.hub = f"{PREFIX}{self.pid}-hub"
         # a /24 per launcher, so that channels of concurrent launchers never share addresses
@@ -290,7 +301,9 @@ class Channel:
         free channel, up to the medium's `queue_ms`; beyond that the medium drops (tail drop, counted)."""
         _run("ip", "link", "add", "air", "type", "ifb", ns=self.hub)
         _run("ip", "link", "set", "air", "up", ns=self.hub)
-        _run("tc", "qdisc", "add", "dev", "air", "root", *_token_bucket(medium), ns=self.hub)
+        _run("tc", "qdisc", "add", "dev", "air", "root", "handle", "1:", *_token_bucket(medium), ns=self.hub)
+        if self.priority_ports:
+            self._prioritise(medium)
         onto_air = ("action", "mirred", "egress", "redirect", "dev", "air")
         for port in self.links:
             _run("tc", "qdisc", "add", "dev", port, "handle", "ffff:", "ingress", ns=self.hub)
@@ -304,6 +317,25 @@ class Channel:
                     *action,
                     ns=self.hub,
                 )
+
+    def _prioritise(self, medium: Link) -> None:
+        """The medium's queue as two, served in order (an HTB of unbounded classes under the token bucket: the
+        bucket sets the pace, HTB hands it the first class's packets first): `priority_ports`, then the rest; each
+        holds what the medium carries in its `queue_ms`, beyond which it drops."""
+        tc = ("tc", "class", "add", "dev", "air", "parent", "10:")
+        unbounded = ("htb", "rate", "10gbit", "burst", "1mb", "cburst", "1mb", "quantum", "60000")
+        _run("tc", "qdisc", "add", "dev", "air", "parent", "1:1", "handle", "10:", "htb", "default", "20", ns=self.hub)
+        limit = str(int(medium.rate_mbit * 1e6 / 8 * medium.queue_ms / 1000) + _token_bucket_burst(medium))
+        for band, prio in (("10", "0"), ("20", "1")):
+            _run(*tc, "classid", f"10:{band}", *unbounded, "prio", prio, ns=self.hub)
+            _run("tc", "qdisc", "add", "dev", "air", "parent", f"10:{band}", "bfifo", "limit", limit, ns=self.hub)
+        for port in self.priority_ports:
+            udp = ("match", "ip", "protocol", "17", "0xff", "match", "ip", "dport", str(port), "0xffff")
+            _run(
+                *("tc", "filter", "add", "dev", "air", "parent", "10:", "protocol", "ip", "prio", "1", "u32"),
+                *(*udp, "flowid", "10:10"),
+                ns=self.hub,
+            )
 
     def dropped_by_medium(self) -> int:
         """Packets the shared medium dropped so far (more than its queue held: the members together past its rate)."""
@@ -343,11 +375,15 @@ def _on_radio(host, subnet) -> str:
     return f"  udp dport & 1 == 0 accept\n  ip daddr != {host} ip daddr {{ {subnet}, 224.0.0.0/4 }}"
 
 
+def _token_bucket_burst(link: Link) -> int:
+    """A bucket of 10 ms of the rate (the kernel refills it per timer tick) and at least a few full-size packets."""
+    return max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
+
+
 def _token_bucket(link: Link) -> tuple[str, ...]:
-    """tc's tbf arguments for `link`: its rate, a queue of its `queue_ms`, a bucket of 10 ms of the rate (the kernel
-    refills it per timer tick) and at least a few full-size packets."""
-    burst = max(4096, int(link.rate_mbit * 1e6 / 8 * 0.01))
-    return ("tbf", "rate", f"{link.rate_mbit * 1000:.0f}kbit", "burst", str(burst), "latency", f"{link.queue_ms:.0f}ms")
+    """tc's tbf arguments for `link`: its rate, a queue of its `queue_ms` and its bucket."""
+    burst = str(_token_bucket_burst(link))
+    return ("tbf", "rate", f"{link.rate_mbit * 1000:.0f}kbit", "burst", burst, "latency", f"{link.queue_ms:.0f}ms")
 
 
 def _radio_filters(host, subnet, harness: tuple[str, ...], radio: tuple[str, ...]) -> list[tuple[tuple, tuple]]:
