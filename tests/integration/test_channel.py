@@ -429,16 +429,16 @@ def test_features_too_large_for_the_channel_leave_the_ego_alone_and_named(scenar
 
 def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
     """Three CAVs, each an ego and a collaborator of the others, on one shared medium (12 Mbit/s of real time for
-    all of them together): each vehicle answers both other egos' request maps (2 levels, about 0.2 KB) with one
-    message (16 KB, int4, rank 8), multicast (one transmission for both), and feeds its own ego losslessly on board
-    (3.2 MB a frame, which the medium could not carry); every ego fuses both neighbours, and the recording and the
-    score hold every ego's frames."""
+    all of them together): each vehicle answers both other egos' request maps (2 levels, about 0.2 KB) of the same
+    frame (request_wait: the maps cross the medium first) with one message (16 KB, int4, rank 8), multicast (one
+    transmission for both), and feeds its own ego losslessly on board (3.2 MB a frame, which the medium could not
+    carry); every ego fuses both neighbours, and the recording and the score hold every ego's frames."""
     out = tmp_path / "all"
     codec = ["codec.selection:=request", "codec.dtype:=int4", "codec.rank:=8", "codec.max_bytes:=16384"]
     extra = ["--rate", "0.1", "--channel-rate", "12", "--channel-loss", "0", "--channel-shared", "--egos", "all"]
-    extra += ["--channel-multicast"]
+    extra += ["--channel-multicast", "--channel-maps-first"]
     egos = ["--ego-params", "request_levels:=2", "stay_current:=false"]  # every frame fused, however late
-    proc = demo(scenario, out, *extra, "--params", *codec, "request_answer:=union", *egos)
+    proc = demo(scenario, out, *extra, "--params", *codec, "request_answer:=union", "request_wait:=5.0", *egos)
     text = proc.communicate(timeout=400)[0]
     assert proc.returncode == 0, text
     assert "egos wait up to 2 s for a neighbour's frame" in text  # rate 0.1: a frame of real time is 1 s, less
@@ -456,10 +456,13 @@ def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
         assert counts[topics.ego_output(topics.EGO_OCCUPANCY, c)] == FRAMES
         assert counts[topics.ego_output(topics.EGO_TRUTH_POINTS, c)] == FRAMES
     diagnostics = json.loads((out / "diagnostics.json").read_text())
-    for c in cavs:  # one message for both other egos, chosen by both requests once they came
-        answered = [r["answered"] for r in diagnostics[f"vehicle cav_{c}"]]
-        assert all(r["recipients"] == "" for r in diagnostics[f"vehicle cav_{c}"])
-        assert sorted(answered[-1].split(",")) == sorted(str(o) for o in cavs if o != c), answered
+    for c in cavs:  # one message for both other egos, chosen by both egos' requests of that frame
+        reports = diagnostics[f"vehicle cav_{c}"]
+        assert all(r["recipients"] == "" for r in reports)
+        others = sorted(str(o) for o in cavs if o != c)
+        for r in reports[1:]:
+            assert sorted(r["answered"].split(",")) == others, reports
+            assert {s.split(":")[1] for s in r["request_stamps"].split(",")} == {r["stamp"]}, reports
     assert ours(proc.pid) == []
 
 
