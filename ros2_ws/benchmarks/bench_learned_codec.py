@@ -4,6 +4,7 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
     ros2_ws/benchmarks/bench_learned_codec.py --reference src/co3sop_nodes/checkpoints/tiny-lidar.pt \
         --learned runs/wire/tiny-lidar-51.2m-s1-k4/model.pt --data data/bench --splits test \
         [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--request-frame previous|current]
+        [--answer each|union]
         [--out FILE.json] [--plot FILE.png]
     ros2_ws/benchmarks/bench_learned_codec.py --replot FILE.json --plot FILE.png   # the table and curve again
 
@@ -16,7 +17,8 @@ reference alone), the column the goal reads. Each `--learned` model is also scor
 ego asks for) and with every voxel of its code (dense). The transform codec runs on the reference model (codec.dtype and
 codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
 frame's, as `evaluate --ablation codec` makes them, or with --request-frame current the ego's map of the same frame
-(the vehicles' request_wait: a frame waits for the map made of it). Prints a markdown table; --plot draws the curve of each system's
+(the vehicles' request_wait: a frame waits for the map made of it); with --answer union each sender's one message
+for every ego of the frame is weighed by the most any of them asks. Prints a markdown table; --plot draws the curve of each system's
 own gain kept against bytes, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
 """
 
@@ -34,6 +36,7 @@ from co3sop_nodes.eval.metrics import Bootstrap, point
 from co3sop_nodes.inference.checkpoint import load_model
 from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
+from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 
 def main() -> None:
@@ -50,6 +53,12 @@ def main() -> None:
         choices=REQUEST_FRAMES,
         default="previous",
         help="the egos' maps a frame answers: of which frame",
+    )
+    parser.add_argument(
+        "--answer",
+        choices=REQUEST_ANSWERS,
+        default="each",
+        help="a message for each ego, or one for every ego of the frame (the vehicles' request_answer)",
     )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
@@ -85,6 +94,7 @@ def measure(opts, parser) -> dict:
             desc=desc,
             request_levels=opts.levels,
             request_frame=opts.request_frame,
+            request_answer=opts.answer,
         )
 
     alone = evaluate(reference, dataset, collaborators=0, cache=cache, desc="alone")[0]
@@ -129,6 +139,7 @@ def measure(opts, parser) -> dict:
         f"alone {100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
         f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}; request maps of {opts.levels} levels, "
         + ("each frame answering the ego's map of it" if opts.request_frame == "current" else "of the previous frame")
+        + ("; one message for every ego" if opts.answer == "union" else "")
     )
     return {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}
 
