@@ -103,3 +103,13 @@ def test_a_frame_waits_for_the_maps_made_for_it_from_the_egos_it_serves_only():
     assert b.awaiting(int(0.2 * S), ["/e2"], first=False) == ["/e2"]
     b.release("/e2")
     assert b.awaiting(int(0.2 * S), ["/e2"], first=False) == []
+
+
+def test_a_map_older_than_the_one_held_is_refused_and_leaves_the_wait_as_it_was():
+    b = book()
+    assert b.offer("/e1", 1, request(10, t=0.5, fill=1.0), HERE, alive) is None
+    stale = b.offer("/e1", 1, request(10, t=0.2, fill=0.0), HERE, alive)  # a replay, or a stand-in's repeat
+    assert stale.kind == "request_stale" and "older" in stale.reason
+    assert b.serving(int(0.5 * S), HERE)[1].need.max() == 1.0  # the newer map is kept
+    assert b.awaiting(int(0.6 * S), ["/e1"], first=False) == ["/e1"]  # still waited for, from its newest map on
+    assert b.awaiting(int(0.5 * S), ["/e1"], first=False) == []

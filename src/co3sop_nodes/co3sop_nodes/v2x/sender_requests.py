@@ -3,7 +3,8 @@
 Anyone on the DDS domain can publish a RequestMap, so what a request may
 cost the sender is bounded: an ego id's requests are taken from the one
 topic they first came on (another topic claiming that id is refused until
-the first has no publisher left), a request whose ego is beyond
+the first has no publisher left), a request older than the one held for its ego is refused (a replay must not
+undo a newer map), a request whose ego is beyond
 `comm_range` of the vehicle is refused, a stored request expires when a frame
 `timeout` of sensor time newer than it comes (sensor time: the same at any play
 rate; a request stamped beyond that ahead of the frame is not served), at most
@@ -51,7 +52,7 @@ class Request:
 
 @dataclass(frozen=True)
 class Refusal:
-    kind: str  # request_topic, request_range
+    kind: str  # request_topic, request_stale, request_range
     reason: str
 
 
@@ -80,7 +81,8 @@ class RequestBook:
     ) -> Refusal | None:
         """Keeps `request` as `ego`'s latest, or says why not. world_from_lidar: the vehicle's newest pose, if known."""
         refused = self._offer(topic, ego, request, world_from_lidar, has_publisher)
-        self.heard(topic, request.stamp, awaited=refused is None)
+        if refused is None or refused.kind != "request_stale":  # an old map says nothing of the topic's next ones
+            self.heard(topic, request.stamp, awaited=refused is None)
         return refused
 
     def _offer(self, topic, ego, request, world_from_lidar, has_publisher) -> Refusal | None:
@@ -91,6 +93,10 @@ class RequestBook:
             if has_publisher(bound):
                 return Refusal("request_topic", f"ego {ego}'s request maps come on {bound}; refused from another topic")
             self._requests.pop(ego, None)  # its publisher is gone: the id is free
+        elif (held := self._requests.get(ego)) is not None and request.stamp < held.stamp:
+            return Refusal(
+                "request_stale", f"ego {ego}'s map of {request.stamp} is older than the one held, of {held.stamp}"
+            )
         if (
             world_from_lidar is not None
             and (d := _distance(request.world_from_ego, world_from_lidar)) > self.comm_range
@@ -129,7 +135,8 @@ class RequestBook:
     def heard(self, topic: str, stamp_ns: int, awaited: bool = False) -> None:
         """A request map of sensor time `stamp_ns` came on `topic` (`offer` notes its own; the vehicle notes its own
         ego's, which it does not serve, with awaited False)."""
-        self._heard[topic] = (stamp_ns, awaited)
+        last = self._heard.get(topic)
+        self._heard[topic] = (max(stamp_ns, last[0]) if last else stamp_ns, awaited)
 
     def release(self, topic: str) -> None:
         """`topic` is no longer subscribed."""
