@@ -56,6 +56,8 @@ PREFIX = "co3sop-"  # every namespace this module makes: co3sop-<launcher pid>-<
 # many times its real share; every car joining at once would otherwise hold the first frames
 DISCOVERY_U32 = ("match", "ip", "protocol", "17", "0xff", "match", "ip", "dport", "0", "0x1")
 _NAME = re.compile(rf"^{PREFIX}(\d+)-")
+# an HTB class that never holds a packet back: HTB only sorts; where there is a pace, a token bucket sets it
+UNBOUNDED_CLASS = ("htb", "rate", "10gbit", "burst", "1mb", "cburst", "1mb", "quantum", "60000")
 
 
 class ChannelError(Co3sopError):
@@ -271,10 +273,9 @@ class Channel:
         end `host`, and multicast) leads to the link's token bucket; the rest (the machine's side, discovery) goes
         unlimited."""
         tc = ("tc", "qdisc", "add", "dev", "eth0")
-        unlimited = ("htb", "rate", "10gbit", "burst", "1mb", "cburst", "1mb", "quantum", "60000")
         _run(*tc, "root", "handle", "1:", "htb", "default", "20", ns=ns)
         for cls in ("1:10", "1:20"):
-            _run("tc", "class", "add", "dev", "eth0", "parent", "1:", "classid", cls, *unlimited, ns=ns)
+            _run("tc", "class", "add", "dev", "eth0", "parent", "1:", "classid", cls, *UNBOUNDED_CLASS, ns=ns)
         _run(*tc, "parent", "1:10", *_token_bucket(link), ns=ns)
         for prio, (match, action) in enumerate(_radio_filters(host, subnet, ("flowid", "1:20"), ("flowid", "1:10")), 1):
             _run(
@@ -323,11 +324,10 @@ class Channel:
         bucket sets the pace, HTB hands it the first class's packets first): `priority_ports`, then the rest; each
         holds what the medium carries in its `queue_ms`, beyond which it drops."""
         tc = ("tc", "class", "add", "dev", "air", "parent", "10:")
-        unbounded = ("htb", "rate", "10gbit", "burst", "1mb", "cburst", "1mb", "quantum", "60000")
         _run("tc", "qdisc", "add", "dev", "air", "parent", "1:1", "handle", "10:", "htb", "default", "20", ns=self.hub)
         limit = str(int(medium.rate_mbit * 1e6 / 8 * medium.queue_ms / 1000) + _token_bucket_burst(medium))
         for band, prio in (("10", "0"), ("20", "1")):
-            _run(*tc, "classid", f"10:{band}", *unbounded, "prio", prio, ns=self.hub)
+            _run(*tc, "classid", f"10:{band}", *UNBOUNDED_CLASS, "prio", prio, ns=self.hub)
             _run("tc", "qdisc", "add", "dev", "air", "parent", f"10:{band}", "bfifo", "limit", limit, ns=self.hub)
         for port in self.priority_ports:
             udp = ("match", "ip", "protocol", "17", "0xff", "match", "ip", "dport", str(port), "0xffff")
