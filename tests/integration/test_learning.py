@@ -113,6 +113,9 @@ def test_train_stages_resume_and_evaluate(small_split):
     for name in ("state.pt", "model.pt", "log.csv", "loss.png"):
         assert (out / "ego" / name).is_file()
     assert len((out / "ego" / "log.csv").read_text().splitlines()) == 4  # header + 3 steps
+    again = tool("train", *common, "--stage", "ego", "--steps", "4", "--out", str(out / "ego"))  # no --resume
+    assert again.returncode == 2 and "--resume continues it" in again.stderr and "Traceback" not in again.stderr
+    assert len((out / "ego" / "log.csv").read_text().splitlines()) == 4  # the run is kept
     more = tool("train", *common, "--stage", "ego", "--steps", "4", "--resume", "--out", str(out / "ego"))
     assert more.returncode == 0, more.stderr
     assert len((out / "ego" / "log.csv").read_text().splitlines()) == 5  # resumed at step 3

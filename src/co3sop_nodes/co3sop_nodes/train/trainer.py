@@ -263,6 +263,8 @@ def train(opts, command: str) -> int:
     ):
         if not ok:  # refused before the dataset is read, which takes minutes
             raise Co3sopError(f"{option} {value}: must be {needs}")
+    if not opts.resume and (opts.out / "state.pt").exists():  # a new run there would overwrite its state and log
+        raise Co3sopError(f"--out {opts.out}: holds a run (state.pt): --resume continues it, or choose another --out")
     torch.set_num_threads(opts.threads or (2 if world.size == 1 else max(1, (os.cpu_count() or 1) // world.local_size)))
     device = distributed.device_for(world, opts.device)
     seed_everything(opts.seed)
