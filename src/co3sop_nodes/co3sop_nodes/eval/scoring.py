@@ -114,6 +114,7 @@ class Score:
     missed: list[tuple[int, int]]  # (agent, stamp) with ground truth but no prediction
     unmatched: list[tuple[int, int]]  # predictions without ground truth
     per_ego: dict[int, dict] = field(default_factory=dict)  # agent -> its own frames' summary
+    counts: dict = field(default_factory=dict)  # metrics.Confusion.counts() of the scored frames, to pool over runs
 
 
 def score(rec: Recording) -> Score:
@@ -135,6 +136,7 @@ def score(rec: Recording) -> Score:
         missed,
         unmatched,
         {a: c.summary() for a, c in sorted(per_ego.items())},
+        confusion.counts(),
     )
 
 
@@ -236,6 +238,7 @@ def score_recording(
             if egos
             else {}
         ),
+        "counts": result.counts,
     }
     (out / "score.json").write_text(json.dumps(data, indent=2) + "\n")
     return 0
