@@ -4,7 +4,7 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
     ros2_ws/benchmarks/bench_learned_codec.py --reference src/co3sop_nodes/checkpoints/tiny-lidar.pt \
         --learned runs/wire/tiny-lidar-51.2m-s1-k4/model.pt --data data/bench --splits test \
         [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--request-frame previous|current]
-        [--answer each|union]
+        [--answer each|union] [--fill]
         [--out FILE.json] [--plot FILE.png]
     ros2_ws/benchmarks/bench_learned_codec.py --replot FILE.json --plot FILE.png   # the table and curve again
 
@@ -18,7 +18,8 @@ ego asks for) and with every voxel of its code (dense). The transform codec runs
 codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
 frame's, as `evaluate --ablation codec` makes them, or with --request-frame current the ego's map of the same frame
 (the vehicles' request_wait: a frame waits for the map made of it); with --answer union each sender's one message
-for every ego of the frame is weighed by the most any of them asks. Prints a markdown table; --plot draws the curve
+for every ego of the frame is weighed by the most any of them asks; with --fill a budget the requests leave
+unspent goes to the sender's most confident other voxels (codec.fill). Prints a markdown table; --plot draws the curve
 of each system's own gain kept against bytes, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
 """
 
@@ -59,6 +60,9 @@ def main() -> None:
         choices=REQUEST_ANSWERS,
         default="each",
         help="a message for each ego, or one for every ego of the frame (the vehicles' request_answer)",
+    )
+    parser.add_argument(
+        "--fill", action="store_true", help="spend what a budget leaves past the requests (the vehicles' codec.fill)"
     )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
@@ -118,7 +122,7 @@ def measure(opts, parser) -> dict:
         )
 
     for budget in opts.budgets:
-        codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank))
+        codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank), fill=opts.fill)
         add("transform", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
     for path in opts.learned:
         model, _ = load_model(path)
@@ -130,7 +134,7 @@ def measure(opts, parser) -> dict:
         name = f"learned K={model.cfg.wire.rank} ({path.parent.name})"
         own_alone = evaluate(model, dataset, collaborators=0, cache=own, desc=f"{name} alone")[0]
         for budget in (*opts.budgets, UNBOUNDED):
-            codec = FeatureCodecConfig("int4", "request", max_bytes=budget, learned=True)
+            codec = FeatureCodecConfig("int4", "request", max_bytes=budget, learned=True, fill=opts.fill)
             add(name, path, codec, own_alone, *run(model, codec, own, codec.name))
         dense = FeatureCodecConfig("int4", "dense", learned=True)
         add(name, path, dense, own_alone, *run(model, dense, own, dense.name))
@@ -140,6 +144,7 @@ def measure(opts, parser) -> dict:
         f"{100 * point(boot.summary(lossless), 'co3sop-code'):.2f}; request maps of {opts.levels} levels, "
         + ("each frame answering the ego's map of it" if opts.request_frame == "current" else "of the previous frame")
         + ("; one message for every ego" if opts.answer == "union" else "")
+        + ("; budgets filled past the requests" if opts.fill else "")
     )
     return {"title": title, "reference": str(opts.reference), "splits": opts.splits, "runs": results}
 

@@ -1325,6 +1325,34 @@ def test_request_selects_where_the_ego_asks():
     assert fallback == topk
 
 
+@pytest.mark.parametrize("rank", [0, 8])
+def test_fill_spends_what_the_requests_leave_on_the_most_confident_others(rank):
+    grid, features, confidence = _volume(4)
+    request = np.zeros(grid.dims, np.float32)
+    request[:2] = 1.0  # 192 voxels asked for: a third of a 20 KB budget
+    asked = request.reshape(-1) > 0
+
+    def sent(cfg: FeatureCodecConfig) -> np.ndarray:
+        return decode_features(encode_features(features, confidence, grid, cfg, request)).confidence.reshape(-1) > 0
+
+    only = FeatureCodecConfig("int8", "request", max_bytes=20000, rank=rank)
+    fill = dataclasses.replace(only, fill=True)
+    assert (sent(only) == asked).all()  # without fill the rest of the budget goes unspent
+    filled = sent(fill)
+    assert encode_features(features, confidence, grid, fill, request).budget_bytes <= 20000
+    assert filled[asked].all() and filled.sum() > 2 * asked.sum()
+    others = confidence.reshape(-1)[~asked]
+    assert others[filled[~asked]].min() >= others[~filled[~asked]].max()  # then the sender's most confident
+    # a budget the requests overflow: the same voxels as without fill, the best-asked
+    tight = dataclasses.replace(only, max_bytes=1800)
+    assert (sent(dataclasses.replace(tight, fill=True)) == sent(tight)).all() and sent(tight).sum() < asked.sum()
+    assert fill.name == ("int8-request19KB-fill-pca8-zstd" if rank else "int8-request19KB-fill-zstd")
+    with pytest.raises(CodecError, match="fill needs selection 'request' and a max_bytes budget"):
+        FeatureCodecConfig("int8", "request", fill=True)
+    with pytest.raises(CodecError, match="fill must be true or false"):
+        FeatureCodecConfig("int8", "request", max_bytes=1000, fill=1)
+
+
 def test_budget_and_request_are_checked():
     grid, features, confidence = _volume()
     with pytest.raises(CodecError, match="max_bytes needs selection"):

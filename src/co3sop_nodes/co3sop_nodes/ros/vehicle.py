@@ -225,6 +225,14 @@ PARAMS = (
         True,
     ),
     Param(
+        "codec.fill",
+        bool,
+        "with codec.selection request and codec.max_bytes: spend what the budget leaves after every voxel the egos "
+        "asked for on the others, the most confident first (false: a budget the requests do not fill goes unspent)",
+        False,
+        True,
+    ),
+    Param(
         "features_reliability",
         str,
         "QoS of the published features: reliable (resends lost fragments) or best_effort (a "
@@ -244,6 +252,7 @@ CODEC_FIELDS = {
     "codec.burst_bytes": "burst_bytes",
     "codec.rank": "rank",
     "codec.learned": "learned",
+    "codec.fill": "fill",
 }
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 ANSWERING = ("request_timeout", "comm_range", "max_egos", "request_answer", "request_wait")  # how requests are served

@@ -78,6 +78,9 @@ class FeatureCodecConfig:
     # the features are a model's learned wire code (K integers per voxel in int4's or int8's range, model/wire.py),
     # sent as they are: the receiver decodes them with the same code's decoder, which also gives the confidence
     learned: bool = False
+    # "request" with max_bytes: what the budget leaves after every voxel an ego asked for goes to the others, the
+    # most confident first (else a budget the requests do not fill is left unspent)
+    fill: bool = False
 
     def __post_init__(self) -> None:
         _check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
@@ -110,6 +113,12 @@ class FeatureCodecConfig:
             )
         if not isinstance(self.learned, bool):
             raise CodecError(f"learned must be true or false, got {self.learned!r}")
+        if not isinstance(self.fill, bool):
+            raise CodecError(f"fill must be true or false, got {self.fill!r}")
+        if self.fill and not (self.selection == "request" and self.max_bytes):
+            raise CodecError(
+                f"fill needs selection 'request' and a max_bytes budget (got {self.selection!r}, {self.max_bytes})"
+            )
         if self.learned and (self.dtype not in QUANTIZED or self.rank):
             raise CodecError(
                 f"learned: the code's integers go as int4 or int8 with no rank (got dtype {self.dtype!r}, "
@@ -126,7 +135,7 @@ class FeatureCodecConfig:
             "dense": "dense",
             "topk": f"topk{count}",
             "threshold": f"conf{self.threshold:g}",
-            "request": f"request{count}",
+            "request": f"request{count}" + ("-fill" if self.fill else ""),
         }[self.selection]
         transform = f"-pca{self.rank}" if self.rank else "-learned" if self.learned else ""
         return f"{self.dtype}-{sel}{transform}-{self.codec}"
@@ -409,7 +418,11 @@ def _within_budget(
     score = _score(features, confidence, request)
     order = np.argsort(-score, kind="stable")
     if request is not None:
-        order = order[: np.count_nonzero(score > 0)]  # what the ego did not ask for is not worth a byte
+        asked, rest = np.split(order, [np.count_nonzero(score > 0)])
+        if cfg.fill:  # then what no ego asked for, the sender's most confident first
+            order = np.concatenate([asked, rest[np.argsort(-_score(features, confidence, None)[rest], kind="stable")]])
+        else:  # what the ego did not ask for is not worth a byte
+            order = asked
 
     basis = _basis(features, np.sort(order), cfg.rank)  # one for every count tried: that of all candidates
 
