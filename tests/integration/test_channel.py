@@ -432,7 +432,9 @@ def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
     all of them together): each vehicle answers both other egos' request maps (2 levels, about 0.2 KB) of the same
     frame (request_wait: the maps cross the medium first) with one message (16 KB, int4, rank 8), multicast (one
     transmission for both), and feeds its own ego losslessly on board (3.2 MB a frame, which the medium could not
-    carry); every ego fuses both neighbours, and the recording and the score hold every ego's frames."""
+    carry); the bag plays once discovery has crossed the medium, so every ego fuses both neighbours in every frame,
+    the first included (one may be late on a slow machine), and the recording and the score hold every ego's
+    frames."""
     out = tmp_path / "all"
     codec = ["codec.selection:=request", "codec.dtype:=int4", "codec.rank:=8", "codec.max_bytes:=16384"]
     extra = ["--rate", "0.1", "--channel-rate", "12", "--channel-loss", "0", "--channel-shared", "--egos", "all"]
@@ -447,7 +449,7 @@ def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
     assert float(carried.group(1)) > 3 and int(carried.group(2)) <= 100, text
     for i in range(3):
         used, _ = fused_per_frame(text, i)
-        assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 2, text
+        assert len(used) == FRAMES and used[0] == 2 and sum(used) >= 2 * FRAMES - 1, text  # CI: one may be late
     counts = message_counts(out / "demo.mcap")
     score = json.loads((out / "score.json").read_text())
     cavs = sorted(int(a) for a in score["per_ego"])

@@ -64,3 +64,26 @@ def test_a_quiet_childs_last_warnings_explain_a_failure(capsys):
     )
     quiet = Process("quiet", [sys.executable, "-c", "print('[INFO] fine')"], echo=False)
     assert quiet.proc.wait(30) == 0 and quiet.stop() == 0 and warned(quiet) == ""
+
+
+def test_the_bag_waits_for_the_shared_medium_to_fall_quiet():
+    """Discovery still crossing a slowed medium would delay the first frames' messages: the demo plays once the
+    medium carried under a tenth of its rate for 2 s."""
+    from co3sop_nodes.ros.demo import QuietMedium
+    from co3sop_nodes.v2x.channel import Link
+
+    class Medium:  # what Channel reports of its shared medium
+        shared = Link(0.8)  # 100 KB/s
+        carried = 0
+
+        def carried_by_medium(self) -> int:
+            return self.carried
+
+    medium, now = Medium(), [0.0]
+    quiet = QuietMedium(medium, clock=lambda: now[0])
+    busy = []
+    for step in range(40):  # 10 s: 60 KB/s for 5 s (discovery), then 5 KB/s (announcements)
+        now[0] = step * 0.25
+        medium.carried += 15_000 if now[0] < 5 else 1_250
+        busy.append(quiet())
+    assert not any(busy[:27]) and all(busy[27:])  # quiet once the last 2 s hold no burst

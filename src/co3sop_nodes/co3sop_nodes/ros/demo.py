@@ -264,6 +264,30 @@ def links_up(supervisor: Supervisor, status: str, wanted: list[str]) -> bool:
     return bool(reports) and all(links.matched_publishers(reports[-1]).get(t, 0) > 0 for t in wanted)
 
 
+class QuietMedium:
+    """Callable for Supervisor.wait: the shared medium carried less than `share` of its rate over the last `window`
+    s. Discovery (every participant's endpoints, announced to every other) crosses the medium too, and at a slowed
+    rate it may still be queued when the V2X links are up: the bag's first frames would wait behind it."""
+
+    def __init__(
+        self, channel: Channel, share: float = 0.1, window: float = 2.0, every: float = 0.25, clock=time.monotonic
+    ):
+        self.channel, self.share, self.window, self.every, self.clock = channel, share, window, every, clock
+        self.samples: deque[tuple[float, int]] = deque()  # (monotonic s, bytes carried so far), oldest first
+
+    def __call__(self) -> bool:
+        now = self.clock()
+        if self.samples and now - self.samples[-1][0] < self.every:
+            return False
+        carried = self.channel.carried_by_medium()
+        self.samples.append((now, carried))
+        while len(self.samples) > 1 and now - self.samples[1][0] >= self.window:
+            self.samples.popleft()  # the first sample left is the newest one at least `window` s old
+        since, before = self.samples[0]
+        rate = self.channel.shared.rate_mbit * 1e6 / 8  # bytes/s
+        return now - since >= self.window and (carried - before) / (now - since) < self.share * rate
+
+
 def status_of(ego: NodeSpec) -> str:
     """The name an ego's status has on /diagnostics: its node's name ("ego", "cav_3/ego")."""
     return ego.node.lstrip("/")
@@ -351,6 +375,8 @@ def _graph(
             lambda: all(links_up(supervisor, status, wanted) for status, wanted in needs.items()),
             timeout=120,
         )
+        if channel and opts.channel_shared:
+            supervisor.wait("the shared medium to fall quiet (discovery crossed it)", QuietMedium(channel), timeout=120)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable(graph.player.executable), *graph.player.ros_arguments()], echo)
         if player.proc.wait() != 0:
