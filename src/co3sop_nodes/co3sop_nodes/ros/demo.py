@@ -266,8 +266,9 @@ def links_up(supervisor: Supervisor, status: str, wanted: list[str]) -> bool:
 
 class QuietMedium:
     """Callable for Supervisor.wait: the shared medium carried less than `share` of its rate over the last `window`
-    s. Discovery (every participant's endpoints, announced to every other) crosses the medium too, and at a slowed
-    rate it may still be queued when the V2X links are up: the bag's first frames would wait behind it."""
+    s. What the nodes send as they start crosses the medium too (among it ROS's graph information, the user data
+    topic ros_discovery_info: every node's endpoints, to every other participant), and at a slowed rate it may still
+    be queued when the V2X links are up: the bag's first frames would wait behind it."""
 
     def __init__(
         self, channel: Channel, share: float = 0.1, window: float = 2.0, every: float = 0.25, clock=time.monotonic
@@ -376,7 +377,7 @@ def _graph(
             timeout=120,
         )
         if channel and opts.channel_shared:
-            supervisor.wait("the shared medium to fall quiet (discovery crossed it)", QuietMedium(channel), timeout=120)
+            supervisor.wait("the shared medium to fall quiet (the nodes' start crossed it)", QuietMedium(channel), 120)
         say(f"playing the bag at rate {opts.rate}")
         player = Process("player", [executable(graph.player.executable), *graph.player.ros_arguments()], echo)
         if player.proc.wait() != 0:
