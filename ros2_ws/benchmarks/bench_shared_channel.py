@@ -292,8 +292,7 @@ def header(opts, cfg) -> str:
 
 TABLE_HEAD = [
     "| scene | CAVs | medium (Mbit/s, real time) | answer | budget per message (bytes) | play rate | ego | "
-    "frames missed | "
-    "neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | "
+    "frames missed | neighbour-frames fused (%) | latency p50 / p95 (ms) | bytes per neighbour-frame | "
     "collaboration gain, lossless (points) | gain on the channel (points) | gain kept (%) | "
     "vehicle's message bytes per frame | packets the medium dropped | medium: KB a frame (% of its rate) |",
     "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
