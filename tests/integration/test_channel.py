@@ -432,9 +432,9 @@ def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
     all of them together): each vehicle answers both other egos' request maps (2 levels, about 0.2 KB) of the same
     frame (request_wait: the maps cross the medium first) with one message (16 KB, int4, rank 8), multicast (one
     transmission for both), and feeds its own ego losslessly on board (3.2 MB a frame, which the medium could not
-    carry); the bag plays once discovery has crossed the medium, so every ego fuses both neighbours in every frame,
-    the first included (one may be late on a slow machine), and the recording and the score hold every ego's
-    frames."""
+    carry); the bag plays once the nodes' start-up traffic has crossed the medium, so every ego fuses both
+    neighbours in every frame, the first included (one may be late on a slow machine), and the recording and the
+    score hold every ego's frames."""
     out = tmp_path / "all"
     codec = ["codec.selection:=request", "codec.dtype:=int4", "codec.rank:=8", "codec.max_bytes:=16384"]
     extra = ["--rate", "0.1", "--channel-rate", "12", "--channel-loss", "0", "--channel-shared", "--egos", "all"]

@@ -67,8 +67,8 @@ def test_a_quiet_childs_last_warnings_explain_a_failure(capsys):
 
 
 def test_the_bag_waits_for_the_shared_medium_to_fall_quiet():
-    """Discovery still crossing a slowed medium would delay the first frames' messages: the demo plays once the
-    medium carried under a tenth of its rate for 2 s."""
+    """The nodes' start-up traffic still crossing a slowed medium would delay the first frames' messages: the demo
+    plays once the medium carried under a tenth of its rate for 2 s."""
     from co3sop_nodes.ros.demo import QuietMedium
     from co3sop_nodes.v2x.channel import Link
 
@@ -82,7 +82,7 @@ def test_the_bag_waits_for_the_shared_medium_to_fall_quiet():
     medium, now = Medium(), [0.0]
     quiet = QuietMedium(medium, clock=lambda: now[0])
     busy = []
-    for step in range(40):  # 10 s: 60 KB/s for 5 s (discovery), then 5 KB/s (announcements)
+    for step in range(40):  # 10 s: 60 KB/s for 5 s (start-up), then 5 KB/s (heartbeats)
         now[0] = step * 0.25
         medium.carried += 15_000 if now[0] < 5 else 1_250
         busy.append(quiet())
