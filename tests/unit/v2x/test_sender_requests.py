@@ -113,3 +113,16 @@ def test_a_map_older_than_the_one_held_is_refused_and_leaves_the_wait_as_it_was(
     assert b.serving(int(0.5 * S), HERE)[1].need.max() == 1.0  # the newer map is kept
     assert b.awaiting(int(0.6 * S), ["/e1"], first=False) == ["/e1"]  # still waited for, from its newest map on
     assert b.awaiting(int(0.5 * S), ["/e1"], first=False) == []
+
+
+def test_a_frame_behind_its_egos_answers_the_map_made_for_it_not_a_later_one():
+    """A vehicle running a frame behind: the ego's maps of 0.1 and 0.2 are both in when it encodes its frame of 0.1."""
+    b = book(depth=2)
+    for t, fill in ((0.0, 0.25), (0.1, 0.5), (0.2, 1.0)):
+        assert b.offer("/e1", 1, request(10, t=t, fill=fill), HERE, alive) is None
+    assert b.serving(int(0.1 * S), HERE)[1].stamp == int(0.1 * S)
+    assert b.serving(int(0.12 * S), HERE)[1].stamp == int(0.1 * S)  # within half a frame: the same frame's map
+    assert b.serving(int(0.2 * S), HERE)[1].need.max() == 1.0
+    assert b.serving(int(0.05 * S), HERE)[1].stamp == int(0.1 * S)  # its own fell out of the depth: the nearest held
+    assert b.offer("/e1", 1, request(10, t=0.2, fill=0.0), HERE, alive) is None  # a map of the same frame replaces it
+    assert [r.need.max() for r in b._requests[1]] == [0.5, 0.0]

@@ -8,10 +8,11 @@ undo a newer map), a request whose ego is beyond
 `comm_range` of the vehicle is refused, a stored request expires when a frame
 `timeout` of sensor time newer than it comes (sensor time: the same at any play
 rate; a request stamped beyond that ahead of the frame is not served), at most
-`capacity` are held (beyond, the farthest ego's goes,
+`capacity` egos are held (beyond, the farthest ego's go,
 so a flood of far or made-up ids cannot push out the near egos a vehicle
-serves), and a frame answers at most `max_egos` of them, nearest first. The vehicle node feeds it
-and counts every refusal by its kind.
+serves), each with its last `depth` maps, and a frame answers at most `max_egos` of them, nearest first,
+each with the map made for that frame when it is held (a vehicle running behind its egos answers each
+frame as asked, not with a later frame's map). The vehicle node feeds it and counts every refusal by its kind.
 
 A frame may also wait for the requests made for it (an ego sends its map as
 its own frame of that stamp arrives: Where2comm's request, then answer, in
@@ -61,9 +62,11 @@ def _distance(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class RequestBook:
-    def __init__(self, comm_range: float, timeout_ns: int, max_egos: int, capacity: int = 64):
+    def __init__(self, comm_range: float, timeout_ns: int, max_egos: int, capacity: int = 64, depth: int = 3):
         self.comm_range, self.timeout_ns, self.max_egos, self.capacity = comm_range, timeout_ns, max_egos, capacity
-        self._requests: dict[int, Request] = {}  # ego -> its latest request, oldest first
+        self.depth = depth
+        # ego -> its last `depth` requests, oldest first; egos in the order their newest came
+        self._requests: dict[int, list[Request]] = {}
         self._topics: dict[int, str] = {}  # ego -> the topic its requests are taken from
         self._now: int | None = None  # sensor time of the newest frame served
         self._heard: dict[str, tuple[int, bool]] = {}  # topic -> (stamp of its last map, whether frames wait for it)
@@ -93,22 +96,24 @@ class RequestBook:
             if has_publisher(bound):
                 return Refusal("request_topic", f"ego {ego}'s request maps come on {bound}; refused from another topic")
             self._requests.pop(ego, None)  # its publisher is gone: the id is free
-        elif (held := self._requests.get(ego)) is not None and request.stamp < held.stamp:
+        elif (held := self._requests.get(ego)) is not None and request.stamp < held[-1].stamp:
             return Refusal(
-                "request_stale", f"ego {ego}'s map of {request.stamp} is older than the one held, of {held.stamp}"
+                "request_stale", f"ego {ego}'s map of {request.stamp} is older than the one held, of {held[-1].stamp}"
             )
         if (
             world_from_lidar is not None
             and (d := _distance(request.world_from_ego, world_from_lidar)) > self.comm_range
         ):
             return Refusal("request_range", f"ego {ego} is {d:.0f} m away, beyond comm_range {self.comm_range:g} m")
-        self._requests.pop(ego, None)  # re-inserted last: insertion order is arrival order
-        self._requests[ego], self._topics[ego] = request, topic
+        kept = [r for r in self._requests.pop(ego, []) if r.stamp != request.stamp]  # re-inserted last: arrival order
+        self._requests[ego], self._topics[ego] = [*kept, request][-self.depth :], topic
         while len(self._requests) > self.capacity:
             drop = (
                 next(iter(self._requests))
                 if world_from_lidar is None
-                else max(self._requests, key=lambda e: _distance(self._requests[e].world_from_ego, world_from_lidar))
+                else max(
+                    self._requests, key=lambda e: _distance(self._requests[e][-1].world_from_ego, world_from_lidar)
+                )
             )
             del self._requests[drop], self._topics[drop]
         return None
@@ -116,21 +121,29 @@ class RequestBook:
     def expire(self, now_ns: int) -> None:
         """Forgets every request more than the timeout older than sensor time `now_ns` (and the topic its ego was
         bound to)."""
-        for ego in [e for e, r in self._requests.items() if now_ns - r.stamp > self.timeout_ns]:
-            del self._requests[ego], self._topics[ego]
+        for ego, held in list(self._requests.items()):
+            if fresh := [r for r in held if now_ns - r.stamp <= self.timeout_ns]:
+                self._requests[ego] = fresh
+            else:
+                del self._requests[ego], self._topics[ego]
 
     def serving(self, stamp_ns: int, world_from_lidar: np.ndarray) -> dict[int, Request]:
         """The requests the frame of sensor time `stamp_ns` at `world_from_lidar` answers: within the timeout of it,
-        within comm_range, the max_egos nearest."""
+        within comm_range, the max_egos nearest; of each ego's, the newest made by the frame (within half a frame),
+        else its oldest."""
         self._now = stamp_ns if self._now is None else max(self._now, stamp_ns)
         self.expire(stamp_ns)
+        chosen = {}
+        for ego, held in self._requests.items():
+            made = [r for r in held if r.stamp <= stamp_ns + SAME_FRAME_NS]
+            chosen[ego] = made[-1] if made else held[0]
         near = sorted(
             (d, ego)
-            for ego, r in self._requests.items()
+            for ego, r in chosen.items()
             if (d := _distance(r.world_from_ego, world_from_lidar)) <= self.comm_range
             and r.stamp - stamp_ns <= self.timeout_ns
         )
-        return {ego: self._requests[ego] for _, ego in near[: self.max_egos]}
+        return {ego: chosen[ego] for _, ego in near[: self.max_egos]}
 
     def heard(self, topic: str, stamp_ns: int, awaited: bool = False) -> None:
         """A request map of sensor time `stamp_ns` came on `topic` (`offer` notes its own; the vehicle notes its own
