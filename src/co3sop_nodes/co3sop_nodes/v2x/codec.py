@@ -754,8 +754,13 @@ def _check_levels(levels: int) -> None:
         raise CodecError(f"levels: {levels}, expected {REQUEST_LEVELS[0]} to {REQUEST_LEVELS[1]}")
 
 
+# zstd level of request maps: an ego's map crosses the medium to every vehicle each frame; at 51.2 m level 15 makes
+# it about 30 % smaller than level 3 for about 4 ms of the ego's time (level 19: the same bytes, 15 ms)
+REQUEST_ZSTD_LEVEL = 15
+
+
 def encode_request(
-    need: np.ndarray, grid: GridSpec, codec: str = "zstd", level: int = 3, levels: int = 256
+    need: np.ndarray, grid: GridSpec, codec: str = "zstd", level: int = REQUEST_ZSTD_LEVEL, levels: int = 256
 ) -> EncodedRequest:
     """(nx, ny, nz) need in [0, 1] -> round((levels - 1) * need) uint8, compressed (fewer levels, fewer bytes: 2
     levels send whether the need is above a half)."""
