@@ -18,7 +18,7 @@ ego asks for) and with every voxel of its code (dense). The transform codec runs
 codec.rank of --transform), the learned code on its own model (codec.learned); request maps are the ego's previous
 frame's, as `evaluate --ablation codec` makes them, or with --request-frame current the ego's map of the same frame
 (the vehicles' request_wait: a frame waits for the map made of it); with --answer union each sender's one message
-for every ego of the frame is weighed by the most any of them asks; with --fill a budget the requests leave
+for every ego of the frame is weighed by their mean need; with --fill a budget the requests leave
 unspent goes to the sender's most confident other voxels (codec.fill). Prints a markdown table; --plot draws the curve
 of each system's own gain kept against bytes, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
 """

@@ -78,10 +78,10 @@ def test_memory_stays_flat_under_thousands_of_ids_and_a_flood_does_not_push_out_
     assert sorted(unplaced._requests) == list(range(2992, 3000))
 
 
-def test_a_union_of_requests_asks_the_most_any_ego_asks():
+def test_a_union_of_requests_asks_the_egos_mean_need():
     a = np.array([[[0.0, 0.5]], [[1.0, 0.2]]], np.float32)
     b = np.array([[[0.3, 0.1]], [[0.0, 0.9]]], np.float32)
-    assert np.array_equal(union_request([a, b]), np.array([[[0.3, 0.5]], [[1.0, 0.9]]], np.float32))
+    assert np.allclose(union_request([a, b]), np.array([[[0.15, 0.3]], [[0.5, 0.55]]], np.float32))
     assert np.array_equal(union_request([a]), a)
 
 

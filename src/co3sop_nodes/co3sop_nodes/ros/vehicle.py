@@ -159,8 +159,8 @@ PARAMS = (
         "request_answer",
         str,
         "with codec.selection request: each (one message per ego, its voxels chosen by that ego's request map; "
-        "every ego on the topic receives every one) or union (one message for all, its voxels chosen by the most "
-        "any of them requests)",
+        "every ego on the topic receives every one) or union (one message for all, its voxels chosen by their "
+        "mean need)",
         "each",
         True,
         choices=REQUEST_ANSWERS,

