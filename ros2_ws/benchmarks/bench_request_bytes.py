@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -42,7 +43,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="also write the table as JSON here")
     opts = parser.parse_args()
     torch.set_num_threads(1)
-    path = resolve_checkpoint(opts.model)
+    path = Path(os.path.relpath(resolve_checkpoint(opts.model)))
     model, _ = load_model(path)
     dataset = OccupancyDataset(opts.data, opts.splits, model.cfg)
     grid = model.cfg.feature_grid
