@@ -671,9 +671,17 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
             ReliabilityPolicy.BEST_EFFORT
         ]
         sup.wait_subscribed("/ego", features)
-        assert {
-            i.qos_profile.reliability for i in peer.get_subscriptions_info_by_topic(features) if i.node_name == "ego"
-        } == {ReliabilityPolicy.BEST_EFFORT}
+        deadline = time.monotonic() + 30  # the peer is a participant of its own: it learns of the ego on its own time
+        while not (
+            requested := {
+                i.qos_profile.reliability
+                for i in peer.get_subscriptions_info_by_topic(features)
+                if i.node_name == "ego"
+            }
+        ):
+            assert time.monotonic() < deadline, "the peer never saw the ego's subscription"
+            time.sleep(0.1)
+        assert requested == {ReliabilityPolicy.BEST_EFFORT}
         got: list = []
         peer.create_subscription(VoxelFeatures, features, got.append, BEST_EFFORT)
         pose_pub = peer.create_publisher(PoseStamped, topics.lidar_pose(LIDAR_CAV), BEST_EFFORT)
