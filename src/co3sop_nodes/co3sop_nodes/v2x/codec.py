@@ -418,10 +418,10 @@ def _within_budget(
 ) -> EncodedFeatures:
     """The most best-scored voxels whose encoding fits cfg.max_bytes: a count that fits while one more (or,
     beyond 256 voxels, 0.4 % more) does not; the size grows with the count up to compression noise, so this is
-    within a few voxels of the largest. Each try costs a
-    compression, so all candidates are tried first (under a request map they often fit) and the count is then found
-    by regula falsi, Illinois' variant, on the sizes (nearly linear in the count: a handful of tries where bisection
-    takes log2 of the candidates), bisecting where it stalls."""
+    within a few voxels of the largest. Each try costs a compression, so all candidates are tried first (under a
+    request map they often fit) and the count is then found by regula falsi, Illinois' variant, on the sizes (nearly
+    linear in the count: a handful of tries where bisection takes log2 of the candidates), bisecting where it
+    stalls."""
     score = _score(features, confidence, request)
     order = np.argsort(-score, kind="stable")
     if request is not None:
