@@ -1,8 +1,8 @@
 """The learned wire code against the transform codec at the same bytes: the share of the collaboration gain each
 keeps under request maps with a byte budget per neighbour-frame, with its 95 % interval over the split's scenarios.
 
-    ros2_ws/benchmarks/bench_learned_codec.py --reference src/co3sop_nodes/checkpoints/tiny-lidar.pt \
-        --learned runs/wire/tiny-lidar-51.2m-s1-k4/model.pt --data data/bench --splits test \
+    ros2_ws/benchmarks/bench_learned_codec.py --reference tiny-lidar --learned tiny-lidar-wire \
+        --data data/bench --splits test \
         [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--request-frame previous|current]
         [--answer each|union] [--fill]
         [--out FILE.json] [--plot FILE.png]
@@ -31,10 +31,11 @@ from pathlib import Path
 
 import torch
 
+from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.eval.codec_comparison import UNBOUNDED, comparison_table, label
 from co3sop_nodes.eval.evaluate import REQUEST_FRAMES, evaluate, plot_codecs
 from co3sop_nodes.eval.metrics import Bootstrap, point
-from co3sop_nodes.inference.checkpoint import load_model
+from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint
 from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
@@ -42,8 +43,8 @@ from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--reference", type=Path, help="the collaborative model (transform codec)")
-    parser.add_argument("--learned", type=Path, nargs="+", help="models with a learned wire code")
+    parser.add_argument("--reference", help="the collaborative model (transform codec): a .pt file or a shipped name")
+    parser.add_argument("--learned", nargs="+", help="models with a learned wire code: .pt files or shipped names")
     parser.add_argument("--data", type=Path)
     parser.add_argument("--splits", nargs="+", default=["validate"])
     parser.add_argument("--budgets", type=int, nargs="+", default=[4096, 8192, 16384, 32768])
@@ -72,6 +73,11 @@ def main() -> None:
     if opts.replot:
         measured = json.loads(opts.replot.read_text())
     elif opts.reference and opts.learned and opts.data:
+        try:
+            opts.reference = resolve_checkpoint(opts.reference, "--reference")
+            opts.learned = [resolve_checkpoint(p, "--learned") for p in opts.learned]
+        except Co3sopError as e:
+            parser.error(str(e))
         measured = measure(opts, parser)
     else:
         parser.error("--reference, --learned and --data (or --replot)")
@@ -131,7 +137,7 @@ def measure(opts, parser) -> dict:
         if model.cfg.feature_grid != reference.cfg.feature_grid:
             parser.error(f"--learned {path}: another grid than --reference's ({reference.cfg.range})")
         own: dict = {}
-        name = f"learned K={model.cfg.wire.rank} ({path.parent.name})"
+        name = f"learned K={model.cfg.wire.rank} ({path.parent.name if path.stem == 'model' else path.stem})"
         own_alone = evaluate(model, dataset, collaborators=0, cache=own, desc=f"{name} alone")[0]
         for budget in (*opts.budgets, UNBOUNDED):
             codec = FeatureCodecConfig("int4", "request", max_bytes=budget, learned=True, fill=opts.fill)

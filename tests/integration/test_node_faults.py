@@ -292,7 +292,7 @@ def test_score_and_recover_explain_bad_files(tmp_path):
         (
             ["demo", "--model", "no-such-model"],
             "--model 'no-such-model': neither a checkpoint file nor a shipped model (small, tiny, tiny-lidar, "
-            "tiny-lidar-wire)",
+            "tiny-lidar-76.8m, tiny-lidar-76.8m-wire, tiny-lidar-wire)",
         ),
         (
             ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "checkpoint:=bogus"],
