@@ -23,6 +23,7 @@ def run(system, codec, max_bytes, kept, own):
 
 MEASURED = {
     "title": "tiny-lidar 51.2m, test",
+    "reference": "runs/control/model.pt",
     "runs": [
         run("transform", "int4-request8KB-pca8-zstd", 8192, 0.55, 0.55),
         run("learned K=4 (x)", f"int4-request{UNBOUNDED // 1024}KB-learned-zstd", UNBOUNDED, 1.15, 0.82),
@@ -32,7 +33,7 @@ MEASURED = {
 
 def test_each_run_is_a_row_with_both_shares_and_a_request_with_no_budget_reads_as_such():
     lines = comparison_table(MEASURED)
-    assert lines[0] == "tiny-lidar 51.2m, test" and len(lines) == 4 + 2
+    assert lines[0] == "tiny-lidar 51.2m, test; reference `runs/control/model.pt`" and len(lines) == 4 + 2
     assert (
         lines[-2]
         == "| transform | int4-request8KB-pca8-zstd | 8,192 | 5,058 | 41.59 | 40.24 | 55 [45, 65] | 55 [45, 65] |"

@@ -12,8 +12,9 @@ def label(run: dict) -> str:
 
 
 def comparison_table(measured: dict) -> list[str]:
-    """Markdown lines: the comparison's title, then one row per system and codec (bytes, mIoU 1..23, its model
-    alone, the gain kept against the reference's alone and its own gain kept, each with its 95 % interval)."""
+    """Markdown lines: the comparison's title and reference, then one row per system and codec (bytes, mIoU 1..23,
+    its model alone, the gain kept against the reference's alone and its own gain kept, each with its 95 %
+    interval)."""
 
     def interval(r: dict) -> str:
         return f"{100 * r['ratio']:.0f} [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}]"
@@ -22,7 +23,7 @@ def comparison_table(measured: dict) -> list[str]:
         return "none" if r["max_bytes"] in (0, UNBOUNDED) else f"{r['max_bytes']:,}"
 
     return [
-        measured["title"],
+        f"{measured['title']}; reference `{measured['reference']}`",
         "",
         "| system | codec | codec.max_bytes | bytes per neighbour-frame | mIoU 1..23 | its model alone | "
         "gain kept vs the reference alone (%) [95 % interval] | its own gain kept (%) [95 % interval] |",
