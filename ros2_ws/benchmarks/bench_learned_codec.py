@@ -74,8 +74,9 @@ def main() -> None:
         measured = json.loads(opts.replot.read_text())
     elif opts.reference and opts.learned and opts.data:
         try:
-            opts.reference = resolve_checkpoint(opts.reference, "--reference")
-            opts.learned = [resolve_checkpoint(p, "--learned") for p in opts.learned]
+            # the files to load; the results record the models as given (a shipped name stays a name)
+            opts.reference_path = resolve_checkpoint(opts.reference, "--reference")
+            opts.learned_paths = [resolve_checkpoint(p, "--learned") for p in opts.learned]
         except Co3sopError as e:
             parser.error(str(e))
         measured = measure(opts, parser)
@@ -90,7 +91,13 @@ def main() -> None:
 def measure(opts, parser) -> dict:
     """Every run of the comparison: {"title", "reference", "splits", "runs": [one dict per system and codec]}."""
     torch.set_num_threads(opts.threads)
-    reference, _ = load_model(opts.reference)
+    reference, _ = load_model(opts.reference_path)
+    learned = [(given, path, load_model(path)[0]) for given, path in zip(opts.learned, opts.learned_paths)]
+    for given, _, model in learned:  # checked before minutes of evaluation, not after
+        if model.cfg.wire is None:
+            parser.error(f"--learned {given}: has no learned wire code (train --stage wire)")
+        if model.cfg.feature_grid != reference.cfg.feature_grid:
+            parser.error(f"--learned {given}: another grid than --reference's ({reference.cfg.range})")
     dataset = OccupancyDataset(opts.data, opts.splits, reference.cfg)
     boot = Bootstrap(["/".join(k) for k in dataset.scenarios])
     cache: dict = {}  # the reference's vehicle outputs, shared by its runs
@@ -112,11 +119,11 @@ def measure(opts, parser) -> dict:
     dtype, rank = opts.transform.split(":")
     results = []
 
-    def add(system: str, path: Path, codec: FeatureCodecConfig, own_alone: dict, confusions: dict, size: float):
+    def add(system: str, model: str, codec: FeatureCodecConfig, own_alone: dict, confusions: dict, size: float):
         results.append(
             {
                 "system": system,
-                "model": str(path),
+                "model": model,
                 "codec": codec.name,
                 "max_bytes": codec.max_bytes,
                 "bytes": size,
@@ -130,20 +137,15 @@ def measure(opts, parser) -> dict:
     for budget in opts.budgets:
         codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank), fill=opts.fill)
         add("transform", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
-    for path in opts.learned:
-        model, _ = load_model(path)
-        if model.cfg.wire is None:
-            parser.error(f"--learned {path}: has no learned wire code (train --stage wire)")
-        if model.cfg.feature_grid != reference.cfg.feature_grid:
-            parser.error(f"--learned {path}: another grid than --reference's ({reference.cfg.range})")
+    for given, path, model in learned:
         own: dict = {}
         name = f"learned K={model.cfg.wire.rank} ({path.parent.name if path.stem == 'model' else path.stem})"
         own_alone = evaluate(model, dataset, collaborators=0, cache=own, desc=f"{name} alone")[0]
         for budget in (*opts.budgets, UNBOUNDED):
             codec = FeatureCodecConfig("int4", "request", max_bytes=budget, learned=True, fill=opts.fill)
-            add(name, path, codec, own_alone, *run(model, codec, own, codec.name))
+            add(name, given, codec, own_alone, *run(model, codec, own, codec.name))
         dense = FeatureCodecConfig("int4", "dense", learned=True)
-        add(name, path, dense, own_alone, *run(model, dense, own, dense.name))
+        add(name, given, dense, own_alone, *run(model, dense, own, dense.name))
     title = (
         f"{reference.cfg.name} {reference.cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples; mIoU 1..23 "
         f"alone {100 * point(boot.summary(alone), 'co3sop-code'):.2f}, lossless "
