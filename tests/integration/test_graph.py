@@ -41,6 +41,9 @@ FRAMES = 4
 # the offline comparisons need them all
 EVERY_FRAME = ("-p", "stay_current:=false", "-p", "max_pending:=1000")
 CAMERA = ("-p", "checkpoint:=tiny")  # the camera model, which this file's scenario feeds (its bag's camera topics)
+# offline evaluation runs float32: `auto` would take bfloat16 on a CPU with AMX or AVX-512 BF16, and the graph must
+# run the same path to be compared bit for bit
+FLOAT32 = ("-p", "precision:=float32")
 
 
 class Graph:
@@ -164,6 +167,7 @@ def run_graph(
         "max_wait:=60.0",
         *EVERY_FRAME,
         *CAMERA,
+        *FLOAT32,
         *ego_params,
     )
     for c in cavs:
@@ -175,6 +179,7 @@ def run_graph(
             "--ros-args",
             *EVERY_FRAME,
             *CAMERA,
+            *FLOAT32,
             *[x for p in vehicle_params for x in ("-p", p)],
         )
     graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
