@@ -4,7 +4,7 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
     ros2_ws/benchmarks/bench_learned_codec.py --reference tiny-lidar --learned tiny-lidar-wire \
         --data data/bench --splits test \
         [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--request-frame previous|current]
-        [--answer each|union] [--fill]
+        [--answer each|union] [--fill] [--scan]
         [--out FILE.json] [--plot FILE.png]
     ros2_ws/benchmarks/bench_learned_codec.py --replot FILE.json --plot FILE.png   # the table and curve again
 
@@ -19,7 +19,9 @@ codec.rank of --transform), the learned code on its own model (codec.learned); r
 frame's, as `evaluate --ablation codec` makes them, or with --request-frame current the ego's map of the same frame
 (the vehicles' request_wait: a frame waits for the map made of it); with --answer union each sender's one message
 for every ego of the frame is weighed by their mean need; with --fill a budget the requests leave
-unspent goes to the sender's most confident other voxels (codec.fill). Prints a markdown table; --plot draws the curve
+unspent goes to the sender's most confident other voxels (codec.fill); with --scan each sender also sends its
+voxelised LiDAR scan (v2x/scan.py: one message for every ego, the voxels nearest the sensor as the budget holds
+them, or all of them), which the ego's copy of the reference encodes. Prints a markdown table; --plot draws the curve
 of each system's own gain kept against bytes, with the papers' message sizes (Co3SOP, CoHFF, VOGS-CP) marked.
 """
 
@@ -38,6 +40,7 @@ from co3sop_nodes.eval.metrics import Bootstrap, point
 from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint
 from co3sop_nodes.train.dataset import OccupancyDataset
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
+from co3sop_nodes.v2x.scan import ScanCodecConfig
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 
@@ -65,6 +68,11 @@ def main() -> None:
     parser.add_argument(
         "--fill", action="store_true", help="spend what a budget leaves past the requests (the vehicles' codec.fill)"
     )
+    parser.add_argument(
+        "--scan",
+        action="store_true",
+        help="also send each sender's voxelised scan (LiDAR models), encoded by the ego's copy of --reference",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
     parser.add_argument("--plot", type=Path, help="also draw the curve here (PNG)")
@@ -72,7 +80,8 @@ def main() -> None:
     opts = parser.parse_args()
     if opts.replot:
         measured = json.loads(opts.replot.read_text())
-    elif opts.reference and opts.learned and opts.data:
+    elif opts.reference and (opts.learned or opts.scan) and opts.data:
+        opts.learned = opts.learned or []
         try:
             # the files to load; the results record the models as given (a shipped name stays a name)
             opts.reference_path = resolve_checkpoint(opts.reference, "--reference")
@@ -81,7 +90,7 @@ def main() -> None:
             parser.error(str(e))
         measured = measure(opts, parser)
     else:
-        parser.error("--reference, --learned and --data (or --replot)")
+        parser.error("--reference, --learned or --scan, and --data (or --replot)")
     report(measured, opts.plot)
     if opts.out:
         opts.out.parent.mkdir(parents=True, exist_ok=True)
@@ -93,6 +102,8 @@ def measure(opts, parser) -> dict:
     torch.set_num_threads(opts.threads)
     reference, _ = load_model(opts.reference_path)
     learned = [(given, path, load_model(path)[0]) for given, path in zip(opts.learned, opts.learned_paths)]
+    if opts.scan and reference.cfg.modality != "lidar":
+        parser.error(f"--scan: --reference {opts.reference} is a {reference.cfg.modality} model (it encodes no scans)")
     for given, _, model in learned:  # checked before minutes of evaluation, not after
         if model.cfg.wire is None:
             parser.error(f"--learned {given}: has no learned wire code (train --stage wire)")
@@ -119,7 +130,14 @@ def measure(opts, parser) -> dict:
     dtype, rank = opts.transform.split(":")
     results = []
 
-    def add(system: str, model: str, codec: FeatureCodecConfig, own_alone: dict, confusions: dict, size: float):
+    def add(
+        system: str,
+        model: str,
+        codec: FeatureCodecConfig | ScanCodecConfig,
+        own_alone: dict,
+        confusions: dict,
+        size: float,
+    ):
         results.append(
             {
                 "system": system,
@@ -137,6 +155,9 @@ def measure(opts, parser) -> dict:
     for budget in opts.budgets:
         codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank), fill=opts.fill)
         add("transform", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
+    for budget in (*opts.budgets, 0) if opts.scan else ():
+        codec = ScanCodecConfig(max_bytes=budget)
+        add("scan", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
     for given, path, model in learned:
         own: dict = {}
         name = f"learned K={model.cfg.wire.rank} ({path.parent.name if path.stem == 'model' else path.stem})"

@@ -20,20 +20,21 @@ from conftest import executable
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
 
-from co3sop_msgs.msg import RequestMap, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
 from co3sop_nodes.data.bags import read_frames
 from co3sop_nodes.eval.bag_eval import predict_bag, vehicle_outputs
 from co3sop_nodes.eval.scoring import read_recording
 from co3sop_nodes.inference.checkpoint import export_model, load_model, shipped_checkpoint
 from co3sop_nodes.inference.outputs import code_id, encode_output
-from co3sop_nodes.messages import features_of, pose_of, request_of, stamp_ns
+from co3sop_nodes.messages import features_of, pose_of, request_of, scan_of, stamp_ns
 from co3sop_nodes.model.co3sop import build_model, with_wire
 from co3sop_nodes.model.config import WireConfig, preset
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.v2x.request_map import request_for_neighbour
+from co3sop_nodes.v2x.scan import decode_scan
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 
 FRAMES = 4
@@ -74,10 +75,11 @@ class Graph:
         for node in nodes:
             self.supervisor.wait_state(node, "active", timeout=180)
 
-    def wait_discovered(self, neighbours: list[int]) -> None:
-        """The ego subscribes to every neighbour (as the demo waits before playing): otherwise it fuses a first frame alone."""
+    def wait_discovered(self, neighbours: list[int], topic=topics.voxel_features) -> None:
+        """The ego subscribes to every neighbour's `topic` (as the demo waits before playing): otherwise it fuses a
+        first frame alone."""
         for c in neighbours:
-            self.supervisor.wait_subscribed("/ego", topics.voxel_features(c))
+            self.supervisor.wait_subscribed("/ego", topic(c))
 
     def wait_fused(self, n: int, where=lambda report: True, timeout: float = 180, ego: str = "ego") -> list[dict]:
         """The /diagnostics reports of the ego whose status is `ego` (its node's name) once `n` satisfy `where`."""
@@ -276,6 +278,52 @@ def test_a_learned_code_crosses_dds_as_its_integers_and_decodes_as_offline(graph
     assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics["ego"]  # fused
     torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
     offline = predict_bag(model, bag, cavs[0], codec)
+    assert sorted(offline) == sorted(s for _, s in rec.predictions)
+    for (_, stamp), labels in rec.predictions.items():
+        assert np.array_equal(labels, offline[stamp].labels), f"frame {stamp}"
+
+
+def test_lidar_scans_cross_dds_and_the_ego_encodes_them_as_their_senders(graph, scenario):
+    """Neighbours send their voxelised LiDAR scans (send:=scan) in place of features; the ego runs its copy of the
+    LiDAR model on each and fuses: every prediction equals offline evaluation with the neighbours' features sent
+    losslessly, bit for bit."""
+    bag, cavs = scenario
+    ego, lidar = cavs[0], ("-p", "checkpoint:=tiny-lidar", *FLOAT32)
+    scans, mcap = "/cav_.*/voxel_scan", graph.folder / "run.mcap"
+    recorded = (scans, re.escape(topics.EGO_OCCUPANCY), re.escape(topics.DIAGNOSTICS), r"/cav_\d+/ground_truth/\w+")
+    graph.start("recorder", executable("recorder"), "--out", str(mcap), "--topics", *recorded)
+    graph.start(
+        "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar
+    )
+    for c in cavs:
+        send = ("codec.dtype:=float32", "codec.compression:=none") if c == ego else ("send:=scan",)
+        args = [x for p in send for x in ("-p", p)]
+        graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *EVERY_FRAME, *lidar, *args)
+    graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
+    graph.wait_discovered(cavs[1:], topics.voxel_scan)
+    assert "scans 256x256x24 -> /cav_" in graph.log(f"vehicle{cavs[1]}")
+    graph.supervisor.wait_subscribed("/recorder", topics.EGO_OCCUPANCY)
+    played = ["/tf_static"] + [
+        f"/cav_{c}/{s}" for c in cavs for s in ("lidar/pose", "lidar/points", "ground_truth/occupancy_50m")
+    ]
+    player = graph.start(
+        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
+    )
+    assert player.wait(120) == 0, graph.log("player")
+    graph.wait_fused(FRAMES)
+    for c in cavs:
+        graph.stop(f"vehicle{c}")
+    graph.stop("ego")
+    assert graph.stop("recorder") == 0
+
+    sent = recorded_messages(mcap, scans, VoxelScan)
+    assert sorted(topic for topic, _ in sent) == sorted(topics.voxel_scan(c) for c in cavs[1:] for _ in range(FRAMES))
+    assert all(0 < decode_scan(scan_of(m)).sum() == m.num_voxels for _, m in sent)
+    rec = read_recording(mcap)
+    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics["ego"]  # fused
+    torch.set_num_threads(1)  # as the nodes run: same kernels, same float results
+    model, _ = load_model(shipped_checkpoint("tiny-lidar.pt"))
+    offline = predict_bag(model, bag, ego, FeatureCodecConfig("float32", "dense", codec="none"))
     assert sorted(offline) == sorted(s for _, s in rec.predictions)
     for (_, stamp), labels in rec.predictions.items():
         assert np.array_equal(labels, offline[stamp].labels), f"frame {stamp}"

@@ -24,16 +24,17 @@ from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
-from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
-from co3sop_nodes.messages import features_msg, occupancy_msg, point_cloud_msg, request_msg, time_msg
+from co3sop_nodes.messages import features_msg, occupancy_msg, point_cloud_msg, request_msg, scan_msg, time_msg
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.dds import REQUEST_QOS
 from co3sop_nodes.ros.message_types import RCLPY
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_features, encode_labels, encode_request
+from co3sop_nodes.v2x.scan import ScanCodecConfig, encode_scan
 from co3sop_nodes.viz.cloud import occupancy_cloud
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -282,6 +283,11 @@ def test_score_and_recover_explain_bad_files(tmp_path):
         (["vehicle", "--id", "3", "--ros-args", "-p", "modality:=camera"], "pick a checkpoint trained for it"),
         (["vehicle", "--id", "3", "--ros-args", "-p", "codec.dtype:=float64"], "float64"),
         (["vehicle", "--id", "3", "--ros-args", "-p", "codec.level:=99"], "codec.level out of range"),
+        (
+            ["vehicle", "--id", "3", "--ros-args", "-p", "checkpoint:=tiny", "-p", "send:=scan"],
+            "parameter send=scan: tiny is a camera model",
+        ),
+        (["vehicle", "--id", "3", "--ros-args", "-p", "send:=points"], "send"),
         (["ego"], "ego: error: parameter ego_id is required"),
         (
             ["ego", "--ros-args", "-p", "ego_id:=1", "-p", "max_collaborators:=9"],
@@ -361,6 +367,75 @@ NODES = {
     "lidar": topics.vehicle_node(LIDAR_CAV),
     "recorder": "/recorder",
 }  # process -> node
+
+
+def scan(agent: int, stamp: int, pose=Pose((10.0, 5.0, 1.8)), grid=None) -> VoxelScan:
+    grid = grid or preset("tiny-lidar").grid
+    occupancy = np.random.default_rng(agent).random(grid.dims) < 0.01
+    enc = encode_scan(occupancy, grid, ScanCodecConfig())
+    return scan_msg(RCLPY, enc, stamp_ns=stamp, frame_id=f"cav_{agent}/lidar", agent_id=agent, pose=pose)
+
+
+def test_ego_encodes_a_neighbours_scan_and_drops_bad_ones_with_a_reason(tmp_path, peer, sup):
+    """A LiDAR ego takes a neighbour's VoxelScan (found by type, like features) and runs its model on it; a scan
+    that is cut, lies about its size or voxels, is of another grid or pose, or comes where its own features should,
+    is dropped by reason, and the ego goes on fusing."""
+    lidar = preset("tiny-lidar")
+    ego, log = start(
+        tmp_path,
+        "ego",
+        executable("ego"),
+        "--ros-args",
+        "-p",
+        f"ego_id:={EGO}",
+        "-p",
+        "max_wait:=0.5",
+        "-p",
+        "max_payload_mb:=4.0",
+        "-p",
+        "publish_points:=false",
+        "-p",
+        "checkpoint:=tiny-lidar",
+    )
+    try:
+        wait_ready(sup, "/ego", ego, log)
+        own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
+        other = peer.create_publisher(VoxelScan, f"/cav_{OTHER}/voxel_scan", QOS)
+        wait_subscribed(peer, [own, other])  # the ego finds /cav_7/voxel_scan in the graph
+        other.publish(scan(OTHER, T0))
+        acked(other)
+        own.publish(features(EGO, T0, grid=lidar.feature_grid))
+        fused(sup, 1, 1)
+
+        stamp = T0 + 100_000_000
+        bad = []
+        m = scan(OTHER, stamp)
+        m.occupancy = bytes(m.occupancy)[: len(m.occupancy) // 2]
+        bad.append(("payload", m))  # truncated
+        m = scan(OTHER, stamp)
+        m.num_voxels += 1
+        bad.append(("payload", m))  # lies about its voxels
+        bad.append(("payload", scan(OTHER, stamp, grid=lidar.feature_grid)))  # another grid
+        m = scan(OTHER, stamp)
+        m.occupancy_raw_size = 2**40
+        bad.append(("size", m))
+        bad.append(("header", scan(OTHER, stamp, pose=Pose((float("nan"), 0.0, 0.0)))))
+        for _, msg in bad:
+            other.publish(msg)
+        text = wait_for(log, r"dropped \(", ego, n=len(bad))
+        for kind in ("payload", "size", "header"):
+            want = sum(1 for k, _ in bad if k == kind)
+            assert len(re.findall(rf"/cav_{OTHER}/voxel_scan: dropped \({kind}\)", text)) == want, text
+        assert "num_voxels: declares" in text and "scan for the model's 256x256x24 grid" in text
+
+        other.publish(scan(OTHER, stamp))
+        acked(other)
+        own.publish(features(EGO, stamp, grid=lidar.feature_grid))
+        fused(sup, 2, 1)
+        assert ego.poll() is None and "Traceback" not in log.read_text()
+    finally:
+        ego.send_signal(signal.SIGINT)
+        ego.wait(30)
 
 
 def malformed(msg_type) -> dict[str, bytes]:

@@ -32,6 +32,8 @@ from co3sop_nodes.messages import (
     request_msg,
     request_of,
     rgb_of,
+    scan_msg,
+    scan_of,
     stamp_ns,
     tf_msg,
     transform_msg,
@@ -48,6 +50,7 @@ from co3sop_nodes.v2x.codec import (
     encode_labels,
     encode_request,
 )
+from co3sop_nodes.v2x.scan import ScanCodecConfig, decode_scan, encode_scan
 
 STORE = typestore()
 ROSBAGS = RosbagsTypes(STORE)
@@ -88,6 +91,15 @@ def test_features_round_trip_through_both_bindings():
         back = features_of(msg)
         assert np.array_equal(decode_features(back).features, decode_features(enc).features)
         assert (msg.addressed, msg.recipient_id, stamp_ns(msg.header.stamp)) == (True, 5, AT["stamp_ns"])
+        assert np.allclose(pose_of(msg.lidar_pose).matrix(), POSE.matrix())
+
+
+def test_scans_round_trip_through_both_bindings():
+    occupancy = np.random.default_rng(4).random(GRID.dims) < 0.1
+    enc = encode_scan(occupancy, GRID, ScanCodecConfig())
+    for msg in both(lambda t: scan_msg(t, enc, pose=POSE, agent_id=3, **AT), "co3sop_msgs/msg/VoxelScan"):
+        assert scan_of(msg) == enc and np.array_equal(decode_scan(scan_of(msg)), occupancy)
+        assert (msg.agent_id, stamp_ns(msg.header.stamp), msg.header.frame_id) == (3, AT["stamp_ns"], AT["frame_id"])
         assert np.allclose(pose_of(msg.lidar_pose).matrix(), POSE.matrix())
 
 

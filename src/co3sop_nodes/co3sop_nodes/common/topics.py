@@ -59,6 +59,11 @@ def voxel_features(agent_id: int | None = None) -> str:
     return _under(agent_id, "voxel_features")
 
 
+def voxel_scan(agent_id: int | None = None) -> str:
+    """co3sop_msgs/VoxelScan published by a vehicle that sends its LiDAR scan in place of its features."""
+    return _under(agent_id, "voxel_scan")
+
+
 def local_features(agent_id: int | None = None) -> str:
     """co3sop_msgs/VoxelFeatures of a vehicle whose car also runs an ego (every CAV an ego): its features lossless,
     for that ego on board; no other car's ego subscribes to it, so it never crosses the V2X link."""

@@ -21,7 +21,7 @@ from co3sop_nodes.eval.controls import INPUT_CONTROLS, ControlledInputs
 from co3sop_nodes.eval.metrics import CONVENTIONS, Bootstrap, Confusion, difference_table, markdown_table, point
 from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint, shipped_checkpoint
 from co3sop_nodes.inference.inputs import to_batch
-from co3sop_nodes.inference.outputs import through_codec
+from co3sop_nodes.inference.outputs import through_codec, through_scan
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.model.path import InferencePath, inference_path
@@ -29,6 +29,7 @@ from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_request, encode_request
 from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
 from co3sop_nodes.v2x.request_map import request_for_neighbour, request_of
+from co3sop_nodes.v2x.scan import ScanCodecConfig
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 from co3sop_nodes.v2x.sender_requests import union_request
 
@@ -58,7 +59,7 @@ def evaluate(
     collaborators: int | None = None,
     mu: float = 0.0,
     sigma: float = 0.0,
-    codec: FeatureCodecConfig | None = None,
+    codec: FeatureCodecConfig | ScanCodecConfig | None = None,
     seed: int = 0,
     desc: str = "evaluate",
     cache: dict | None = None,
@@ -96,6 +97,9 @@ def evaluate(
             f"{model.cfg.name}: an early-fusion model merges the collaborators' scans, it receives no "
             f"features to encode"
         )
+    scans = isinstance(codec, ScanCodecConfig)
+    if scans and model.cfg.modality != "lidar":
+        raise Co3sopError(f"{model.cfg.name}: a {model.cfg.modality} model encodes no LiDAR scans ({codec.name})")
     rng = np.random.default_rng(seed)
     if path is not None:
         model.use(path)
@@ -161,7 +165,11 @@ def evaluate(
             ego = vehicle(sample.ego.cav_id)
         # by default a request map reaches a neighbour a frame late, as in the graph: the ego's previous one (none on
         # a scenario's first frame: the neighbour then weighs by its own confidence alone)
-        request = request_made(f, sample.ego.cav_id) if codec is not None and codec.selection == "request" else None
+        request = (
+            request_made(f, sample.ego.cav_id)
+            if not scans and codec is not None and codec.selection == "request"
+            else None
+        )
         union = request_answer == "union" and request is not None
 
         def union_wanted(record) -> np.ndarray | None:
@@ -182,8 +190,13 @@ def evaluate(
                 key = (sample.key[:2], record.cav_id)
                 if key not in senders:
                     senders[key] = SenderBudgets(codec)
-                if union and (f, record.cav_id) in broadcast:
+                if (union or scans) and (f, record.cav_id) in broadcast:
                     out, size = broadcast[(f, record.cav_id)]
+                elif scans:  # the same scan for every ego: sent once, for all
+                    scan = controlled(f, position[record.cav_id])["occupancy"]
+                    out, size = through_scan(model, scan, senders[key].config(None))
+                    senders[key].spend(None, size)
+                    broadcast[(f, record.cav_id)] = out, size
                 elif union:
                     out, size = through_codec(model, out, senders[key].config(None), union_wanted(record))
                     senders[key].spend(None, size)

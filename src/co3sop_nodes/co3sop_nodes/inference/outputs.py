@@ -20,6 +20,7 @@ from co3sop_nodes.v2x.codec import (
     decode_features,
     encode_features,
 )
+from co3sop_nodes.v2x.scan import ScanCodecConfig, decode_scan, encode_scan
 
 
 def code_id(model: Co3SOP) -> str:
@@ -71,6 +72,28 @@ def through_codec(
     and quantisation constants, as a byte budget counts them)."""
     enc = encode_output(out, model.cfg.feature_grid, cfg, request, code_id(model) if cfg.learned else "")
     return decoded_output(decode_features(enc), model), enc.budget_bytes
+
+
+def scan_output(occupancy: np.ndarray, model: Co3SOP) -> VehicleOutput:
+    """A neighbour's received scan (X, Y, Z) bool -> its output as fusion takes it: `model`'s vehicle half run on it,
+    as the sender's own would (a LiDAR model's vehicle half sees nothing else)."""
+    if model.cfg.modality != "lidar":
+        raise CodecError(f"{model.cfg.name}: a {model.cfg.modality} model encodes no LiDAR scan")
+    if occupancy.shape != model.cfg.grid.dims:
+        raise CodecError(
+            f"occupancy: a {'x'.join(map(str, occupancy.shape))} scan for the model's "
+            f"{'x'.join(map(str, model.cfg.grid.dims))} grid"
+        )
+    with torch.no_grad():
+        scan = torch.from_numpy(occupancy.astype(np.uint8))[None, None].to(model.path.torch_device)  # (1, 1, X, Y, Z)
+        return model.vehicle(occupancy=scan)
+
+
+def through_scan(model: Co3SOP, occupancy: np.ndarray, cfg: ScanCodecConfig) -> tuple[VehicleOutput, int]:
+    """A neighbour's scan (1, X, Y, Z) as its ego receives it through `cfg` without DDS, encoded by the ego's
+    `model`, and the bytes it took."""
+    enc = encode_scan(occupancy[0], model.cfg.grid, cfg)
+    return scan_output(decode_scan(enc), model), enc.budget_bytes
 
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,7 @@ from co3sop_nodes.messages.co3sop import (
     FEATURES,
     OCCUPANCY,
     REQUEST,
+    SCAN,
     features_msg,
     features_of,
     grid_msg,
@@ -16,6 +17,8 @@ from co3sop_nodes.messages.co3sop import (
     occupancy_of,
     request_msg,
     request_of,
+    scan_msg,
+    scan_of,
 )
 from co3sop_nodes.messages.diagnostics import diagnostics_msg
 from co3sop_nodes.messages.sensors import (
@@ -50,6 +53,7 @@ __all__ = [
     "LIDAR_POINTS",
     "OCCUPANCY",
     "REQUEST",
+    "SCAN",
     "MessageTypes",
     "RosbagsTypes",
     "camera_info_msg",
@@ -75,6 +79,8 @@ __all__ = [
     "request_msg",
     "request_of",
     "rgb_of",
+    "scan_msg",
+    "scan_of",
     "stamp_ns",
     "tf_msg",
     "time_msg",

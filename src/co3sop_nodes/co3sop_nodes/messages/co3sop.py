@@ -1,4 +1,4 @@
-"""co3sop_msgs: GridSpec, VoxelFeatures, RequestMap, SemanticOccupancy <-> the codec's encoded payloads
+"""co3sop_msgs: GridSpec, VoxelFeatures, VoxelScan, RequestMap, SemanticOccupancy <-> the codecs' encoded payloads
 (ROS-free adapters; see backend.py). Payloads are checked where they are decoded (co3sop_nodes.v2x.codec)."""
 
 from __future__ import annotations
@@ -8,12 +8,14 @@ from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.messages.backend import MessageTypes, octets_of
 from co3sop_nodes.messages.std import header_msg, pose_msg
 from co3sop_nodes.v2x.codec import EncodedFeatures, EncodedLabels, EncodedRequest
+from co3sop_nodes.v2x.scan import EncodedScan
 
 GRID = "co3sop_msgs/msg/GridSpec"
 FEATURES = "co3sop_msgs/msg/VoxelFeatures"
+SCAN = "co3sop_msgs/msg/VoxelScan"
 REQUEST = "co3sop_msgs/msg/RequestMap"
 OCCUPANCY = "co3sop_msgs/msg/SemanticOccupancy"
-TYPES = (GRID, FEATURES, REQUEST, OCCUPANCY)
+TYPES = (GRID, FEATURES, SCAN, REQUEST, OCCUPANCY)
 
 
 def grid_msg(types: MessageTypes, grid: GridSpec):
@@ -95,6 +97,31 @@ def features_of(msg) -> EncodedFeatures:
         basis=tuple(msg.basis),
         basis_mean=tuple(msg.basis_mean),
         learned_code=msg.learned_code,
+    )
+
+
+def scan_msg(types: MessageTypes, enc: EncodedScan, *, stamp_ns: int, frame_id: str, agent_id: int, pose: Pose):
+    return types.make(
+        SCAN,
+        header=header_msg(types, stamp_ns, frame_id),
+        agent_id=agent_id,
+        lidar_pose=pose_msg(types, pose),
+        grid=grid_msg(types, enc.grid),
+        codec=enc.codec,
+        num_voxels=enc.num_voxels,
+        occupancy=types.octets(enc.occupancy),
+        occupancy_raw_size=enc.occupancy_raw_size,
+    )
+
+
+def scan_of(msg) -> EncodedScan:
+    """Raises GridError on an invalid grid."""
+    return EncodedScan(
+        grid=grid_of(msg.grid),
+        codec=msg.codec,
+        num_voxels=msg.num_voxels,
+        occupancy=octets_of(msg.occupancy),
+        occupancy_raw_size=msg.occupancy_raw_size,
     )
 
 

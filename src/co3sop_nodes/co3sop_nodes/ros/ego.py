@@ -4,8 +4,9 @@
 
 Subscribes to its own encoder's cav_<ego_id>/voxel_features (a name relative
 to its namespace, so remapping works) and to every other topic of type
-co3sop_msgs/VoxelFeatures as it appears in the graph, whatever its name (up
-to max_topics); a neighbour's vehicle id is the one its first message carries
+co3sop_msgs/VoxelFeatures or co3sop_msgs/VoxelScan (a neighbour's LiDAR scan,
+which this ego's model encodes) as it appears in the graph, whatever its name
+(up to max_topics); a neighbour's vehicle id is the one its first message carries
 (the vehicle's own /cav_N/voxel_features, or a topic whose claimant left,
 takes it over). Each message is
 checked (valid CDR, agent id, pose, grid, payload, finite values, size limit,
@@ -38,12 +39,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 
-from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
-from co3sop_nodes.inference.outputs import decoded_output
+from co3sop_nodes.inference.outputs import decoded_output, scan_output
 from co3sop_nodes.inference.predict import compile_kernels, predict_frame
 from co3sop_nodes.messages import (
     diagnostics_msg,
@@ -52,6 +53,7 @@ from co3sop_nodes.messages import (
     point_cloud_msg,
     pose_of,
     request_msg,
+    scan_of,
     stamp_ns,
 )
 from co3sop_nodes.model.co3sop import VehicleOutput
@@ -75,6 +77,7 @@ from co3sop_nodes.v2x.codec import REQUEST_LEVELS, decode_features, encode_label
 from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
 from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.request_map import request_of
+from co3sop_nodes.v2x.scan import decode_scan
 from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
 
 PARAMS = (
@@ -233,7 +236,8 @@ PARAMS = (
     ),
 )
 RUNTIME = [p.name for p in PARAMS if p.runtime]
-FEATURES_TYPE = "co3sop_msgs/msg/VoxelFeatures"
+# what a neighbour sends: its features, or its LiDAR scan for this ego's model to encode
+NEIGHBOUR_TYPES = {"co3sop_msgs/msg/VoxelFeatures": VoxelFeatures, "co3sop_msgs/msg/VoxelScan": VoxelScan}
 
 
 @dataclass
@@ -363,13 +367,13 @@ class Ego(ManagedNode):
 
     # --- receiving ---------------------------------------------------------------------------------
 
-    def _subscribe(self, topic: str) -> None:
+    def _subscribe(self, topic: str, msg_type: type = VoxelFeatures) -> None:
         if topic != self.own_topic:
             with self._worker.lock:
                 self.pairing.discovered(topic, time.time_ns())
         sub = subscribe_foreign(
             self,
-            VoxelFeatures,
+            msg_type,
             topic,
             lambda msg, raw, t=topic: self._on_features(t, msg, raw),
             self._qos,
@@ -380,22 +384,22 @@ class Ego(ManagedNode):
             self._subs[topic] = sub
 
     def _discover(self) -> None:
-        """Every VoxelFeatures topic in the graph is a neighbour's, whatever its name or namespace, up to max_topics
-        (to make room, topics without a publisher left are released); then the links, as this ego sees them."""
-        new = [
-            name
+        """Every VoxelFeatures or VoxelScan topic in the graph is a neighbour's, whatever its name or namespace, up
+        to max_topics (to make room, topics without a publisher left are released); then the links, as this ego
+        sees them."""
+        new = {
+            name: NEIGHBOUR_TYPES[kind]
             for name, types in self.get_topic_names_and_types()
-            if FEATURES_TYPE in types and name not in self._subs and not self._another_cars_own(name)
-        ]
+            for kind in types[:1]  # a topic of two types is one DDS cannot carry: its first, as `ros2 topic` shows
+            if kind in NEIGHBOUR_TYPES and name not in self._subs and not self._another_cars_own(name)
+        }
         if new and len(self._subs) + len(new) > self.params["max_topics"]:
             self._release_silent()
         for name in new:
             if len(self._subs) >= self.params["max_topics"]:
-                self.drops(
-                    name, "topics", f"not subscribed: already {len(self._subs)} VoxelFeatures topics (max_topics)"
-                )
+                self.drops(name, "topics", f"not subscribed: already {len(self._subs)} neighbour topics (max_topics)")
                 continue
-            self._subscribe(name)
+            self._subscribe(name, new[name])
             self.get_logger().info(f"neighbour discovered: {name}")
         with self._worker.lock:
             subs = dict(self._subs)
@@ -403,9 +407,11 @@ class Ego(ManagedNode):
 
     def _another_cars_own(self, topic: str) -> bool:
         """Features not meant for this ego, never subscribed: another car's on board (voxel_features/local) and,
-        where this ego's own come on board, its own car's V2X transmission (/cav_<ego_id>/voxel_features)."""
+        where this ego's own come on board, its own car's V2X transmission (/cav_<ego_id>/voxel_features or
+        voxel_scan)."""
         return topic != self.own_topic and (
-            topics.is_local_features(topic) or topic == topics.voxel_features(self.ego_id)
+            topics.is_local_features(topic)
+            or topic in (topics.voxel_features(self.ego_id), topics.voxel_scan(self.ego_id))
         )
 
     def _release_silent(self) -> None:
@@ -417,7 +423,7 @@ class Ego(ManagedNode):
                 self._agents.pop(topic, None)
                 self.pairing.forget(topic)
 
-    def _agent_of(self, topic: str, msg: VoxelFeatures) -> int:
+    def _agent_of(self, topic: str, msg: VoxelFeatures | VoxelScan) -> int:
         """The vehicle behind `topic`: the ego's own on its own topic; a neighbour's id is fixed by its first message."""
         agent = msg.agent_id
         if topic == self.own_topic:
@@ -443,10 +449,13 @@ class Ego(ManagedNode):
             self._agents[topic] = agent
         return agent
 
-    def _on_features(self, topic: str, msg: VoxelFeatures, raw: bytes) -> None:
+    def _on_features(self, topic: str, msg: VoxelFeatures | VoxelScan, raw: bytes) -> None:
         wall = time.time_ns()
         stamp = stamp_ns(msg.header.stamp)
-        if msg.addressed and msg.recipient_id != self.ego_id:  # selected for another ego's request: not ours to fuse
+        scan = isinstance(msg, VoxelScan)
+        if (
+            not scan and msg.addressed and msg.recipient_id != self.ego_id
+        ):  # selected for another ego's request: not ours to fuse
             self.for_other_egos += 1
             return
         try:
@@ -479,16 +488,12 @@ class Ego(ManagedNode):
             )
         t0 = time.perf_counter()
         try:
-            enc = features_of(msg)
-            # a learned code carries its K integers per voxel, which this model's decoder of the code expands
-            channels = self.cfg.wire.rank if enc.learned_code and self.cfg.wire else self.cfg.embed_dims
-            if enc.grid != self.cfg.feature_grid or enc.channels != channels:
-                raise Co3sopError(
-                    f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
-                    f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
-                    f"{self.cfg.feature_grid.voxel_size:g} m x {channels}"
-                )
-            out = decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes), self.model)
+            if scan and topic == self.own_topic:
+                raise Co3sopError(f"a VoxelScan on the ego's own features topic {self.own_topic}")
+            if scan:  # encoded by this ego's model as the sender's would
+                out = scan_output(decode_scan(scan_of(msg), max_raw_bytes=self.max_raw_bytes), self.model)
+            else:
+                out = self._decode_features(msg)
         except PayloadTooLargeError as exc:
             return self.drops(topic, "size", str(exc))
         except NonFiniteError as exc:
@@ -503,6 +508,19 @@ class Ego(ManagedNode):
         with self._worker.lock:
             self.pairing.add(topic, stamp, record, wall, time.monotonic())
             self._worker.wake()
+
+    def _decode_features(self, msg: VoxelFeatures) -> VehicleOutput:
+        """A VoxelFeatures message -> the sender's output as fusion takes it; raises Co3sopError on a bad one."""
+        enc = features_of(msg)
+        # a learned code carries its K integers per voxel, which this model's decoder of the code expands
+        channels = self.cfg.wire.rank if enc.learned_code and self.cfg.wire else self.cfg.embed_dims
+        if enc.grid != self.cfg.feature_grid or enc.channels != channels:
+            raise Co3sopError(
+                f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m x {enc.channels} channels "
+                f"does not match the model's {'x'.join(map(str, self.cfg.feature_grid.dims))} @ "
+                f"{self.cfg.feature_grid.voxel_size:g} m x {channels}"
+            )
+        return decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes), self.model)
 
     def _publish_request(self, stamp: int, confidence: torch.Tensor, pose: Pose) -> None:
         """Where this own frame is unsure (v2x/request_map.py), as it arrives: the vehicles answer it with this

@@ -9,7 +9,9 @@ LiDAR checkpoint) and the camera mounts on /tf_static; groups each frame by
 its header stamp, runs the vehicle half of the checkpoint (default: the
 shipped tiny-lidar), encodes the feature volume and confidence with the codec
 parameters and publishes co3sop_msgs/VoxelFeatures on voxel_features
-(reliable), plus its per-frame timings on /diagnostics. Frames are encoded on
+(reliable); with `send: scan` (LiDAR checkpoints) it publishes its voxelised
+scan instead, co3sop_msgs/VoxelScan on voxel_scan, for each ego's copy of the
+model to encode; plus its per-frame timings on /diagnostics. Frames are encoded on
 a thread of their own (worker.py); a vehicle slower than its sensors encodes
 the newest complete frame and skips older ones (counted as `skipped`). A
 lifecycle node (ros/lifecycle.py). Parameters: see config/vehicle.yaml.
@@ -30,7 +32,7 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
-from co3sop_msgs.msg import RequestMap, VoxelFeatures
+from co3sop_msgs.msg import RequestMap, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError, CodecError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
@@ -46,6 +48,7 @@ from co3sop_nodes.messages import (
     pose_of,
     request_of,
     rgb_of,
+    scan_msg,
     stamp_ns,
     transforms_of,
     xyz_of,
@@ -76,11 +79,13 @@ from co3sop_nodes.v2x.codec import (
 )
 from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.request_map import request_for_neighbour
+from co3sop_nodes.v2x.scan import EncodedScan, ScanCodecConfig, encode_scan
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
 from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS, Request, RequestBook, union_request
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
+SENDS = ("features", "scan")
 
 
 PARAMS = (
@@ -120,6 +125,15 @@ PARAMS = (
         "float16 on other GPUs, else float32), float32, bfloat16, float16",
         "auto",
         choices=PRECISIONS,
+    ),
+    Param(
+        "send",
+        str,
+        "what goes over V2X: features (the model's, through the codec) or scan (a LiDAR model's input, the "
+        "voxelised scan, co3sop_msgs/VoxelScan on voxel_scan, for each ego's copy of the model to encode; of the "
+        "codec's parameters only compression, level, max_bytes and burst_bytes apply)",
+        "features",
+        choices=SENDS,
     ),
     Param("max_pending", int, "incomplete frames kept while waiting for their last message", 10, range=(1, 1000)),
     Param(
@@ -254,6 +268,8 @@ CODEC_FIELDS = {
     "codec.learned": "learned",
     "codec.fill": "fill",
 }
+# the codec parameters a scan takes (v2x/scan.py), as ScanCodecConfig's fields
+SCAN_FIELDS = ("codec", "level", "max_bytes", "burst_bytes")
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 ANSWERING = ("request_timeout", "comm_range", "max_egos", "request_answer", "request_wait")  # how requests are served
 # the ego on board gets the features as they are
@@ -296,7 +312,10 @@ class Vehicle(ManagedNode):
                 )
         self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
         self._code = code_id(self.model)
-        self.codec = FeatureCodecConfig()
+        self.send = p["send"]
+        if self.send == "scan" and cfg.modality != "lidar":
+            raise Co3sopError(f"parameter send=scan: {cfg.name} is a {cfg.modality} model (a LiDAR one sends scans)")
+        self.codec = ScanCodecConfig() if self.send == "scan" else FeatureCodecConfig()
         self._apply({name: p[name] for name in (*CODEC_FIELDS, *ANSWERING)})
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
@@ -314,7 +333,8 @@ class Vehicle(ManagedNode):
             k: self.resolve_topic_name(name) for k, name in self._parts.items()
         }  # full names in logs and drops
         self._pub = self.create_lifecycle_publisher(
-            VoxelFeatures, topics.voxel_features(), features_qos(p["features_reliability"])
+            *((VoxelScan, topics.voxel_scan()) if self.send == "scan" else (VoxelFeatures, topics.voxel_features())),
+            features_qos(p["features_reliability"]),
         )
         self._local = (
             self.create_lifecycle_publisher(VoxelFeatures, topics.local_features(), features_qos("reliable"))
@@ -323,8 +343,13 @@ class Vehicle(ManagedNode):
         )
         self._diag = self.create_lifecycle_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
         self.get_logger().info(
-            f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), features {cfg.embed_dims} x "
-            f"{'x'.join(map(str, cfg.feature_grid.dims))} -> {self._pub.topic_name} as {self.codec.name}, "
+            f"configured: cav {self.agent_id}, {cfg.name} ({cfg.modality}, {cfg.range}), "
+            + (
+                f"scans {'x'.join(map(str, cfg.grid.dims))}"
+                if self.send == "scan"
+                else f"features {cfg.embed_dims} x {'x'.join(map(str, cfg.feature_grid.dims))}"
+            )
+            + f" -> {self._pub.topic_name} as {self.codec.name}, "
             f"{p['features_reliability']}{', lossless on voxel_features/local' if self._local else ''}; "
             f"inference on {self.model.path.describe()}; "
             f"compiled kernels: {', '.join(self.kernels) or 'none'}"
@@ -460,6 +485,10 @@ class Vehicle(ManagedNode):
         if not codec:
             return
         try:
+            if self.send == "scan":
+                self.codec = replace(self.codec, **{k: v for k, v in codec.items() if k in SCAN_FIELDS})
+                self._budgets = SenderBudgets(self.codec)
+                return
             candidate = replace(self.codec, **codec)
             if candidate.learned and self.cfg.wire is None:
                 raise CodecError(
@@ -478,6 +507,23 @@ class Vehicle(ManagedNode):
         enc = encode_output(out, self.cfg.feature_grid, self._budgets.config(ego), request, self._code)
         self._budgets.spend(ego, enc.budget_bytes)
         return enc
+
+    def _feature_messages(self, out, stamp: int, world_from_lidar: np.ndarray):
+        """The frame's feature messages [(ego or None, encoding)], the requests they answer, the requests moved into
+        this frame and the ms waited for them: one message per requesting ego, its voxels weighed by that ego's
+        request, or one for all weighed by the union of their requests; with no request, one for all by the codec's
+        own choice."""
+        waited_ms = self._await_requests(stamp)
+        recipients = self._recipients(stamp, world_from_lidar)
+        wanted = {
+            ego: request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, self.cfg.feature_grid)
+            for ego, r in recipients.items()
+        }
+        if self.request_answer == "union" and wanted:
+            messages = [(None, self._encode_for(out, None, union_request(list(wanted.values()))))]
+        else:
+            messages = [(ego, self._encode_for(out, ego, need)) for ego, need in wanted.items()]
+        return messages or [(None, self._encode_for(out, None, None))], recipients, wanted, waited_ms
 
     def _mounts_known(self, parts: dict) -> bool:
         """The mounts of the frame's cameras are known (topics carry no order between /tf_static and the images)."""
@@ -547,11 +593,16 @@ class Vehicle(ManagedNode):
         except Co3sopError as exc:
             return self.drops(self.get_namespace(), "input", f"frame {stamp}: {exc}")
         t1 = time.perf_counter()
-        with torch.inference_mode():
-            out = self.model.vehicle(**to_batch(inputs, self.model.path.torch_device))
+        out = None  # a vehicle sending its scan runs the model only for the ego on its car
+        if self.send == "features" or self._local is not None:
+            with torch.inference_mode():
+                out = self.model.vehicle(**to_batch(inputs, self.model.path.torch_device))
         t2 = time.perf_counter()
 
         def message(enc, ego: int | None):
+            if isinstance(enc, EncodedScan):
+                kw = dict(stamp_ns=stamp, frame_id=self.lidar_frame, agent_id=self.agent_id, pose=pose)
+                return scan_msg(RCLPY, enc, **kw)
             return features_msg(
                 RCLPY,
                 enc,
@@ -567,19 +618,12 @@ class Vehicle(ManagedNode):
             # the ego on board first: it requests from the others as its frame arrives, and this frame may wait
             if self._local is not None:
                 self._local.publish(message(encode_output(out, fg, LOSSLESS_CODEC), None))
-            waited_ms = self._await_requests(stamp)
-            # one message per requesting ego, its voxels weighed by that ego's request moved into this frame, or one
-            # for all weighed by the union of their requests; with no request, one for all by the codec's own choice
-            recipients = self._recipients(stamp, world_from_lidar)
-            wanted = {
-                ego: request_for_neighbour(r.need, r.world_from_ego, world_from_lidar, fg)
-                for ego, r in recipients.items()
-            }
-            if self.request_answer == "union" and wanted:
-                messages = [(None, self._encode_for(out, None, union_request(list(wanted.values()))))]
+            if self.send == "scan":  # the same scan for every ego
+                enc = encode_scan(inputs["occupancy"][0], self.cfg.grid, self._budgets.config(None))
+                self._budgets.spend(None, enc.budget_bytes)
+                messages, recipients, wanted, waited_ms = [(None, enc)], {}, {}, 0.0
             else:
-                messages = [(ego, self._encode_for(out, ego, need)) for ego, need in wanted.items()]
-            messages = messages or [(None, self._encode_for(out, None, None))]
+                messages, recipients, wanted, waited_ms = self._feature_messages(out, stamp, world_from_lidar)
         except Co3sopError as exc:  # e.g. non-finite features from extreme inputs: never sent
             return self.drops(self.get_namespace(), "encode", f"frame {stamp}: {exc}")
         msgs = [message(enc, ego) for ego, enc in messages]

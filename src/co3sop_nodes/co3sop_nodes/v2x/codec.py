@@ -83,9 +83,9 @@ class FeatureCodecConfig:
     fill: bool = False
 
     def __post_init__(self) -> None:
-        _check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
-        _check_choice("feature selection", self.selection, SELECTIONS)
-        _check_choice("codec", self.codec, CODECS)
+        check_choice("feature dtype", self.dtype, FEATURE_DTYPES)
+        check_choice("feature selection", self.selection, SELECTIONS)
+        check_choice("codec", self.codec, CODECS)
         if isinstance(self.topk, bool) or not isinstance(self.topk, numbers.Integral) or self.topk < 1:
             raise CodecError(f"topk must be a whole number of voxels >= 1, got {self.topk!r}")
         if not isinstance(self.threshold, numbers.Real) or not 0.0 <= self.threshold <= 1.0:
@@ -223,12 +223,12 @@ class DecodedLabels:
     confidence: np.ndarray | None  # (nx, ny, nz) uint8, 255 * probability
 
 
-def _check_choice(what: str, value: str, known) -> None:
+def check_choice(what: str, value: str, known) -> None:
     if value not in known:
         raise UnknownCodecError(f"unknown {what} {value!r} (known: {', '.join(known)})")
 
 
-def _compress(raw: bytes, codec: str, level: int) -> bytes:
+def compress_payload(raw: bytes, codec: str, level: int) -> bytes:
     if codec == "none" or not raw:
         return bytes(raw)
     # The content size lets a receiver check the frame before decompressing;
@@ -236,9 +236,9 @@ def _compress(raw: bytes, codec: str, level: int) -> bytes:
     return zstandard.ZstdCompressor(level=level, write_checksum=True, write_content_size=True).compress(raw)
 
 
-def _decompress(payload, codec: str, declared: int, expected: int, field: str, max_raw_bytes: int) -> bytes:
+def decompress_payload(payload, codec: str, declared: int, expected: int, field: str, max_raw_bytes: int) -> bytes:
     """Checks `declared` against the limit and the grid, then decompresses exactly that much."""
-    _check_choice("codec", codec, CODECS)
+    check_choice("codec", codec, CODECS)
     if declared > max_raw_bytes:
         raise PayloadTooLargeError(
             f"{field}: declares {declared} uncompressed bytes, over the receiver's limit of {max_raw_bytes}"
@@ -528,9 +528,9 @@ def _encode(
         sparse=keep is not None,
         num_voxels=num_voxels,
         has_confidence=confidence is not None,
-        voxel_mask=_compress(mask_raw, cfg.codec, cfg.level),
-        values=_compress(values_raw, cfg.codec, cfg.level),
-        confidence=_compress(conf_raw, cfg.codec, cfg.level),
+        voxel_mask=compress_payload(mask_raw, cfg.codec, cfg.level),
+        values=compress_payload(values_raw, cfg.codec, cfg.level),
+        confidence=compress_payload(conf_raw, cfg.codec, cfg.level),
         voxel_mask_raw_size=len(mask_raw),
         values_raw_size=len(values_raw),
         confidence_raw_size=len(conf_raw),
@@ -578,13 +578,13 @@ def _check_finite(field: str, values: np.ndarray) -> None:
 
 def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> DecodedFeatures:
     """Inverse of encode_features; raises a CodecError subclass naming the bad field."""
-    _check_choice("feature dtype", enc.dtype, FEATURE_DTYPES)
-    _check_choice("codec", enc.codec, CODECS)
+    check_choice("feature dtype", enc.dtype, FEATURE_DTYPES)
+    check_choice("codec", enc.codec, CODECS)
     grid, channels = enc.grid, enc.channels
     if channels < 1:
         raise SizeMismatchError(f"channels: must be at least 1, got {channels}")
     if enc.sparse:
-        mask_raw = _decompress(
+        mask_raw = decompress_payload(
             enc.voxel_mask, enc.codec, enc.voxel_mask_raw_size, -(-grid.num_voxels // 8), "voxel_mask", max_raw_bytes
         )
         bits = np.unpackbits(np.frombuffer(mask_raw, np.uint8), count=grid.num_voxels, bitorder="little").astype(bool)
@@ -604,7 +604,7 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         )
     if enc.learned_code:
         _check_learned(enc)
-    raw = _decompress(
+    raw = decompress_payload(
         enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes
     )
     wire = _unpack_int4(raw, rows * n) if enc.dtype == "int4" else np.frombuffer(raw, FEATURE_DTYPES[enc.dtype])
@@ -640,7 +640,7 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
     conf = None  # (N,) float32
     if enc.has_confidence:
         cdtype = _confidence_dtype(enc.dtype)
-        craw = _decompress(
+        craw = decompress_payload(
             enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes
         )
         conf = np.frombuffer(craw, cdtype).astype(np.float32)
@@ -698,7 +698,7 @@ def encode_labels(
     level: int = 3,
 ) -> EncodedLabels:
     """Encodes an (nx, ny, nz) uint8 label grid and optional uint8 confidence (255 * p)."""
-    _check_choice("codec", codec, CODECS)
+    check_choice("codec", codec, CODECS)
     labels = np.asarray(labels)
     if labels.shape != grid.dims:
         raise SizeMismatchError(f"labels: shape {labels.shape} does not match the grid {grid.dims}")
@@ -718,9 +718,9 @@ def encode_labels(
         grid=grid,
         num_classes=num_classes,
         codec=codec,
-        labels=_compress(raw, codec, level),
+        labels=compress_payload(raw, codec, level),
         labels_raw_size=len(raw),
-        confidence=_compress(conf_raw, codec, level),
+        confidence=compress_payload(conf_raw, codec, level),
         confidence_raw_size=len(conf_raw),
     )
 
@@ -741,12 +741,12 @@ def _check_labels(labels: np.ndarray, num_classes: int) -> None:
 def decode_labels(enc: EncodedLabels, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> DecodedLabels:
     """Inverse of encode_labels; raises a CodecError subclass naming the bad field."""
     n = enc.grid.num_voxels
-    raw = _decompress(enc.labels, enc.codec, enc.labels_raw_size, n, "labels", max_raw_bytes)
+    raw = decompress_payload(enc.labels, enc.codec, enc.labels_raw_size, n, "labels", max_raw_bytes)
     labels = np.frombuffer(raw, np.uint8).reshape(enc.grid.dims)
     _check_labels(labels, enc.num_classes)
     confidence = None
     if enc.confidence_raw_size or enc.confidence:
-        craw = _decompress(enc.confidence, enc.codec, enc.confidence_raw_size, n, "confidence", max_raw_bytes)
+        craw = decompress_payload(enc.confidence, enc.codec, enc.confidence_raw_size, n, "confidence", max_raw_bytes)
         confidence = np.frombuffer(craw, np.uint8).reshape(enc.grid.dims)
     return DecodedLabels(labels=labels, confidence=confidence)
 
@@ -781,7 +781,7 @@ def encode_request(
 ) -> EncodedRequest:
     """(nx, ny, nz) need in [0, 1] -> round((levels - 1) * need) uint8, compressed (fewer levels, fewer bytes: 2
     levels send whether the need is above a half)."""
-    _check_choice("codec", codec, CODECS)
+    check_choice("codec", codec, CODECS)
     _check_levels(levels)
     need = np.asarray(need, dtype=np.float32)
     if need.shape != grid.dims:
@@ -789,13 +789,13 @@ def encode_request(
     if not (np.isfinite(need).all() and need.min(initial=0) >= 0 and need.max(initial=0) <= 1):
         raise CodecError("need: values must lie in [0, 1]")
     raw = np.rint(need * (levels - 1)).astype(np.uint8).tobytes()
-    return EncodedRequest(grid, codec, _compress(raw, codec, level), len(raw), levels)
+    return EncodedRequest(grid, codec, compress_payload(raw, codec, level), len(raw), levels)
 
 
 def decode_request(enc: EncodedRequest, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> np.ndarray:
     """Inverse of encode_request: (nx, ny, nz) float32 need in [0, 1] (multiples of 1 / (levels - 1))."""
     _check_levels(enc.levels)
-    raw = _decompress(enc.need, enc.codec, enc.need_raw_size, enc.grid.num_voxels, "need", max_raw_bytes)
+    raw = decompress_payload(enc.need, enc.codec, enc.need_raw_size, enc.grid.num_voxels, "need", max_raw_bytes)
     q = np.frombuffer(raw, np.uint8)
     if q.size and q.max() >= enc.levels:
         raise CodecError(f"need: value {q.max()} beyond its {enc.levels} levels")

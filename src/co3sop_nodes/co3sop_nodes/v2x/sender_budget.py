@@ -19,6 +19,10 @@ from dataclasses import dataclass, replace
 
 from co3sop_nodes.common.errors import CodecError
 from co3sop_nodes.v2x.codec import FeatureCodecConfig
+from co3sop_nodes.v2x.scan import ScanCodecConfig
+
+# what a budget caps: a feature codec's or a scan codec's messages (each has max_bytes and burst_bytes)
+Codec = FeatureCodecConfig | ScanCodecConfig
 
 
 @dataclass
@@ -44,12 +48,12 @@ class ByteBudget:
             raise CodecError(f"a message of {used} bytes overspends its allowance of {allowance}")
         self.saved = allowance - used
 
-    def config(self, cfg: FeatureCodecConfig) -> FeatureCodecConfig:
+    def config(self, cfg: Codec) -> Codec:
         """`cfg` for the next message: its max_bytes the allowance."""
         return replace(cfg, max_bytes=self.allowance())
 
 
-def budget_for(cfg: FeatureCodecConfig) -> ByteBudget | None:
+def budget_for(cfg: Codec) -> ByteBudget | None:
     """A fresh budget where `cfg` averages its max_bytes over messages (burst_bytes set); None where each message is
     capped alone."""
     return ByteBudget(cfg.max_bytes, cfg.burst_bytes) if cfg.burst_bytes else None
@@ -59,7 +63,7 @@ class SenderBudgets:
     """A sender's budgets, one per receiver (None: the messages for every receiver, sent before any asked for its
     own): a receiver's own budget starts where the messages for every receiver left it, as it got those too."""
 
-    def __init__(self, cfg: FeatureCodecConfig):
+    def __init__(self, cfg: Codec):
         self.cfg = cfg
         self._budgets: dict[int | None, ByteBudget | None] = {}
 
@@ -70,7 +74,7 @@ class SenderBudgets:
             self._budgets[receiver] = replace(shared) if shared is not None else budget_for(self.cfg)
         return self._budgets[receiver]
 
-    def config(self, receiver: int | None) -> FeatureCodecConfig:
+    def config(self, receiver: int | None) -> Codec:
         """`cfg` for the next message to `receiver`: its max_bytes the allowance where the budget is a rate."""
         budget = self.of(receiver)
         return budget.config(self.cfg) if budget else self.cfg
