@@ -3,7 +3,7 @@
     ros2_ws/benchmarks/bench_shared_channel.py --bag BAG [BAG ...] [--cavs 2 3 4 5] [--medium 3 6 12]
         [--answers union each] [--request-levels 4] [--rate-scale 0.5] [--model tiny-lidar|CKPT]
         [--reference CKPT] [--multicast] [--payload-share 0.6] [--answer-ms MS] [--request-wait 0.5] [--maps-first]
-        [--fill] [--out results/bench_shared_channel]
+        [--fill] [--send features|scan] [--out results/bench_shared_channel]
 
 Needs root, iproute2 and nftables (co3sop_nodes/v2x/channel.py). For each bag (one scene; a scene of fewer than N
 CAVs is listed, not run) and number of CAVs N (the bag's first N), `demo --egos all` runs every CAV's ego and
@@ -28,7 +28,10 @@ which `score` counts as empty):
   request_wait, in real time at the play rate); without, a frame answers the maps of the egos' previous frame.
   With --maps-first (and --multicast) the request maps cross the medium before the features waiting on it
   (`demo --channel-maps-first`). With --fill what a message's budget leaves past the requests goes to the
-  vehicle's most confident other voxels (codec.fill).
+  vehicle's most confident other voxels (codec.fill). With --send scan (a LiDAR model) each vehicle sends its
+  voxelised scan instead (vehicle parameter send, co3sop_msgs/VoxelScan: one message for every ego, the voxels
+  nearest the sensor as its budget holds them), each ego encodes its neighbours' scans with its own copy of the
+  model and makes no request maps; the play rate then counts that work too.
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
 current, which `score` counts as empty predictions), neighbour-frames fused (% of those within comm range: fused,
 late or never received), latency p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy
@@ -63,8 +66,9 @@ from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, r
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros.demo import bag_period, measured_rate
 from co3sop_nodes.ros.graph import bag_contents
-from co3sop_nodes.ros.vehicle import CODEC_FIELDS
+from co3sop_nodes.ros.vehicle import CODEC_FIELDS, SCAN_FIELDS, SENDS
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, check_codec_for
+from co3sop_nodes.v2x.scan import ScanCodecConfig, encode_scan
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS
 
 FRAME_RATE = 10.0  # Hz: the sensors' rate, at which the medium's bytes per frame are counted
@@ -77,17 +81,24 @@ REQUEST_BYTES = {2: 600, 4: 1_400, 8: 3_300, 16: 5_700, 256: 17_500}
 MIN_GAIN = 0.005  # mIoU: the least collaboration gain whose share is reported
 
 
-def codec_of(size: int, cfg, fill: bool = False) -> FeatureCodecConfig:
-    """The vehicles' codec: request maps, `size` bytes per message (the rest of it filled past the requests with
-    `fill`), the model's learned wire code where it has one, else int4 coefficients at rank 8."""
+def codec_of(size: int, cfg, fill: bool = False, scans: bool = False) -> FeatureCodecConfig | ScanCodecConfig:
+    """The vehicles' codec: with `scans` their scans in `size` bytes; else request maps, `size` bytes per message
+    (the rest of it filled past the requests with `fill`), the model's learned wire code where it has one, else
+    int4 coefficients at rank 8."""
+    if scans:
+        return ScanCodecConfig(max_bytes=max(1, size))
     if cfg.wire is not None:
         return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), learned=True, fill=fill)
     return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), rank=8, fill=fill)
 
 
-def carries_features(codec: FeatureCodecConfig, cfg) -> bool:
-    """A message of `codec` can carry a voxel of the model's features (the vehicle refuses a codec that cannot)."""
+def carries_voxels(codec: FeatureCodecConfig | ScanCodecConfig, cfg) -> bool:
+    """A message of `codec` can carry a voxel of the model's features or scan (the vehicle refuses a features codec
+    that cannot, and sends no scan that does not fit)."""
     try:
+        if isinstance(codec, ScanCodecConfig):
+            encode_scan(np.zeros(cfg.grid.dims, bool), cfg.grid, codec)
+            return True
         check_codec_for(codec, cfg.wire.rank if codec.learned else cfg.embed_dims, cfg.feature_grid)
     except CodecError:
         return False
@@ -95,14 +106,21 @@ def carries_features(codec: FeatureCodecConfig, cfg) -> bool:
 
 
 def budget(
-    medium_mbit: float, cavs: int, answer: str, levels: int, multicast: bool = False, share: float = PAYLOAD_SHARE
+    medium_mbit: float,
+    cavs: int,
+    answer: str,
+    levels: int,
+    multicast: bool = False,
+    share: float = PAYLOAD_SHARE,
+    maps: bool = True,
 ) -> int:
     """Bytes one message may take: the medium's payload bytes per frame (`share` of it), less every ego's request map
-    to every vehicle, over the copies of feature messages DDS sends (one per ego a message reaches, or a vehicle a
-    request map reaches; one for all of them with multicast)."""
+    to every vehicle (where the egos make them: `maps`), over the copies of feature messages DDS sends (one per ego
+    a message reaches, or a vehicle a request map reaches; one for all of them with multicast)."""
     if medium_mbit == 0:  # no channel: every voxel an ego asks for
         return UNBOUNDED
-    payload = share * medium_mbit * 1e6 / 8 / FRAME_RATE - cavs * (1 if multicast else cavs - 1) * REQUEST_BYTES[levels]
+    maps_bytes = cavs * (1 if multicast else cavs - 1) * REQUEST_BYTES[levels] if maps else 0
+    payload = share * medium_mbit * 1e6 / 8 / FRAME_RATE - maps_bytes
     messages = cavs * ((cavs - 1) if answer == "each" else 1)
     return int(payload / (messages * (1 if multicast else cavs - 1)))
 
@@ -239,9 +257,17 @@ def main() -> int:
     parser.add_argument(
         "--fill", action="store_true", help="a budget the requests leave unspent goes to other voxels (codec.fill)"
     )
+    parser.add_argument(
+        "--send", choices=SENDS, default="features", help="what the vehicles send (vehicle parameter send)"
+    )
     opts = parser.parse_args()
     if opts.maps_first and not opts.multicast:
         parser.error("--maps-first needs --multicast")
+    if opts.send == "scan" and (opts.answers != ["union"] or opts.maps_first or opts.fill or opts.request_wait):
+        parser.error(
+            "--send scan: one scan for every ego, no request maps (no --answers each, --maps-first, "
+            "--fill or --request-wait)"
+        )
     demo = str(Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo"))
     model = load_graph_model(resolve_checkpoint(opts.model, "--model"))[0].use(inference_path("cpu", "auto"))
     scenes = {bag: bag_contents(bag) for bag in opts.bag}  # bag -> (CAV ids, frames)
@@ -254,7 +280,12 @@ def main() -> int:
     # every run of N CAVs at one rate: the demo's for N vehicles and N egos, slowed by --rate-scale, so that the
     # codec's and the channel's cost on top of the model's leaves the egos every frame (a skipped one is scored
     # empty); the medium is scaled by it, so its bytes per frame are real time's
-    rates = {n: f"{max(0.01, opts.rate_scale * measured_rate(model, n, period, egos=n)):.3f}" for n in opts.cavs}
+    scans = opts.send == "scan"
+    if scans and model.cfg.modality != "lidar":
+        parser.error(f"--send scan: --model {opts.model} is a {model.cfg.modality} model (a LiDAR one sends scans)")
+    rates = {
+        n: f"{max(0.01, opts.rate_scale * measured_rate(model, n, period, egos=n, scans=scans)):.3f}" for n in opts.cavs
+    }
     rows = [header(opts, model.cfg), *TABLE_HEAD]
     results = []
     for bag, (cavs, _) in scenes.items():
@@ -275,8 +306,13 @@ def header(opts, cfg) -> str:
     """What every cell shares."""
     return (
         f"Every CAV an ego; bags {', '.join(str(b) for b in opts.bag)}; model {opts.model} (alone and lossless: "
-        f"{opts.reference or opts.model}); request maps of {opts.request_levels} levels, "
-        + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
+        f"{opts.reference or opts.model}); "
+        + (
+            "each vehicle's scan, encoded by every ego's copy of the model"
+            if opts.send == "scan"
+            else f"request maps of {opts.request_levels} levels, "
+            + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
+        )
         + (", features and request maps multicast" if opts.multicast else ", unicast")
         + ("" if opts.answer_ms is None else f", DDS readers answering heartbeats after {opts.answer_ms:g} ms")
         + (", request maps crossing the medium first" if opts.maps_first else "")
@@ -318,25 +354,30 @@ def scene_cells(demo: str, opts, cfg, bag: Path, n: int, rate: str, period: floa
     results = []
     for medium in opts.medium:
         for answer in opts.answers:
-            size = budget(medium, n, answer, opts.request_levels, opts.multicast, opts.payload_share)
+            scans = opts.send == "scan"
+            size = budget(medium, n, answer, opts.request_levels, opts.multicast, opts.payload_share, not scans)
             shown, size_shown = (f"{medium:g}", f"{size:,}") if medium else ("none", "every voxel asked for")
             first = f"| {bag.name} | {n} | {shown} | {answer} | {size_shown} |"
-            codec = codec_of(size, cfg, opts.fill and bool(medium))  # no channel: every voxel asked for, no budget
-            if not carries_features(codec, cfg):
+            # no channel: every voxel asked for (or the whole scan), no budget
+            codec = codec_of(size, cfg, opts.fill and bool(medium), scans)
+            if not carries_voxels(codec, cfg):
                 why = "not run: a message of this budget carries no voxel (the request maps and the basis take it)"
                 rows.append(padded([bag.name, str(n), shown, answer, size_shown, "", "", why]))
                 continue
-            params = [f"{p}:={str(getattr(codec, f)).lower()}" for p, f in CODEC_FIELDS.items()]
-            extra = [*opts_rate, *channel_args(medium, opts), "--params", *params]
+            fields = {p: f for p, f in CODEC_FIELDS.items() if not scans or f in SCAN_FIELDS}
+            params = [f"{p}:={str(getattr(codec, f)).lower()}" for p, f in fields.items()]
+            extra = [*opts_rate, *channel_args(medium, opts), "--params", *params, f"send:={opts.send}"]
             extra += [f"request_answer:={answer}"]
             if opts.request_wait:  # of sensor time, in real time at the play rate
                 extra += [f"request_wait:={opts.request_wait * period / float(rate):.3f}"]
-            extra += ["--ego-params", f"request_levels:={opts.request_levels}"]
+            maps = "request_maps:=false" if scans else f"request_levels:={opts.request_levels}"
+            extra += ["--ego-params", maps]
             answer_delay = "" if opts.answer_ms is None or not medium else f"-{opts.answer_ms:g}ms"
             wait = f"-wait{opts.request_wait:g}" if opts.request_wait else ""
             maps_first = "-mapsfirst" if opts.maps_first and medium else ""
-            fill = "-fill" if codec.fill else ""
-            name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}{wait}{maps_first}{fill}"
+            fill = "-fill" if not scans and codec.fill else ""
+            sent = "-scan" if scans else ""
+            name = f"{n}cavs-{medium:g}mbit-{answer}-{size}B{answer_delay}{wait}{maps_first}{fill}{sent}"
             cell = run(demo, bag, out / name, n, extra, opts.model)
             load = "-" if cell.get("medium_load") is None else f"{cell['medium_kb']:,.0f} ({cell['medium_load']})"
             for cav, ego in sorted(cell["egos"].items()):

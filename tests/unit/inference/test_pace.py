@@ -18,6 +18,9 @@ def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
     assert pace.sustainable_rate(cost, 3, 0.1, 64) == pytest.approx(0.1 / 0.2)
     assert pace.sustainable_rate(cost, 6, 0.1, 2) < pace.sustainable_rate(cost, 3, 0.1, 2)  # more vehicles, slower
     assert pace.sustainable_rate(pace.FrameCost(0.001, 0.001), 3, 0.1, 2) == 1.0  # never faster than real time
+    # the ego encoding its two neighbours' scans: 0.1 + 2 x 0.05 s a frame, more than the 0.35 s of CPU over 2 cores
+    assert pace.sustainable_rate(cost, 3, 0.1, 2, scans=True) == pytest.approx(0.1 / 0.4)
+    assert pace.sustainable_rate(cost, 3, 0.1, 2, egos=3, scans=True) < pace.sustainable_rate(cost, 3, 0.1, 2, egos=3)
 
 
 @pytest.mark.parametrize("name", ["tiny", "tiny-lidar"])

@@ -100,10 +100,18 @@ def cores() -> int:
 
 
 def sustainable_rate(
-    cost: FrameCost, vehicles: int, period_s: float, n_cores: int, headroom: float = HEADROOM, egos: int = 1
+    cost: FrameCost,
+    vehicles: int,
+    period_s: float,
+    n_cores: int,
+    headroom: float = HEADROOM,
+    egos: int = 1,
+    scans: bool = False,
 ) -> float:
     """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores, and an ego
-    (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real time."""
-    cpu = vehicles * cost.vehicle_s + egos * cost.ego_s
-    wall = max(cpu / max(1, n_cores), cost.ego_s, cost.vehicle_s) * headroom
+    (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real time. With
+    `scans` the vehicles send their scans and each ego runs the vehicle half once per neighbour too."""
+    ego_s = cost.ego_s + (vehicles - 1) * cost.vehicle_s if scans else cost.ego_s
+    cpu = vehicles * cost.vehicle_s + egos * ego_s
+    wall = max(cpu / max(1, n_cores), ego_s, cost.vehicle_s) * headroom
     return float(min(1.0, period_s / wall))

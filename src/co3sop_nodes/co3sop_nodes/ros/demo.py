@@ -107,15 +107,16 @@ def bag_period(bag: Path, frames: int) -> float:
         return (reader.end_time - reader.start_time) / 1e9 / max(1, frames - 1) if frames > 1 else 0.1
 
 
-def measured_rate(model, vehicles: int, period: float, egos: int = 1) -> float:
-    """The playback rate this machine keeps up with for `vehicles` vehicles and `egos` egos (model.pace), to 2
-    digits."""
+def measured_rate(model, vehicles: int, period: float, egos: int = 1, scans: bool = False) -> float:
+    """The playback rate this machine keeps up with for `vehicles` vehicles and `egos` egos (model.pace; with
+    `scans`, each ego also encoding its neighbours' scans), to 2 digits."""
     cost = pace.frame_cost(model)
     n = pace.cores()
-    rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n, egos=egos)) / 100
+    rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n, egos=egos, scans=scans)) / 100
     say(
-        f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms; "
-        f"{vehicles} vehicles + {egos} ego{'s' if egos > 1 else ''} on {n} cores keep up with rate {rate:g} "
+        f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms"
+        + (" and a vehicle half per neighbour's scan" if scans else "")
+        + f"; {vehicles} vehicles + {egos} ego{'s' if egos > 1 else ''} on {n} cores keep up with rate {rate:g} "
         f"(a frame every {period / max(rate, 0.01):.2f} s)"
     )
     return max(rate, 0.01)
@@ -187,7 +188,8 @@ def run_demo(opts: DemoOptions) -> int:
     say(f"model {checkpoint} ({sensors}); inference on {path.describe()}")
     model.use(path)
     if opts.rate is None:
-        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos))
+        scans = opts.params.get("send") == "scan"
+        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans)
     channel, profiles = (
         _open_channel(opts, bag, frames, cavs, egos, sensors) if opts.channel_rate is not None else (None, None)
     )
