@@ -4,10 +4,20 @@ from __future__ import annotations
 
 import os
 import re
+import time
 from pathlib import Path
 
+import numpy as np
+import rclpy
 from ament_index_python.packages import get_package_prefix
 from conftest import executable, finish
+
+from co3sop_msgs.msg import VoxelScan
+from co3sop_nodes.common.geometry import Pose
+from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.messages import scan_msg
+from co3sop_nodes.ros.message_types import RCLPY
+from co3sop_nodes.v2x.scan import ScanCodecConfig, encode_scan
 
 
 def test_executables_resolve_like_ros2_run():
@@ -68,3 +78,27 @@ def test_monitor_counts_undecodable_payloads_and_keeps_going(processes):
     assert "/test_corrupt/voxel_features" in out
     assert "errors 1 (last: values: truncated or corrupt zstd payload" in out, out
     assert "n=1" in out
+
+
+def test_monitor_reports_voxel_scans(processes, peer):
+    monitor = processes.start(executable("monitor"), "--count", "3", "--duration", "60", "--period", "0.5")
+    grid = GridSpec((-25.6, -25.6, -2.0), 0.2, (256, 256, 24))
+    occupancy = np.random.default_rng(0).random(grid.dims) < 0.005
+    msg = scan_msg(
+        RCLPY,
+        encode_scan(occupancy, grid, ScanCodecConfig()),
+        stamp_ns=10**18,
+        frame_id="cav_5/lidar",
+        agent_id=5,
+        pose=Pose((0.0, 0.0, 1.8)),
+    )
+    pub = peer.create_publisher(VoxelScan, "/cav_5/voxel_scan", 10)
+    deadline = time.monotonic() + 60
+    while monitor.poll() is None and time.monotonic() < deadline:  # until the monitor has its count
+        pub.publish(msg)
+        rclpy.spin_once(peer, timeout_sec=0.3)
+    code, out = finish(monitor)
+    assert code == 0, out
+    line = [x for x in out.splitlines() if x.startswith("[monitor] /cav_5/voxel_scan  VoxelScan")][-1]
+    assert f"{int(occupancy.sum())} occupied zstd" in line and "grid 256x256x24 @0.200 m" in line, line
+    assert "frame cav_5/lidar agent 5" in line

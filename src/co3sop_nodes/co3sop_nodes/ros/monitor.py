@@ -1,7 +1,7 @@
 """`monitor`: watch the project's topics and report what crosses the wire.
 
 Subscribes (raw, so it sees the exact serialized size) to every
-co3sop_msgs/VoxelFeatures and co3sop_msgs/SemanticOccupancy topic it discovers,
+co3sop_msgs/VoxelFeatures, VoxelScan and SemanticOccupancy topic it discovers,
 or to the topics named, and prints per topic: message rate, bytes on the wire
 per message, compression ratio (uncompressed payload / compressed payload),
 decode time (deserialize + decompress + unpack), and the last decoded
@@ -23,15 +23,17 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from rclpy.utilities import remove_ros_args
 
-from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures
+from co3sop_msgs.msg import SemanticOccupancy, VoxelFeatures, VoxelScan
 from co3sop_nodes.common.classes import CLASS_NAMES
 from co3sop_nodes.common.errors import Co3sopError, exception_line
-from co3sop_nodes.messages import features_of, occupancy_of, stamp_ns
+from co3sop_nodes.messages import features_of, occupancy_of, scan_of, stamp_ns
 from co3sop_nodes.ros.dds import OCCUPANCY_QOS, spin_node
 from co3sop_nodes.v2x.codec import decode_features, decode_labels
+from co3sop_nodes.v2x.scan import decode_scan
 
 MONITORED = {
     "co3sop_msgs/msg/VoxelFeatures": VoxelFeatures,
+    "co3sop_msgs/msg/VoxelScan": VoxelScan,
     "co3sop_msgs/msg/SemanticOccupancy": SemanticOccupancy,
 }
 
@@ -89,6 +91,13 @@ def summarize_features(msg: VoxelFeatures) -> tuple[str, int, int]:
     return text, enc.raw_bytes, enc.payload_bytes
 
 
+def summarize_scan(msg: VoxelScan) -> tuple[str, int, int]:
+    enc = scan_of(msg)
+    decode_scan(enc)
+    text = f"{_header_text(msg.header, msg.agent_id)}  {_grid_text(enc.grid)}  {enc.num_voxels} occupied {enc.codec}"
+    return text, enc.occupancy_raw_size, enc.payload_bytes
+
+
 def summarize_occupancy(msg: SemanticOccupancy) -> tuple[str, int, int]:
     enc = occupancy_of(msg)
     dec = decode_labels(enc)
@@ -99,7 +108,7 @@ def summarize_occupancy(msg: SemanticOccupancy) -> tuple[str, int, int]:
     return text, enc.raw_bytes, enc.payload_bytes
 
 
-SUMMARIZERS = {VoxelFeatures: summarize_features, SemanticOccupancy: summarize_occupancy}
+SUMMARIZERS = {VoxelFeatures: summarize_features, VoxelScan: summarize_scan, SemanticOccupancy: summarize_occupancy}
 
 
 class Monitor(Node):
@@ -174,7 +183,7 @@ class Monitor(Node):
 
     def _print(self) -> None:
         if not self._stats:
-            print("[monitor] waiting for VoxelFeatures / SemanticOccupancy topics...", flush=True)
+            print("[monitor] waiting for VoxelFeatures / VoxelScan / SemanticOccupancy topics...", flush=True)
         for topic in sorted(self._stats):
             print("[monitor] " + self._stats[topic].line(topic), flush=True)
 
