@@ -468,6 +468,30 @@ def test_every_cav_an_ego_on_one_shared_medium(scenario, tmp_path):
     assert ours(proc.pid) == []
 
 
+def test_every_cav_an_ego_on_one_shared_medium_sending_scans(scenario, tmp_path):
+    """Three CAVs, each an ego, on one shared medium of 6 Mbit/s of real time, each vehicle sending its voxelised
+    scan (send:=scan, multicast: one transmission for both other egos) within 12 KB and no request maps: every ego
+    encodes both neighbours' scans with its own model and fuses them in every frame."""
+    out = tmp_path / "scans"
+    extra = ["--rate", "0.1", "--channel-rate", "6", "--channel-loss", "0", "--channel-shared", "--egos", "all"]
+    extra += ["--channel-multicast", "--params", "send:=scan", "codec.max_bytes:=12288"]
+    egos = ["--ego-params", "request_maps:=false", "stay_current:=false"]  # every frame fused, however late
+    proc = demo(scenario, out, *extra, *egos)
+    text = proc.communicate(timeout=400)[0]
+    assert proc.returncode == 0, text
+    for i in range(3):
+        used, _ = fused_per_frame(text, i)
+        assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 1, text  # CI: one may be late
+    score = json.loads((out / "score.json").read_text())
+    assert len(score["per_ego"]) == 3 and score["frames"] == 3 * FRAMES and not score["missed"]
+    diagnostics = json.loads((out / "diagnostics.json").read_text())
+    for c in score["per_ego"]:
+        reports = diagnostics[f"vehicle cav_{c}"]
+        assert len(reports) == FRAMES and all(0 < int(r["payload_bytes"]) <= 12288 for r in reports), reports
+        assert all(r["answered"] == "" for r in reports)  # no request maps: one scan for every ego
+    assert ours(proc.pid) == []
+
+
 def children(pid: int) -> list[int]:
     found = []
     for stat in Path("/proc").glob("[0-9]*/stat"):

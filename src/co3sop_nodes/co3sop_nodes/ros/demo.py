@@ -359,13 +359,18 @@ def _graph(
     try:
         say("configuring the nodes (each loads the model), then activating them")
         supervisor.bring_up(list(nodes))
-        # every link up as its receiver sees it: each ego matched to every vehicle's features (or it fuses that
-        # neighbour's first frames without it), each vehicle to every other car's ego's request maps
+        # every link up as its receiver sees it: each ego matched to every vehicle's features or scans (or it fuses
+        # that neighbour's first frames without it), each vehicle to every other car's ego's request maps
+        sent = {
+            v.parameters["id"]: topics.voxel_scan if v.parameters.get("send") == "scan" else topics.voxel_features
+            for v in graph.vehicles
+        }
         needs = {}
         for ego in graph.egos:
             own = ego.parameters["ego_id"]
-            feeds = [topics.local_features(c) if every and c == own else topics.voxel_features(c) for c in cavs]
-            needs[status_of(ego)] = feeds
+            needs[status_of(ego)] = [topics.local_features(c) if every and c == own else sent[c](c) for c in cavs]
+            if str(ego.parameters.get("request_maps", True)).lower() == "false":
+                continue
             request = topics.ego_output(topics.EGO_REQUEST, own if every else None)
             for v in graph.vehicles:
                 if v.parameters["id"] != own:
