@@ -4,7 +4,7 @@ keeps under request maps with a byte budget per neighbour-frame, with its 95 % i
     ros2_ws/benchmarks/bench_learned_codec.py --reference tiny-lidar --learned tiny-lidar-wire \
         --data data/bench --splits test \
         [--budgets 4096 8192 16384 32768] [--transform int4:8] [--levels 256] [--request-frame previous|current]
-        [--answer each|union] [--fill] [--scan]
+        [--answer each|union] [--fill] [--scan [--scan-level 3]]
         [--out FILE.json] [--plot FILE.png]
     ros2_ws/benchmarks/bench_learned_codec.py --replot FILE.json --plot FILE.png   # the table and curve again
 
@@ -73,6 +73,7 @@ def main() -> None:
         action="store_true",
         help="also send each sender's voxelised scan (LiDAR models), encoded by the ego's copy of --reference",
     )
+    parser.add_argument("--scan-level", type=int, default=3, help="with --scan: the scans' zstd level (codec.level)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, help="also write the result as JSON here")
     parser.add_argument("--plot", type=Path, help="also draw the curve here (PNG)")
@@ -156,8 +157,8 @@ def measure(opts, parser) -> dict:
         codec = FeatureCodecConfig(dtype, "request", max_bytes=budget, rank=int(rank), fill=opts.fill)
         add("transform", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
     for budget in (*opts.budgets, 0) if opts.scan else ():
-        codec = ScanCodecConfig(max_bytes=budget)
-        add("scan", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
+        codec = ScanCodecConfig(level=opts.scan_level, max_bytes=budget)
+        add(f"scan (zstd {opts.scan_level})", opts.reference, codec, alone, *run(reference, codec, cache, codec.name))
     for given, path, model in learned:
         own: dict = {}
         name = f"learned K={model.cfg.wire.rank} ({path.parent.name if path.stem == 'model' else path.stem})"

@@ -29,8 +29,8 @@ which `score` counts as empty):
   With --maps-first (and --multicast) the request maps cross the medium before the features waiting on it
   (`demo --channel-maps-first`). With --fill what a message's budget leaves past the requests goes to the
   vehicle's most confident other voxels (codec.fill). With --send scan (a LiDAR model) each vehicle sends its
-  voxelised scan instead (vehicle parameter send, co3sop_msgs/VoxelScan: one message for every ego, the voxels
-  nearest the sensor as its budget holds them), each ego encodes its neighbours' scans with its own copy of the
+  voxelised scan instead (vehicle parameter send, co3sop_msgs/VoxelScan: one message for every ego, zstd level
+  15, the voxels nearest the sensor as its budget holds them), each ego encodes its neighbours' scans with its own copy of the
   model and makes no request maps; the play rate then counts that work too.
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
 current, which `score` counts as empty predictions), neighbour-frames fused (% of those within comm range: fused,
@@ -79,6 +79,9 @@ PAYLOAD_SHARE = 0.6
 # over the validate split's frames at the egos' zstd level (bench_request_bytes.py)
 REQUEST_BYTES = {2: 600, 4: 1_400, 8: 3_300, 16: 5_700, 256: 17_500}
 MIN_GAIN = 0.005  # mIoU: the least collaboration gain whose share is reported
+# zstd level of the vehicles' scans (--send scan): every scan of the test split within 8 KB, at 5 ms a scan, with
+# LiDARs of the benchmark's and of the real dataset's density (bench_scan_bytes.py)
+SCAN_LEVEL = 15
 
 
 def codec_of(size: int, cfg, fill: bool = False, scans: bool = False) -> FeatureCodecConfig | ScanCodecConfig:
@@ -86,7 +89,7 @@ def codec_of(size: int, cfg, fill: bool = False, scans: bool = False) -> Feature
     (the rest of it filled past the requests with `fill`), the model's learned wire code where it has one, else
     int4 coefficients at rank 8."""
     if scans:
-        return ScanCodecConfig(max_bytes=max(1, size))
+        return ScanCodecConfig(level=SCAN_LEVEL, max_bytes=max(1, size))
     if cfg.wire is not None:
         return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), learned=True, fill=fill)
     return FeatureCodecConfig("int4", "request", max_bytes=max(1, size), rank=8, fill=fill)
