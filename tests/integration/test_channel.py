@@ -489,6 +489,12 @@ def test_every_cav_an_ego_on_one_shared_medium_sending_scans(scenario, tmp_path)
         reports = diagnostics[f"vehicle cav_{c}"]
         assert len(reports) == FRAMES and all(0 < int(r["payload_bytes"]) <= 12288 for r in reports), reports
         assert all(r["answered"] == "" for r in reports)  # no request maps: one scan for every ego
+        # the egos' readers of its scans listen on the V2X multicast group: one transmission for both
+        scans = f'<data_reader profile_name="{topics.voxel_scan(int(c))}">'
+        assert (
+            "<multicastLocatorList>"
+            in (out / "dds" / "fastdds_udp.xml").read_text().split(scans)[1].split("</data_reader>")[0]
+        )
     assert ours(proc.pid) == []
 
 

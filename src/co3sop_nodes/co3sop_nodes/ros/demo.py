@@ -210,8 +210,9 @@ def _open_channel(
         {car_of(c, cavs): link for c in cavs}, shared=link if opts.channel_shared else None, priority_ports=first
     )
     requests = [topics.ego_output(topics.EGO_REQUEST, c if opts.egos == "all" else None) for c in egos]
-    # what every CAV hears: the vehicles' features and the egos' request maps
-    multicast = [*map(topics.voxel_features, cavs), *requests] if opts.channel_multicast else []
+    # what every CAV hears: the vehicles' features or scans and the egos' request maps
+    sent = [t(c) for c in cavs for t in (topics.voxel_features, topics.voxel_scan)]
+    multicast = [*sent, *requests] if opts.channel_multicast else []
     # on a shared medium a reader answers a heartbeat after the medium's queue time: answered at once, it names
     # fragments that still arrive, and their repairs crowd the medium (BENCHMARKS.md); on a link of its own, a
     # lost fragment is asked for again at Fast DDS's own delay
