@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from co3sop_nodes.eval.codec_comparison import UNBOUNDED, comparison_table
-from co3sop_nodes.eval.report import wire_code_section
+from co3sop_nodes.eval.report import scan_section, wire_code_section
 
 
 def run(system, codec, max_bytes, kept, own):
@@ -50,3 +50,16 @@ def test_the_report_shows_test_comparisons_only(tmp_path):
     text = "\n".join(wire_code_section(tmp_path))
     assert "## A code learned for the V2X wire" in text and "tiny-lidar 51.2m, test" in text
     assert "validate" not in text.split("\n\n", 2)[2]
+
+
+def test_the_report_shows_the_scans_test_comparisons_beside_the_learned_codes(tmp_path):
+    (tmp_path / "codec" / "scan-bytes").mkdir(parents=True)
+    assert scan_section(tmp_path) == []
+    scans = {**MEASURED, "runs": [*MEASURED["runs"], run("scan", "scan7KB-zstd", 7950, 1.0, 1.0)]}
+    (tmp_path / "codec" / "scan-51.2m-control-validate.json").write_text(json.dumps({**scans, "title": "validate"}))
+    (tmp_path / "codec" / "scan-51.2m-control-test.json").write_text(json.dumps(scans))
+    (tmp_path / "codec" / "scan-bytes" / "tiny-lidar-bench-test.json").write_text("[]")  # another kind, elsewhere
+    text = "\n".join(scan_section(tmp_path))
+    assert text.startswith("## The sender's scan instead of its features") and "validate" not in text
+    assert "| scan | scan7KB-zstd | 7,950 | 5,058 | 41.59 | 40.24 | 100 [90, 110] | 100 [90, 110] |" in text
+    assert wire_code_section(tmp_path) == []  # the learned codes' section reads its own files only

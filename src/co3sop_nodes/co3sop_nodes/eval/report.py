@@ -575,25 +575,52 @@ def validate_section(results: Path) -> list[str]:
     return out + [""]
 
 
-def wire_code_section(results: Path) -> list[str]:
-    """Learned wire codes against the transform codec on `test` (bench_learned_codec.py's --out JSON,
-    RESULTS/codec/learned-<range>-test.json)."""
-    found = sorted((results / "codec").glob("learned-*-test.json"))
+def _comparisons(results: Path, pattern: str, intro: list[str]) -> list[str]:
+    """`intro`, then the table of each bench_learned_codec.py --out JSON RESULTS/codec/`pattern` (none: nothing)."""
+    found = sorted((results / "codec").glob(pattern))
     if not found:
         return []
-    out = [
-        "## A code learned for the V2X wire against the transform codec",
-        "",
-        "The same byte budgets per neighbour-frame under request maps; both scored against the model the code was",
-        "trained from (`--reference`), alone and with lossless features. A learned model's head trains on with its",
-        "code, which changes its ego alone: its own gain kept, (with the codec - that model alone) / (reference",
-        "lossless - reference alone), is the one to read; intervals paired over the test scenarios",
-        '(`ros2_ws/benchmarks/bench_learned_codec.py`; BENCHMARKS.md, "V2X: a code learned for the wire").',
-        "",
-    ]
+    out = list(intro)
     for path in found:
         out += [*comparison_table(read_json(path, "learned codec")), ""]
     return out
+
+
+def wire_code_section(results: Path) -> list[str]:
+    """Learned wire codes against the transform codec on `test` (RESULTS/codec/learned-<range>-test.json)."""
+    return _comparisons(
+        results,
+        "learned-*-test.json",
+        [
+            "## A code learned for the V2X wire against the transform codec",
+            "",
+            "The same byte budgets per neighbour-frame under request maps; both scored against the model the code was",
+            "trained from (`--reference`), alone and with lossless features. A learned model's head trains on with its",
+            "code, which changes its ego alone: its own gain kept, (with the codec - that model alone) / (reference",
+            "lossless - reference alone), is the one to read; intervals paired over the test scenarios",
+            '(`ros2_ws/benchmarks/bench_learned_codec.py`; BENCHMARKS.md, "V2X: a code learned for the wire").',
+            "",
+        ],
+    )
+
+
+def scan_section(results: Path) -> list[str]:
+    """The senders' scans against the learned code and the transform codec on `test`
+    (RESULTS/codec/scan-<range>-....json, `test` in the name)."""
+    return _comparisons(
+        results,
+        "scan-*test.json",
+        [
+            "## The sender's scan instead of its features",
+            "",
+            "A LiDAR vehicle sends its voxelised scan (`send:=scan`) and each ego runs its own copy of the model on",
+            "it, at the same byte budgets per neighbour-frame as the feature codecs; every row scored against",
+            "`--reference` alone and with lossless features, intervals paired over the test scenarios",
+            "(`ros2_ws/benchmarks/bench_learned_codec.py --scan`; BENCHMARKS.md, \"V2X: the sender's scan instead of",
+            'its features").',
+            "",
+        ],
+    )
 
 
 def levers_section(results: Path) -> list[str]:
@@ -803,6 +830,7 @@ def render(results: Path, command: str, target: Goals | None = None) -> str:
         *validate_section(results),
         *levers_section(results),
         *wire_code_section(results),
+        *scan_section(results),
         *observed_section(results),
     ]
     for (preset, rng, steps), seeds in runs.items():
