@@ -27,7 +27,7 @@ from tf2_msgs.msg import TFMessage
 from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.geometry import Pose
-from co3sop_nodes.common.grid import BENCHMARK_RANGES
+from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.messages import features_msg, occupancy_msg, point_cloud_msg, request_msg, scan_msg, time_msg
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros.dds import REQUEST_QOS
@@ -415,7 +415,8 @@ def test_ego_encodes_a_neighbours_scan_and_drops_bad_ones_with_a_reason(tmp_path
         m = scan(OTHER, stamp)
         m.num_voxels += 1
         bad.append(("payload", m))  # lies about its voxels
-        bad.append(("payload", scan(OTHER, stamp, grid=lidar.feature_grid)))  # another grid
+        coarser = GridSpec(lidar.grid.origin, 2 * lidar.grid.voxel_size, lidar.grid.dims)
+        bad.append(("payload", scan(OTHER, stamp, grid=coarser)))  # as many voxels, of another size
         m = scan(OTHER, stamp)
         m.occupancy_raw_size = 2**40
         bad.append(("size", m))
@@ -426,7 +427,7 @@ def test_ego_encodes_a_neighbours_scan_and_drops_bad_ones_with_a_reason(tmp_path
         for kind in ("payload", "size", "header"):
             want = sum(1 for k, _ in bad if k == kind)
             assert len(re.findall(rf"/cav_{OTHER}/voxel_scan: dropped \({kind}\)", text)) == want, text
-        assert "num_voxels: declares" in text and "scan for the model's 256x256x24 grid" in text
+        assert "num_voxels: declares" in text and "grid 256x256x24 @ 0.4 m does not match the model's" in text
 
         other.publish(scan(OTHER, stamp))
         acked(other)

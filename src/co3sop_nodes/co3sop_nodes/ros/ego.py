@@ -490,8 +490,8 @@ class Ego(ManagedNode):
         try:
             if scan and topic == self.own_topic:
                 raise Co3sopError(f"a VoxelScan on the ego's own features topic {self.own_topic}")
-            if scan:  # encoded by this ego's model as the sender's would
-                out = scan_output(decode_scan(scan_of(msg), max_raw_bytes=self.max_raw_bytes), self.model)
+            if scan:
+                out = self._decode_scan(msg)
             else:
                 out = self._decode_features(msg)
         except PayloadTooLargeError as exc:
@@ -521,6 +521,17 @@ class Ego(ManagedNode):
                 f"{self.cfg.feature_grid.voxel_size:g} m x {channels}"
             )
         return decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes), self.model)
+
+    def _decode_scan(self, msg: VoxelScan) -> VehicleOutput:
+        """A VoxelScan message -> the sender's output, encoded by this ego's model as the sender's would; raises
+        Co3sopError on a bad one."""
+        enc = scan_of(msg)
+        if enc.grid != self.cfg.grid:
+            raise Co3sopError(
+                f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m does not match the model's "
+                f"{'x'.join(map(str, self.cfg.grid.dims))} @ {self.cfg.grid.voxel_size:g} m"
+            )
+        return scan_output(decode_scan(enc, max_raw_bytes=self.max_raw_bytes), self.model)
 
     def _publish_request(self, stamp: int, confidence: torch.Tensor, pose: Pose) -> None:
         """Where this own frame is unsure (v2x/request_map.py), as it arrives: the vehicles answer it with this
