@@ -197,6 +197,13 @@ def run_graph(
         ]
     ]
     before_play()
+    play_and_stop(graph, bag, cavs, played)
+    return mcap
+
+
+def play_and_stop(graph: Graph, bag: Path, cavs: list[int], played: list[str]) -> None:
+    """The `played` topics of the bag played once, every frame fused, then the vehicles, the ego and the recorder
+    stopped."""
     player = graph.start(
         "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
     )
@@ -206,7 +213,6 @@ def run_graph(
         graph.stop(f"vehicle{c}")
     graph.stop("ego")
     assert graph.stop("recorder") == 0
-    return mcap
 
 
 @pytest.mark.parametrize(
@@ -306,15 +312,7 @@ def test_lidar_scans_cross_dds_and_the_ego_encodes_them_as_their_senders(graph, 
     played = ["/tf_static"] + [
         f"/cav_{c}/{s}" for c in cavs for s in ("lidar/pose", "lidar/points", "ground_truth/occupancy_50m")
     ]
-    player = graph.start(
-        "player", executable("player"), str(bag), "--rate", "0.5", "--wait-subscribers", "30", "--topics", *played
-    )
-    assert player.wait(120) == 0, graph.log("player")
-    graph.wait_fused(FRAMES)
-    for c in cavs:
-        graph.stop(f"vehicle{c}")
-    graph.stop("ego")
-    assert graph.stop("recorder") == 0
+    play_and_stop(graph, bag, cavs, played)
 
     sent = recorded_messages(mcap, scans, VoxelScan)
     assert sorted(topic for topic, _ in sent) == sorted(topics.voxel_scan(c) for c in cavs[1:] for _ in range(FRAMES))

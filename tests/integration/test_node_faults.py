@@ -106,22 +106,14 @@ def wait_subscribed(peer, pubs) -> None:
         rclpy.spin_once(peer, timeout_sec=0.1)
 
 
+def start_ego(tmp_path: Path, *params: str) -> tuple[subprocess.Popen, Path]:
+    """Ego EGO with a short wait for neighbours and a 4 MB payload limit, and `params`."""
+    limits = ("-p", f"ego_id:={EGO}", "-p", "max_wait:=0.5", "-p", "max_payload_mb:=4.0")
+    return start(tmp_path, "ego", executable("ego"), "--ros-args", *limits, "-p", "publish_points:=false", *params)
+
+
 def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, sup):
-    ego, log = start(
-        tmp_path,
-        "ego",
-        executable("ego"),
-        "--ros-args",
-        "-p",
-        f"ego_id:={EGO}",
-        "-p",
-        "max_wait:=0.5",
-        "-p",
-        "max_payload_mb:=4.0",
-        "-p",
-        "publish_points:=false",
-        *CAMERA,
-    )
+    ego, log = start_ego(tmp_path, *CAMERA)
     try:
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
@@ -381,22 +373,7 @@ def test_ego_encodes_a_neighbours_scan_and_drops_bad_ones_with_a_reason(tmp_path
     that is cut, lies about its size or voxels, is of another grid or pose, or comes where its own features should,
     is dropped by reason, and the ego goes on fusing."""
     lidar = preset("tiny-lidar")
-    ego, log = start(
-        tmp_path,
-        "ego",
-        executable("ego"),
-        "--ros-args",
-        "-p",
-        f"ego_id:={EGO}",
-        "-p",
-        "max_wait:=0.5",
-        "-p",
-        "max_payload_mb:=4.0",
-        "-p",
-        "publish_points:=false",
-        "-p",
-        "checkpoint:=tiny-lidar",
-    )
+    ego, log = start_ego(tmp_path, "-p", "checkpoint:=tiny-lidar")
     try:
         wait_ready(sup, "/ego", ego, log)
         own = peer.create_publisher(VoxelFeatures, f"/cav_{EGO}/voxel_features", QOS)
