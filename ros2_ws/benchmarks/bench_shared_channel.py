@@ -307,24 +307,28 @@ def main() -> int:
 
 def header(opts, cfg) -> str:
     """What every cell shares."""
+    if opts.send == "scan":
+        sent = (
+            f"each vehicle's scan (zstd level {SCAN_LEVEL}), encoded by every ego's copy of the model, no request maps"
+        )
+        sent += ", multicast" if opts.multicast else ", unicast"
+    else:
+        sent = (
+            f"request maps of {opts.request_levels} levels, "
+            + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
+            + (", features and request maps multicast" if opts.multicast else ", unicast")
+            + (", request maps crossing the medium first" if opts.maps_first else "")
+            + (", budgets filled past the requests" if opts.fill else "")
+            + (
+                f", each frame answering the egos' maps of it (waiting up to {opts.request_wait:g} of a frame)"
+                if opts.request_wait
+                else ", each frame answering the egos' maps of their previous frame"
+            )
+        )
     return (
         f"Every CAV an ego; bags {', '.join(str(b) for b in opts.bag)}; model {opts.model} (alone and lossless: "
-        f"{opts.reference or opts.model}); "
-        + (
-            "each vehicle's scan, encoded by every ego's copy of the model"
-            if opts.send == "scan"
-            else f"request maps of {opts.request_levels} levels, "
-            + ("its learned wire code" if cfg.wire else "int4 coefficients at rank 8")
-        )
-        + (", features and request maps multicast" if opts.multicast else ", unicast")
+        f"{opts.reference or opts.model}); {sent}"
         + ("" if opts.answer_ms is None else f", DDS readers answering heartbeats after {opts.answer_ms:g} ms")
-        + (", request maps crossing the medium first" if opts.maps_first else "")
-        + (", budgets filled past the requests" if opts.fill else "")
-        + (
-            f", each frame answering the egos' maps of it (waiting up to {opts.request_wait:g} of a frame)"
-            if opts.request_wait
-            else ", each frame answering the egos' maps of their previous frame"
-        )
         + ", each message's budget its share of the medium (see the script).\n"
     )
 
