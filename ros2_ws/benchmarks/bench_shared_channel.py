@@ -30,8 +30,8 @@ which `score` counts as empty):
   (`demo --channel-maps-first`). With --fill what a message's budget leaves past the requests goes to the
   vehicle's most confident other voxels (codec.fill). With --send scan (a LiDAR model) each vehicle sends its
   voxelised scan instead (vehicle parameter send, co3sop_msgs/VoxelScan: one message for every ego, zstd level
-  15, the voxels nearest the sensor as its budget holds them), each ego encodes its neighbours' scans with its own copy of the
-  model and makes no request maps; the play rate then counts that work too.
+  15, the voxels nearest the sensor as its budget holds them), each ego encodes its neighbours' scans with its
+  own copy of the model and makes no request maps; the play rate then counts that work too.
 Per ego, from the launcher's copy of every node's /diagnostics and `score`: its frames missed (skipped to stay
 current, which `score` counts as empty predictions), neighbour-frames fused (% of those within comm range: fused,
 late or never received), latency p50 / p95 (first sensor message of a frame at a vehicle -> that ego's occupancy

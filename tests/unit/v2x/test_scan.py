@@ -128,8 +128,12 @@ def test_an_ego_encoding_a_received_scan_has_the_senders_features_exactly():
 
 def test_a_camera_model_or_another_grid_encodes_no_scan():
     camera = build_model(preset("tiny")).eval()
+    enc = encode_scan(np.zeros(camera.cfg.grid.dims, bool), camera.cfg.grid, ScanCodecConfig())
     with pytest.raises(CodecError, match="a camera model encodes no LiDAR scan"):
-        scan_output(np.zeros(camera.cfg.grid.dims, bool), camera)
+        scan_output(enc, camera)
     lidar = build_model(preset("tiny-lidar")).eval()
-    with pytest.raises(CodecError, match="occupancy: a 64x64x12 scan for the model's 256x256x24 grid"):
-        scan_output(np.zeros(GRID.dims, bool), lidar)
+    with pytest.raises(CodecError, match="grid 64x64x12 @ 0.2 m does not match the model's 256x256x24 @ 0.2 m"):
+        scan_output(encode_scan(scan(), GRID, ScanCodecConfig()), lidar)
+    coarser = GridSpec(lidar.cfg.grid.origin, 0.4, lidar.cfg.grid.dims)  # as many voxels, of another size
+    with pytest.raises(CodecError, match="grid 256x256x24 @ 0.4 m does not match"):
+        scan_output(encode_scan(np.zeros(coarser.dims, bool), coarser, ScanCodecConfig()), lidar)

@@ -14,13 +14,14 @@ from co3sop_nodes.common.errors import CodecError
 from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.v2x.codec import (
+    DEFAULT_MAX_RAW_BYTES,
     DecodedFeatures,
     EncodedFeatures,
     FeatureCodecConfig,
     decode_features,
     encode_features,
 )
-from co3sop_nodes.v2x.scan import ScanCodecConfig, decode_scan, encode_scan
+from co3sop_nodes.v2x.scan import EncodedScan, ScanCodecConfig, decode_scan, encode_scan
 
 
 def code_id(model: Co3SOP) -> str:
@@ -74,16 +75,19 @@ def through_codec(
     return decoded_output(decode_features(enc), model), enc.budget_bytes
 
 
-def scan_output(occupancy: np.ndarray, model: Co3SOP) -> VehicleOutput:
-    """A neighbour's received scan (X, Y, Z) bool -> its output as fusion takes it: `model`'s vehicle half run on it,
-    as the sender's own would (a LiDAR model's vehicle half sees nothing else)."""
+def scan_output(enc: EncodedScan, model: Co3SOP, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> VehicleOutput:
+    """A neighbour's scan message -> its output as fusion takes it: `model`'s vehicle half run on the scan, as the
+    sender's own would (a LiDAR model's vehicle half sees nothing else). Raises CodecError on a scan of another
+    grid than the model's (voxel size and origin included) or a bad payload."""
     if model.cfg.modality != "lidar":
         raise CodecError(f"{model.cfg.name}: a {model.cfg.modality} model encodes no LiDAR scan")
-    if occupancy.shape != model.cfg.grid.dims:
+    grid, have = enc.grid, model.cfg.grid
+    if grid != have:
         raise CodecError(
-            f"occupancy: a {'x'.join(map(str, occupancy.shape))} scan for the model's "
-            f"{'x'.join(map(str, model.cfg.grid.dims))} grid"
+            f"grid {'x'.join(map(str, grid.dims))} @ {grid.voxel_size:g} m does not match the model's "
+            f"{'x'.join(map(str, have.dims))} @ {have.voxel_size:g} m"
         )
+    occupancy = decode_scan(enc, max_raw_bytes)  # (X, Y, Z) bool
     with torch.no_grad():
         scan = torch.from_numpy(occupancy.astype(np.uint8))[None, None].to(model.path.torch_device)  # (1, 1, X, Y, Z)
         return model.vehicle(occupancy=scan)
@@ -93,7 +97,7 @@ def through_scan(model: Co3SOP, occupancy: np.ndarray, cfg: ScanCodecConfig) -> 
     """A neighbour's scan (1, X, Y, Z) as its ego receives it through `cfg` without DDS, encoded by the ego's
     `model`, and the bytes it took."""
     enc = encode_scan(occupancy[0], model.cfg.grid, cfg)
-    return scan_output(decode_scan(enc), model), enc.budget_bytes
+    return scan_output(enc, model), enc.budget_bytes
 
 
 def labels_from_logits(logits: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

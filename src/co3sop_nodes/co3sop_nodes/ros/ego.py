@@ -77,7 +77,6 @@ from co3sop_nodes.v2x.codec import REQUEST_LEVELS, decode_features, encode_label
 from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
 from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.request_map import request_of
-from co3sop_nodes.v2x.scan import decode_scan
 from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
 
 PARAMS = (
@@ -453,9 +452,8 @@ class Ego(ManagedNode):
         wall = time.time_ns()
         stamp = stamp_ns(msg.header.stamp)
         scan = isinstance(msg, VoxelScan)
-        if (
-            not scan and msg.addressed and msg.recipient_id != self.ego_id
-        ):  # selected for another ego's request: not ours to fuse
+        # features selected for another ego's request: not ours to fuse
+        if not scan and msg.addressed and msg.recipient_id != self.ego_id:
             self.for_other_egos += 1
             return
         try:
@@ -490,8 +488,8 @@ class Ego(ManagedNode):
         try:
             if scan and topic == self.own_topic:
                 raise Co3sopError(f"a VoxelScan on the ego's own features topic {self.own_topic}")
-            if scan:
-                out = self._decode_scan(msg)
+            if scan:  # encoded by this ego's model as the sender's would
+                out = scan_output(scan_of(msg), self.model, self.max_raw_bytes)
             else:
                 out = self._decode_features(msg)
         except PayloadTooLargeError as exc:
@@ -521,17 +519,6 @@ class Ego(ManagedNode):
                 f"{self.cfg.feature_grid.voxel_size:g} m x {channels}"
             )
         return decoded_output(decode_features(enc, max_raw_bytes=self.max_raw_bytes), self.model)
-
-    def _decode_scan(self, msg: VoxelScan) -> VehicleOutput:
-        """A VoxelScan message -> the sender's output, encoded by this ego's model as the sender's would; raises
-        Co3sopError on a bad one."""
-        enc = scan_of(msg)
-        if enc.grid != self.cfg.grid:
-            raise Co3sopError(
-                f"grid {'x'.join(map(str, enc.grid.dims))} @ {enc.grid.voxel_size:g} m does not match the model's "
-                f"{'x'.join(map(str, self.cfg.grid.dims))} @ {self.cfg.grid.voxel_size:g} m"
-            )
-        return scan_output(decode_scan(enc, max_raw_bytes=self.max_raw_bytes), self.model)
 
     def _publish_request(self, stamp: int, confidence: torch.Tensor, pose: Pose) -> None:
         """Where this own frame is unsure (v2x/request_map.py), as it arrives: the vehicles answer it with this

@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import torch
@@ -268,8 +268,8 @@ CODEC_FIELDS = {
     "codec.learned": "learned",
     "codec.fill": "fill",
 }
-# the codec parameters a scan takes (v2x/scan.py), as ScanCodecConfig's fields
-SCAN_FIELDS = ("codec", "level", "max_bytes", "burst_bytes")
+# the codec parameters a scan takes (v2x/scan.py): ScanCodecConfig's fields
+SCAN_FIELDS = tuple(f.name for f in fields(ScanCodecConfig))
 REQUEST_TYPE = "co3sop_msgs/msg/RequestMap"
 ANSWERING = ("request_timeout", "comm_range", "max_egos", "request_answer", "request_wait")  # how requests are served
 # the ego on board gets the features as they are
