@@ -30,13 +30,8 @@ from timing import timed
 from co3sop_nodes.common.classes import NUM_CLASSES
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.data import synthetic
-from co3sop_nodes.v2x.codec import (
-    STANDARD_FEATURE_SETTINGS,
-    decode_features,
-    decode_labels,
-    encode_features,
-    encode_labels,
-)
+from co3sop_nodes.eval.codec_settings import STANDARD_FEATURE_SETTINGS
+from co3sop_nodes.v2x.codec import decode_features, decode_labels, encode_features, encode_labels
 
 HERE = Path(__file__).resolve().parent
 FEATURE_GRID = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))

@@ -29,13 +29,14 @@ from timing import timed
 from torch.utils.flop_counter import FlopCounterMode
 
 from co3sop_nodes.cli.device import add_device_argument
+from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, pace, resolve_device
+from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, resolve_device
 
 
 def on(device: torch.device):
