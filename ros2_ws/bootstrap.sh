@@ -10,7 +10,8 @@ VENV="$WS/.venv"
 step() { printf '[bootstrap] %s\n' "$*"; }
 
 if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
-  echo "[bootstrap] error: the ROS 2 Jazzy wheels are built for CPython 3.11; $PYTHON is $("$PYTHON" -V 2>&1)." >&2
+  echo "[bootstrap] error: the pinned wheels (torch's CPU build among them) are for CPython 3.11; $PYTHON is" \
+    "$("$PYTHON" -V 2>&1). A Python 3.12 with its own (CUDA) PyTorch: ros2_ws/offline_bundle.sh." >&2
   exit 2
 fi
 if [ ! -x "$VENV/bin/python" ]; then

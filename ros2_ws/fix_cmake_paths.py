@@ -15,8 +15,11 @@ import sysconfig
 
 import numpy
 
-BUILD_PYTHON_INCLUDE = "/opt/python/cp311-cp311/include/python3.11"
-BUILD_NUMPY_INCLUDE = "/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include"
+# The wheels for this interpreter's version were built with the container's Python of that version.
+_V = f"{sys.version_info.major}.{sys.version_info.minor}"
+_BUILD_PREFIX = f"/opt/python/cp{_V.replace('.', '')}-cp{_V.replace('.', '')}"
+BUILD_PYTHON_INCLUDE = f"{_BUILD_PREFIX}/include/python{_V}"
+BUILD_NUMPY_INCLUDE = f"{_BUILD_PREFIX}/lib/python{_V}/site-packages/numpy/_core/include"
 
 
 def main(prefix: str) -> int:
