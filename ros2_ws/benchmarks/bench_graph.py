@@ -3,6 +3,7 @@
     ros2_ws/benchmarks/bench_graph.py [--bag BAG] [--model tiny-lidar|CKPT] [--out results/bench_graph] [--settings ...]
     ros2_ws/benchmarks/bench_graph.py --rates 0.25 0.5 1      (rate sweep: frames fused and latency per rate)
     ros2_ws/benchmarks/bench_graph.py --paths                 (the ego's reference paths vs its fast paths)
+    ros2_ws/benchmarks/bench_graph.py --device cuda --untrained paper --rates 1 2   (a preset not trained yet)
 
 Runs the demo graph (player + 3 vehicles + ego + recorder, separate processes
 over DDS, at the demo's rate) once per V2X codec setting of the neighbours
@@ -36,12 +37,16 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from ament_index_python.packages import get_package_prefix
 
+from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.eval.evaluate import plot_codecs
 from co3sop_nodes.eval.scoring import read_recording
-from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, export_model
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import preset
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 
@@ -105,6 +110,8 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
             1:
         ]  # V2X only: the first is the ego's own, sent losslessly on board
         marks = {a: v[stamp] for a, v in vehicles.items() if stamp in v}
+        if not marks:  # no vehicle's report of this frame recorded (a vehicle that skipped it for a newer one)
+            continue
         first_input = min(int(m["first_input_wall_ns"]) for m in marks.values())
         total = int(d["published_wall_ns"]) - first_input
         latency.append(total / 1e6)
@@ -120,12 +127,27 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
     stages = {
         k: float(np.median([float(d[k]) for d in ego])) for k in ("decode_ms", "fuse_ms", "head_ms", "publish_ms")
     }
+    # wall time of a frame's work in each node (on a GPU, until its results are back on the host)
+    wall = {"ego": np.median([float(d["total_ms"]) for d in ego])}
+    wall.update(
+        {
+            f"vehicle {a}": np.median(
+                [sum(float(d[k]) for k in ("inputs_ms", "encoder_ms", "codec_ms")) for d in v.values()]
+            )
+            for a, v in sorted(vehicles.items())
+        }
+    )
     return {
         "bytes_per_agent_frame": float(np.mean(sizes)) if sizes else 0.0,
         "latency_ms_p50": float(np.percentile(latency, 50)),
         "latency_ms_p95": float(np.percentile(latency, 95)),
         "dds_share_p50": float(np.median(dds_share)) if dds_share else float("nan"),
         "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()},
+        "wall_ms_per_frame": {k: float(v) for k, v in wall.items()},
+        "vehicle_stage_ms": {
+            k: float(np.median([float(d[k]) for v in vehicles.values() for d in v.values()]))
+            for k in ("inputs_ms", "encoder_ms", "codec_ms")
+        },
         "ego_stage_ms": stages,
         "frames": len(ego),
         "skipped_ego": int(ego[-1].get("skipped", 0)),
@@ -139,7 +161,8 @@ def run_demo(
     """The demo graph with `args` into opts.out/name; its completed process and output folder. complete: the demo must
     succeed (every frame fused and recorded); else a recording is enough (a rate sweep counts what was fused)."""
     out = opts.out / name
-    argv = [str(demo), "--out", str(out), "--quiet", "--model", opts.model, "--precision", opts.precision, *args]
+    argv = [str(demo), "--out", str(out), "--quiet", "--model", opts.model, "--precision", opts.precision]
+    argv += ["--device", opts.device, *args]
     argv += ["--bag", str(opts.bag)] if opts.bag else ["--frames", str(opts.frames)]
     print(f"[bench_graph] {name}: running the demo graph", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
@@ -153,8 +176,8 @@ def sweep(demo: Path, opts) -> int:
     """The demo graph at each rate: frames fused of the bag's, latency, CPU per node."""
     rows = [
         "| rate | frame every (s) | frames fused / in the bag | skipped: ego; its encoder | recorded | "
-        "latency p50 / p95 (ms) | CPU per frame p50 (ms): ego; vehicles |",
-        "|---:|---:|---:|---:|---:|---:|---|",
+        "latency p50 / p95 (ms) | node wall per frame p50 (ms): ego; vehicles | CPU per frame p50 (ms): ego; vehicles |",
+        "|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     kept_up = []
     for rate in opts.rates:
@@ -162,15 +185,18 @@ def sweep(demo: Path, opts) -> int:
         frames = int(re.search(r": (\d+) frames;", done.stdout).group(1))
         recorded = re.search(r"the recording holds (?:all )?(\d+)", done.stdout + done.stderr)
         r = measure(out / "demo.mcap")
-        cpu = r["cpu_ms_per_frame"]
+        cpu, wall = r["cpu_ms_per_frame"], r["wall_ms_per_frame"]
         if r["frames"] == frames and done.returncode == 0:
             kept_up.append(rate)
         rows.append(
             f"| {rate:g} | {0.1 / rate:.2f} | {r['frames']} / {frames} | {r['skipped_ego']}; {r['skipped_encoder']} | "
             f"{recorded.group(1) if recorded else '?'} | "
-            f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {cpu.pop('ego'):.0f}; "
+            f"{r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} | {wall.pop('ego'):.1f}; "
+            f"{', '.join(f'{v:.1f}' for v in wall.values())} | {cpu.pop('ego'):.0f}; "
             f"{', '.join(f'{v:.0f}' for v in cpu.values())} |"
         )
+        stages = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in r["vehicle_stage_ms"].items())
+        print(f"{rows[-1]}\n  vehicles' stages p50 (ms): {stages}", flush=True)  # as it comes: a long sweep may be cut
     print("\n".join(rows))
     print(
         f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}"
@@ -197,6 +223,14 @@ def paths(demo: Path, opts) -> int:
     return 0
 
 
+def untrained_checkpoint(name: str, out: Path) -> Path:
+    """A checkpoint of preset `name` with its initial weights (seed 0), written into `out`."""
+    torch.manual_seed(0)
+    path = out / f"{name}-untrained.pt"
+    export_model(path, build_model(preset(name)), {"untrained": True, "seed": 0})
+    return path
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[1])
     parser.add_argument("--bag", type=Path, help="default: the demo scenario")
@@ -208,6 +242,13 @@ def main() -> int:
     parser.add_argument(
         "--model", default=DEFAULT_MODEL, help="every node's model, as `demo --model` takes it (default: the demo's)"
     )
+    parser.add_argument("--device", default="cpu", help="where every node's model runs, as `demo --device` takes it")
+    parser.add_argument(
+        "--untrained",
+        metavar="PRESET",
+        help="time a preset nobody has trained yet: its initial weights (seed 0) instead of --model; latency and "
+        "throughput only, its mIoU means nothing",
+    )
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
     parser.add_argument(
         "--rates", nargs="*", type=float, help="sweep these playback rates (default codec) instead of the settings"
@@ -217,6 +258,11 @@ def main() -> int:
     )
     opts = parser.parse_args()
     demo = Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", "demo")
+    if opts.untrained:
+        try:
+            opts.model = str(untrained_checkpoint(opts.untrained, opts.out))
+        except Co3sopError as exc:
+            parser.error(f"--untrained: {exc}")
     if opts.rates:
         return sweep(demo, opts)
     if opts.paths:
