@@ -215,6 +215,29 @@ def play_and_stop(graph: Graph, bag: Path, cavs: list[int], played: list[str]) -
     assert graph.stop("recorder") == 0
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CI has none)")
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_graph_on_a_cuda_gpu_predicts_as_offline_on_the_cpu(graph, scenario, precision):
+    """Every node's model on the GPU: the same frames fused, labels as the CPU's float32 reference within the
+    tolerance of a different device (cuDNN's own kernels, TF32 convolutions) or reduced precision: at least 99 %
+    of voxels equal."""
+    bag, cavs = scenario
+    on_gpu = ["device:=cuda", f"precision:={precision}"]
+    mcap = run_graph(graph, bag, cavs, on_gpu, ego_params=[x for p in on_gpu for x in ("-p", p)])
+    rec = read_recording(mcap)
+    assert len(rec.predictions) == FRAMES
+    assert all(int(d["neighbours_used"]) >= 1 for d in rec.diagnostics["ego"]), rec.diagnostics
+    assert f"inference on cuda, {precision}" in graph.log("ego"), graph.log("ego")
+
+    torch.set_num_threads(1)
+    model, _ = load_model(shipped_checkpoint("tiny.pt"))
+    offline = predict_bag(model, bag, cavs[0], FeatureCodecConfig("float32", "dense", codec="none"))
+    equal = sum(int((labels == offline[stamp].labels).sum()) for (_, stamp), labels in rec.predictions.items())
+    total = sum(labels.size for labels in rec.predictions.values())
+    print(f"{precision} on {torch.cuda.get_device_name()}: labels equal to the CPU's float32 on {equal / total:.4%}")
+    assert equal / total >= 0.99
+
+
 @pytest.mark.parametrize(
     "codec",
     [  # a sparse quantised message's path is also the learned code's test's

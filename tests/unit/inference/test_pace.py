@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import pytest
+import torch
 from model_checks import MICRO
 
 from co3sop_nodes.inference import pace
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.path import inference_path
 
 
 def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
@@ -30,3 +32,14 @@ def test_a_frame_is_measured_for_both_modalities(name):
     assert 0 < cost.vehicle_s < 10 and 0 < cost.ego_s < 10
     inputs = pace.shaped_inputs(model)
     assert set(inputs) == ({"occupancy"} if name == "tiny-lidar" else {"images", "lidar2img"})
+
+
+def test_warm_up_runs_only_on_a_gpu():
+    model = build_model(preset("tiny", **MICRO)).eval()
+    assert pace.warm_up(model, ego=True) == 0.0  # on the CPU first use costs little: nothing runs
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CI has none)")
+def test_warm_up_on_a_gpu_runs_both_halves():
+    model = build_model(preset("tiny", **MICRO)).eval().use(inference_path("cuda", "float32"))
+    assert pace.warm_up(model, ego=True) > 0

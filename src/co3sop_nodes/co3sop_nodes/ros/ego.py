@@ -45,6 +45,7 @@ from co3sop_nodes.common.errors import Co3sopError, NonFiniteError, PayloadTooLa
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
 from co3sop_nodes.inference.outputs import decoded_output, scan_output
+from co3sop_nodes.inference.pace import warm_up
 from co3sop_nodes.inference.predict import compile_kernels, predict_frame
 from co3sop_nodes.messages import (
     diagnostics_msg,
@@ -288,6 +289,7 @@ class Ego(ManagedNode):
         p.on_change(self._apply)
         self.rng = np.random.default_rng(p["seed"])
         torch.set_num_threads(p["threads"])
+        warmed = warm_up(self.model, ego=True)
         # messages wait in DDS only until the executor takes them (fusing runs on its own thread)
         self._qos = features_qos(p["features_reliability"], p["queue_depth"])
         # names relative to the node's namespace: `__ns` and remapping apply
@@ -300,8 +302,9 @@ class Ego(ManagedNode):
         self.get_logger().info(
             f"configured: ego cav {self.ego_id}, {self.cfg.name} ({self.cfg.range}), up to "
             f"{self.max_collaborators} collaborators within {self.comm_range:g} m; "
-            f"inference on {self.model.path.describe()}; "
-            f"compiled kernels: {', '.join(self.kernels) or 'none'}"
+            f"inference on {self.model.path.describe()}"
+            + (f" (warmed up in {warmed:.1f} s)" if warmed else "")
+            + f"; compiled kernels: {', '.join(self.kernels) or 'none'}"
         )
 
     def activate(self) -> None:

@@ -40,6 +40,7 @@ from co3sop_nodes.common.transforms import StaticTransforms
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
 from co3sop_nodes.inference.inputs import sensor_inputs, to_batch
 from co3sop_nodes.inference.outputs import code_id, encode_output
+from co3sop_nodes.inference.pace import warm_up
 from co3sop_nodes.inference.predict import compile_kernels
 from co3sop_nodes.messages import (
     diagnostics_msg,
@@ -319,6 +320,8 @@ class Vehicle(ManagedNode):
         self._apply({name: p[name] for name in (*CODEC_FIELDS, *ANSWERING)})
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
+        # a scan-only sender runs no model (its egos do)
+        warmed = warm_up(self.model, ego=False) if self.send != "scan" or p["local_features"] else 0.0
         self.cameras = p["cameras"]
         # names relative to the node's namespace (/cav_<id> by default): `__ns` and remapping apply
         self._parts = {"pose": topics.lidar_pose()}
@@ -351,8 +354,9 @@ class Vehicle(ManagedNode):
             )
             + f" -> {self._pub.topic_name} as {self.codec.name}, "
             f"{p['features_reliability']}{', lossless on voxel_features/local' if self._local else ''}; "
-            f"inference on {self.model.path.describe()}; "
-            f"compiled kernels: {', '.join(self.kernels) or 'none'}"
+            f"inference on {self.model.path.describe()}"
+            + (f" (warmed up in {warmed:.1f} s)" if warmed else "")
+            + f"; compiled kernels: {', '.join(self.kernels) or 'none'}"
         )
 
     def activate(self) -> None:
