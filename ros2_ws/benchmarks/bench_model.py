@@ -203,10 +203,10 @@ def _flops(fn) -> int:
 
 
 @torch.no_grad()
-def peak_table(repeats: int) -> tuple[str, float]:
+def peak_table(repeats: int) -> tuple[str, dict[str, float]]:
     """This CPU's throughput on one thread, measured here: a large matrix product and a 3x3x3 convolution of the
     head's size (32 -> 32 channels over 128x128x12), float32 and bfloat16 (channels-last for the convolution, as
-    oneDNN wants it); the float32 matrix product's GFLOP/s is the peak the stages are held against."""
+    oneDNN wants it); per precision, the highest of the two is the peak the stages are held against."""
     rows = ["| kernel | float32 GFLOP/s | bfloat16 GFLOP/s | bfloat16 / float32 |", "|---|---:|---:|---:|"]
     gen = torch.Generator().manual_seed(0)
     a, b = torch.randn(1024, 1024, generator=gen), torch.randn(1024, 1024, generator=gen)
@@ -216,7 +216,7 @@ def peak_table(repeats: int) -> tuple[str, float]:
         "matrix product 1024^3": (lambda t: t[0] @ t[1], (a, b), 2 * 1024**3),
         "conv3d 3x3x3, 32->32, 128x128x12": (None, None, 2 * 32 * 32 * 27 * 128 * 128 * 12),
     }
-    peak = 0.0
+    peak = {"float32": 0.0, "bfloat16": 0.0}
     for name, (fn, args, flops) in kernels.items():
         rates = []
         for dtype in (torch.float32, torch.bfloat16):
@@ -235,20 +235,24 @@ def peak_table(repeats: int) -> tuple[str, float]:
             call()
             t, _ = timed(call, repeats)
             rates.append(flops / t / 1e9)
-        peak = peak or rates[0]
+        peak = {"float32": max(peak["float32"], rates[0]), "bfloat16": max(peak["bfloat16"], rates[1])}
         rows.append(f"| {name} | {rates[0]:.0f} | {rates[1]:.0f} | {rates[1] / rates[0]:.2f}x |")
         print(f"  peak {name}: float32 {rates[0]:.0f}, bfloat16 {rates[1]:.0f} GFLOP/s", flush=True)
     return "\n".join(rows), peak
 
 
 @torch.no_grad()
-def roofline_table(repeats: int, peak: float) -> str:
-    """Each shipped model's stages at 51.2 m on one thread as the nodes run them (compiled kernels, float32): FLOPs
-    per frame (the convolutions and matrix products, counted on the reference paths, which compute the same
-    products), time, GFLOP/s and the share of the measured float32 peak."""
+def roofline_table(repeats: int, peak: dict[str, float]) -> str:
+    """Each shipped model's stages at 51.2 m on one thread as the nodes run them (compiled kernels), in float32 and,
+    on a CPU that computes it, bfloat16: FLOPs per frame (the convolutions and matrix products, counted on the
+    reference paths, which compute the same products), time, GFLOP/s and the share of that precision's measured
+    peak."""
+    precisions = ("float32", "bfloat16") if cpu_bfloat16_unit() else ("float32",)
     rows = [
-        "| model | stage | GFLOP per frame | ms | GFLOP/s | share of the float32 peak |",
-        "|---|---|---:|---:|---:|---:|",
+        "| model | stage | GFLOP per frame | "
+        + " | ".join(f"{p} ms | {p} GFLOP/s | share of the {p} peak" for p in precisions)
+        + " |",
+        "|---|---|---:|" + "---:|---:|---:|" * len(precisions),
     ]
     for name in ("tiny-lidar", "tiny", "small"):
         model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
@@ -275,13 +279,14 @@ def roofline_table(repeats: int, peak: float) -> str:
                     _flops(lambda c=c, f=f: c(f))
                     for c, f in zip(model.ego.head.classify[:2], model.ego.head.coarse(fused))
                 )
-            model.use(InferencePath())
-            t, _ = timed(fn, repeats)
-            rows.append(
-                f"| {name} | {stage} | {flops / 1e9:.2f} | {1e3 * t:.1f} | {flops / t / 1e9:.0f} | "
-                f"{flops / t / 1e9 / peak:.0%} |"
-            )
-            print(f"  roofline {name} {stage}: {flops / 1e9:.2f} GFLOP in {1e3 * t:.1f} ms", flush=True)
+            cells = []
+            for precision in precisions:
+                model.use(InferencePath(precision=precision))
+                t, _ = timed(fn, repeats)
+                cells.append(f"{1e3 * t:.1f} | {flops / t / 1e9:.0f} | {flops / t / 1e9 / peak[precision]:.0%}")
+                print(f"  roofline {name} {stage} {precision}: {flops / 1e9:.2f} GFLOP in {1e3 * t:.1f} ms", flush=True)
+            rows.append(f"| {name} | {stage} | {flops / 1e9:.2f} | " + " | ".join(cells) + " |")
+        model.use(InferencePath())
     return "\n".join(rows)
 
 
@@ -381,7 +386,7 @@ def main() -> None:
             f"### This CPU's peak on one thread (median of {opts.repeats}; "
             f"bfloat16 hardware: {cpu_bfloat16_unit() or 'none'})",
             peaks,
-            "### Each stage against it (51.2 m, one thread, compiled kernels, float32)",
+            "### Each stage against it (51.2 m, one thread, compiled kernels)",
             roofline_table(opts.repeats, peak),
         ]
     elif opts.precision_only:
