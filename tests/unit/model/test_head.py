@@ -77,6 +77,21 @@ def test_chunking_threads_and_batches_do_not_change_the_result(chunk, compiled, 
     assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1
 
 
+def test_the_kernel_splits_parents_in_shares_of_any_size():
+    """Two parents share a vector: 5 threads split 1536 parents a batch in shares of 307 and 308, odd ones too."""
+    head = random_head((8, 8, 4), 8, 5)
+    x = torch.randn(2, 8, 8, 6, 4)
+    want_labels, want_conf = reference(head, x)
+    labels, conf = zip(
+        *(
+            octant_kernel.octant_labels(p, (16, 12, 8), head.up2, head.point2, head.classify[2], 5)
+            for p in head.parents(x)
+        )
+    )
+    assert_labels_equal(torch.stack(labels).numpy(), want_labels, head, x)
+    assert np.abs(torch.stack(conf).numpy().astype(int) - want_conf).max() <= 1
+
+
 def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("CO3SOP_CACHE", str(tmp_path))
     kernels.load.cache_clear()

@@ -1,7 +1,7 @@
 """The head's full-resolution stage on the CPU as a compiled kernel (kernels/octant_labels.c).
 
-Parent features at 1/2 -> labels and confidence of their 8 octants, one
-parent at a time with the octants in one 8-lane vector: the transposed
+Parent features at 1/2 -> labels and confidence of their 8 octants, two
+parents at a time with their octants in one 16-lane vector: the transposed
 convolution, the pointwise layer, the classifier, the argmax and the label's
 softmax probability, never materialising the (N, 8, C) and (N, 8, K)
 intermediates that `OccupancyHead.labels`' PyTorch loop spends its time
@@ -50,8 +50,8 @@ def octant_labels(
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k)
     x = kernels.array(parents)  # (P, C1)
-    up_w = kernels.array(up.weight.flatten(2))  # (C1, C2, 8): octant (kernel offset i, j, k) last
-    up_b = kernels.array(up.bias[:, None].expand(c2, 8))  # (C2, 8)
+    up_w = kernels.array(up.weight.flatten(2).repeat(1, 1, 2))  # (C1, C2, 16): octant (offset i, j, k) last, twice
+    up_b = kernels.array(up.bias[:, None].expand(c2, 16))  # (C2, 16)
     point_w, point_b = (
         kernels.array(point.weight[:, :, 0, 0, 0].t()),
         kernels.array(point.bias),
