@@ -196,7 +196,12 @@ def sweep(demo: Path, opts) -> int:
             f"{', '.join(f'{v:.0f}' for v in cpu.values())} |"
         )
         stages = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in r["vehicle_stage_ms"].items())
-        print(f"{rows[-1]}\n  vehicles' stages p50 (ms): {stages}", flush=True)  # as it comes: a long sweep may be cut
+        processes = re.search(r"CPU a frame while the bag played \(ms\): ([^\n]*)", done.stdout)
+        print(
+            f"{rows[-1]}\n  vehicles' stages p50 (ms): {stages}"
+            + (f"\n  every process's CPU a frame while the bag played (ms): {processes.group(1)}" if processes else ""),
+            flush=True,
+        )  # as it comes: a long sweep may be cut
     print("\n".join(rows))
     print(
         f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}"

@@ -7,6 +7,7 @@ import contextlib
 import json
 import math
 import os
+import resource
 import signal
 import subprocess
 import threading
@@ -81,6 +82,16 @@ class Process:
                 self.warnings.append(line.strip())
             if self._echo:
                 print(f"  [{self.label}] {line.rstrip()}", flush=True)
+
+    def cpu_seconds(self) -> float | None:
+        """CPU time (user + system, every thread) the process has used so far; None once it has exited, or without
+        Linux's /proc."""
+        try:
+            stat = Path(f"/proc/{self.proc.pid}/stat").read_text()
+        except OSError:
+            return None
+        fields = stat.rsplit(")", 1)[1].split()  # after "pid (name)": state, ppid, ...; utime and stime 12th and 13th
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
     def stop(self, timeout: float = 30) -> int:
         if self.proc.poll() is None:
@@ -387,9 +398,14 @@ def _graph(
         if channel and opts.channel_shared:
             supervisor.wait("the shared medium to fall quiet (the nodes' start crossed it)", QuietMedium(channel), 120)
         say(f"playing the bag at rate {opts.rate}")
+        running = {p.label: p for p in [*nodes.values(), recorder]}
+        cpu_before = {label: p.cpu_seconds() for label, p in running.items()}
+        children_before = resource.getrusage(resource.RUSAGE_CHILDREN)
         player = Process("player", [executable(graph.player.executable), *graph.player.ros_arguments()], echo)
         if player.proc.wait() != 0:
             raise Co3sopError(f"player failed with code {player.proc.returncode}")
+        children = resource.getrusage(resource.RUSAGE_CHILDREN)  # the player: the only child that ended meanwhile
+        player_cpu = sum(getattr(children, f) - getattr(children_before, f) for f in ("ru_utime", "ru_stime"))
         say(f"bag played; waiting for the ego{'s' if every else ''} to fuse the last frames")
         accounted = lambda: all(frames_accounted(supervisor, ego) >= frames for ego in graph.egos)
         try:
@@ -397,6 +413,13 @@ def _graph(
         except Co3sopError as exc:
             counts = ", ".join(f"{status_of(e)} {frames_accounted(supervisor, e)}" for e in graph.egos)
             raise Co3sopError(f"{exc} (frames fused or skipped: {counts}){warned(player, *nodes.values())}") from None
+        if not channel:  # on a channel each node runs under a wrapper process, whose own CPU says nothing
+            used = {label: (p.cpu_seconds() or 0.0) - (cpu_before[label] or 0.0) for label, p in running.items()}
+            say(
+                "CPU a frame while the bag played (ms): "
+                + ", ".join(f"{label} {1e3 * c / frames:.0f}" for label, c in {"player": player_cpu, **used}.items())
+                + " (the player's start included)"
+            )
     finally:
         for p in [player, *nodes.values(), recorder]:  # the recorder last, so it sees everything
             if p is not None:

@@ -1,0 +1,24 @@
+"""The demo's child processes: the CPU each one uses, read while it runs."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from co3sop_nodes.ros.demo import Process
+
+# 0.3 s of CPU, then idle until stopped
+BURN = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass\ntime.sleep(60)\n"
+
+
+def test_cpu_seconds_counts_what_a_running_child_used_and_none_once_it_ended():
+    child = Process("burner", [sys.executable, "-c", BURN], echo=False)
+    try:
+        deadline = time.monotonic() + 20
+        while child.cpu_seconds() < 0.3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)  # idle now: its count stays
+        assert 0.3 <= child.cpu_seconds() < 0.3 + 2  # its 0.3 s of work and the interpreter's start, not its sleep
+    finally:
+        child.stop()
+    assert child.cpu_seconds() is None
