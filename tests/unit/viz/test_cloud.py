@@ -34,3 +34,20 @@ def test_the_cloud_equals_its_definition_at_every_range(range_name):
     )  # every value, out of range too
     want, got = occupancy_cloud_reference(labels, grid), occupancy_cloud(labels, grid)
     assert len(got) > 1000 and got.tobytes() == want.tobytes()  # bit-identical payloads
+
+
+def test_only_the_voxels_a_viewer_can_see():
+    """A solid 5x5x5 block inside the grid shows its shell; a block against the grid's edge shows that face too."""
+    grid = GridSpec((0.0, 0.0, 0.0), 1.0, (9, 9, 9))
+    labels = np.zeros(grid.dims, np.uint8)
+    labels[2:7, 2:7, 2:7] = 4
+    cases = [(labels.copy(), 5**3 - 3**3)]
+    labels[2:7, 2:7, 4] = IGNORE  # unknown voxels hide nothing: two slabs 2 voxels thick, all seen
+    cases.append((labels, 2 * 5 * 5 * 2))
+    edge = np.zeros(grid.dims, np.uint8)
+    edge[0:3, 2:7, 2:7] = 9  # hidden: x = 1 only (x = 0 is seen from outside the grid), y and z in 3..5
+    cases.append((edge, 3 * 5 * 5 - 3 * 3))
+    for case, visible in cases:
+        got = occupancy_cloud(case, grid)
+        assert len(got) == visible
+        assert got.tobytes() == occupancy_cloud_reference(case, grid).tobytes()
