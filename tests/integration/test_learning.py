@@ -439,11 +439,12 @@ BFLOAT16_AGREEMENT = 0.99  # labels equal to float32's on at least this share of
 
 
 @torch.no_grad()
-def test_bfloat16_agrees_with_float32_on_a_real_sample(street_split):
-    """The reduced-precision path (autocast to bfloat16, channels-last convolutions) against the float32 reference
-    on a generated scene with the shipped camera weights, the compiled kernels in both; on a CPU without bfloat16
-    hardware it is emulated (slow), so one sample."""
-    net, _ = load_model(shipped_checkpoint("tiny.pt"))
+@pytest.mark.parametrize("name", ["tiny", "tiny-lidar"])
+def test_bfloat16_agrees_with_float32_on_a_real_sample(street_split, name):
+    """The reduced-precision path (autocast to bfloat16, channels-last convolutions, batch norm folded) against the
+    float32 reference on a generated scene with shipped weights, the compiled kernels in both; on a CPU without
+    bfloat16 hardware it is emulated (slow), so one sample."""
+    net, _ = load_model(shipped_checkpoint(f"{name}.pt"))
     sample = OccupancyDataset(street_split, ["test"], net.cfg).sample(0)
     labels = {}
     for precision in ("float32", "bfloat16"):

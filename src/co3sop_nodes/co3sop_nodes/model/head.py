@@ -19,11 +19,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.model.conv_norm import ConvNorm
 from co3sop_nodes.model.path import InferencePath
 
 
-def _block(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm3d(cout), nn.ReLU(inplace=True))
+def _block(cin: int, cout: int) -> ConvNorm:
+    return ConvNorm(nn.Conv3d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm3d(cout), nn.ReLU(inplace=True))
 
 
 class OccupancyHead(nn.Module):

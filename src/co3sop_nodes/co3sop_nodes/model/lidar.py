@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch.nn.functional as F
 from torch import nn
 
+from co3sop_nodes.model.conv_norm import ConvNorm
+
 
 class LMSCNetEncoder(nn.Module):
     def __init__(self, height: int, dims: int, channels: int):
@@ -22,7 +24,7 @@ class LMSCNetEncoder(nn.Module):
         c = channels
 
         def block(cin, cout, stride):
-            return nn.Sequential(
+            return ConvNorm(
                 nn.Conv2d(cin, cout, 3, stride, 1),
                 nn.BatchNorm2d(cout),
                 nn.ReLU(inplace=True),
@@ -47,7 +49,7 @@ class SSCNetEncoder(nn.Module):
         c = channels
 
         def conv(cin, cout, stride=1, dilation=1):
-            return nn.Sequential(
+            return ConvNorm(
                 nn.Conv3d(cin, cout, 3, stride, dilation, dilation), nn.BatchNorm3d(cout), nn.ReLU(inplace=True)
             )
 
