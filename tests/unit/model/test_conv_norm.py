@@ -1,0 +1,47 @@
+"""Batch norm folded into its convolution on reduced-precision paths; float32 and training untouched."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from co3sop_nodes.model.conv_norm import ConvNorm
+from co3sop_nodes.model.path import InferencePath
+
+
+def layers() -> list[nn.Module]:
+    torch.manual_seed(0)
+    conv, norm = nn.Conv3d(4, 8, 3, padding=1, bias=True), nn.BatchNorm3d(8)
+    with torch.no_grad():  # statistics and affine parameters far from the identity
+        norm.running_mean.normal_(0, 1)
+        norm.running_var.uniform_(0.5, 2.0)
+        norm.weight.normal_(1, 0.5)
+        norm.bias.normal_(0, 0.5)
+    return [conv, norm, nn.ReLU(inplace=True)]
+
+
+@torch.no_grad()
+def test_float32_and_training_run_the_layers_as_they_are():
+    plain = nn.Sequential(*layers()).eval()
+    folded = ConvNorm(*layers()).eval()
+    assert folded.state_dict().keys() == plain.state_dict().keys()
+    x = torch.randn(2, 4, 6, 5, 4)
+    assert torch.equal(folded(x), plain(x))  # float32: bit for bit
+    folded.train(), plain.train()
+    assert torch.equal(folded(x), plain(x))
+
+
+@torch.no_grad()
+def test_on_a_reduced_path_the_norm_is_folded_into_the_convolution():
+    folded = ConvNorm(*layers()).eval()
+    x = torch.randn(2, 4, 6, 5, 4)
+    want = nn.Sequential(*folded)(x)  # float32 reference
+    calls = []
+    folded[1].register_forward_hook(lambda *_: calls.append(1))
+    folded.path = InferencePath(precision="bfloat16")
+    with folded.path.autocast():
+        got = folded(x)
+    assert got.dtype == torch.bfloat16 and not calls  # the norm never ran: it is in the convolution
+    assert torch.allclose(got.float(), want, atol=0.05 * want.abs().max())  # bfloat16 rounding of weights and inputs
+    folded.path = InferencePath()
+    assert torch.equal(folded(x), want)  # back to float32: nothing was stored
