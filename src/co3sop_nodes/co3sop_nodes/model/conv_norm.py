@@ -29,10 +29,6 @@ class ConvNorm(nn.Sequential):
     def forward(self, x):
         if self.training or not self.path.reduced:
             return super().forward(x)
-        # channels-last as the weights are (Co3SOP.use): a no-op where it already is, a restride of a one-channel
-        # input (a scan's occupancy), which would otherwise make the first convolution's output contiguous and the
-        # next one copy it
-        x = x.contiguous(memory_format=torch.channels_last_3d if x.dim() == 5 else torch.channels_last)
         layers = list(self)
         i = 0
         while i < len(layers):
