@@ -26,7 +26,8 @@ sources() {
 
 pack() {
   local bundle="$1"; shift
-  local python="${PYTHON:-python3.12}"
+  local python="${PYTHON:-python3.12}" bag
+  for bag in "$@"; do [ -d "$REPO/$bag" ] || die "$bag: no such folder in $REPO (BAG_DIRs are relative to it)"; done
   "$python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null \
     || die "PYTHON=$python is not CPython 3.12 (the target's version)"
   rm -rf "$ROOT" && mkdir -p "$ROOT"
@@ -41,7 +42,6 @@ pack() {
   say "colcon build"
   (cd "$ROOT/ros2_ws" && set +u && . ./env.sh && colcon build --base-paths ../src vendor >.colcon-build.out 2>&1) \
     || { cat "$ROOT/ros2_ws/.colcon-build.out" >&2; exit 1; }
-  local bag
   for bag in "$@"; do
     mkdir -p "$ROOT/$(dirname "$bag")" && cp -r "$REPO/$bag" "$ROOT/$bag"
   done
@@ -78,6 +78,7 @@ PY
 
 unpack() {
   local bundle="$1" target="$2"
+  [ -f "$bundle" ] || die "$bundle: no such bundle (make one with: $0 pack BUNDLE.tar.xz)"
   "$target" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' || die "$target is not CPython 3.12"
   rm -rf "$ROOT" && mkdir -p "$ROOT" && tar -C "$ROOT" -xJf "$bundle"
   sources "$REPO" "$ROOT"
