@@ -51,7 +51,7 @@ pack() {
   # the target's Python has these (a torch image does), or they only build and lint
   for p in numpy numpy.libs numpy-* matplotlib matplotlib-* mpl_toolkits PIL pillow.libs pillow-* sympy sympy-* \
     mpmath mpmath-* networkx networkx-* fontTools fonttools-* kiwisolver kiwisolver-* contourpy contourpy-* pip \
-    pip-* hypothesis hypothesis-* _hypothesis* pygments pygments-* docutils docutils-* ruff ruff-* coverage \
+    pip-* docutils docutils-* ruff ruff-* coverage \
     coverage-* colcon_* colcon-*; do
     leave_out+=(--exclude="$site/$p")
   done
