@@ -551,8 +551,8 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
             topic,
         )
         # the requester's publisher in the graph (it starts slowly on 2 cores): the vehicle gets its latched request
-        # as soon as they match, within the seconds below even on a loaded machine (one second once missed the
-        # second ego's during the full suite), so even the first frame is answered
+        # as soon as they match, within the seconds below even on a machine loaded by the rest of the suite, so even
+        # the first frame is answered
         sup.wait_subscribed(topics.vehicle_node(c), topic)
         sup.wait_published("/requester", topic)
     time.sleep(3.0)
