@@ -82,6 +82,7 @@ PATHS = {
     "ego-fast-paths": ["--rate", "0.04"],
     "ego-reference-paths": ["--rate", "0.04", "--ego-params", "reference_paths:=true"],
 }
+VEHICLE_STAGES = ("inputs_ms", "encoder_ms", "codec_ms")  # a vehicle frame's work, as its /diagnostics time it
 CPU_SETTING = "int8-topk1024-zstd"  # per-node CPU is reported for the setting that meets the size goal
 
 
@@ -131,9 +132,7 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
     wall = {"ego": np.median([float(d["total_ms"]) for d in ego])}
     wall.update(
         {
-            f"vehicle {a}": np.median(
-                [sum(float(d[k]) for k in ("inputs_ms", "encoder_ms", "codec_ms")) for d in v.values()]
-            )
+            f"vehicle {a}": np.median([sum(float(d[k]) for k in VEHICLE_STAGES) for d in v.values()])
             for a, v in sorted(vehicles.items())
         }
     )
@@ -145,8 +144,7 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
         "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()},
         "wall_ms_per_frame": {k: float(v) for k, v in wall.items()},
         "vehicle_stage_ms": {
-            k: float(np.median([float(d[k]) for v in vehicles.values() for d in v.values()]))
-            for k in ("inputs_ms", "encoder_ms", "codec_ms")
+            k: float(np.median([float(d[k]) for v in vehicles.values() for d in v.values()])) for k in VEHICLE_STAGES
         },
         "ego_stage_ms": stages,
         "frames": len(ego),
@@ -176,7 +174,8 @@ def sweep(demo: Path, opts) -> int:
     """The demo graph at each rate: frames fused of the bag's, latency, CPU per node."""
     rows = [
         "| rate | frame every (s) | frames fused / in the bag | skipped: ego; its encoder | recorded | "
-        "latency p50 / p95 (ms) | node wall per frame p50 (ms): ego; vehicles | CPU per frame p50 (ms): ego; vehicles |",
+        "latency p50 / p95 (ms) | node wall per frame p50 (ms): ego; vehicles | "
+        "CPU per frame p50 (ms): ego; vehicles |",
         "|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     kept_up = []

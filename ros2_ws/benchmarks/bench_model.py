@@ -175,10 +175,7 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int) -
             model.use(InferencePath(str(device), precision))
             inputs = pace.shaped_inputs(model)
             t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
-            others = {
-                i: (VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)), pose)
-                for i, pose in ((1, _shifted(10.0)), (2, _shifted(-10.0)))
-            }
+            others = pace.shaped_neighbours(ego)
             t_ego, _ = timed_on(lambda: predict_frame(model, ego, np.eye(4), others), repeats)
             base = base or (t_vehicle, t_ego)
             rows.append(
@@ -187,12 +184,6 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int) -
             )
             print(f"  {name} {precision}: vehicle {1e3 * t_vehicle:.1f} ms, ego {1e3 * t_ego:.1f} ms", flush=True)
     return "\n".join(rows)
-
-
-def _shifted(dx: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[0, 3] = dx
-    return pose
 
 
 def _flops(fn) -> int:

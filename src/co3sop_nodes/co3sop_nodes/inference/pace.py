@@ -55,12 +55,13 @@ def shaped_inputs(model: Co3SOP, seed: int = 0) -> dict:
 
 
 def shaped_neighbours(own: VehicleOutput) -> dict[int, tuple[VehicleOutput, np.ndarray]]:
-    """Two neighbours 10 m ahead and behind whose outputs are `own`'s, shifted: predict_frame's candidates."""
+    """Two neighbours 10 m ahead and behind whose outputs are `own`'s, shifted by 3 and 6 voxels along y:
+    predict_frame's candidates."""
     others = {}
-    for i, dx in enumerate((10.0, -10.0)):
+    for i, dx in ((1, 10.0), (2, -10.0)):
         pose = np.eye(4)
         pose[0, 3] = dx
-        others[i + 1] = (VehicleOutput(own.features.roll(3, 2), own.confidence.roll(3, 2)), pose)
+        others[i] = (VehicleOutput(own.features.roll(3 * i, 2), own.confidence.roll(3 * i, 2)), pose)
     return others
 
 

@@ -414,7 +414,12 @@ def _graph(
             counts = ", ".join(f"{status_of(e)} {frames_accounted(supervisor, e)}" for e in graph.egos)
             raise Co3sopError(f"{exc} (frames fused or skipped: {counts}){warned(player, *nodes.values())}") from None
         if not channel:  # on a channel each node runs under a wrapper process, whose own CPU says nothing
-            used = {label: (p.cpu_seconds() or 0.0) - (cpu_before[label] or 0.0) for label, p in running.items()}
+            after = {label: p.cpu_seconds() for label, p in running.items()}
+            used = {  # without /proc, nothing to say
+                label: after[label] - cpu_before[label]
+                for label in running
+                if after[label] is not None and cpu_before[label] is not None
+            }
             say(
                 "CPU a frame while the bag played (ms): "
                 + ", ".join(f"{label} {1e3 * c / frames:.0f}" for label, c in {"player": player_cpu, **used}.items())
