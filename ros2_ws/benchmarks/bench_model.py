@@ -29,6 +29,7 @@ from timing import timed
 from torch.utils.flop_counter import FlopCounterMode
 
 from co3sop_nodes.cli.device import add_device_argument
+from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.outputs import labels_from_logits
@@ -359,6 +360,7 @@ def main() -> None:
         "model's FLOPs and GFLOP/s per stage against it",
     )
     opts = parser.parse_args()
+    keep_freed_memory()  # as every node and command-line tool allocates
     torch.set_num_threads(opts.threads)
     device = resolve_device(opts.device, "--device")
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {opts.threads} threads"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
+from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.common.errors import Co3sopError
 
 
@@ -13,6 +14,7 @@ def run(main: Callable[[list[str] | None], int]) -> Callable[[], None]:
 
     def entry() -> None:
         prog = sys.argv[0].rsplit("/", 1)[-1]
+        keep_freed_memory()  # training and evaluation repeat the same allocations every sample
         try:
             code = main(None)
         except (Co3sopError, OSError) as exc:  # bad input or a file system problem: a message, not a traceback

@@ -19,6 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
+from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.common.errors import Co3sopError, exception_line
 
 PACKAGE = "co3sop_nodes"
@@ -307,6 +308,7 @@ def spin_node(make_node: Callable[[], Node], args: list[str] | None = None, prog
 
 def _spin(make_node: Callable[[], Node], args: list[str] | None) -> int:
     configure_environment()
+    keep_freed_memory()  # a node repeats its frame's allocations: serve them from memory it already has
     rclpy.init(args=args)
     node = None
     code = 0

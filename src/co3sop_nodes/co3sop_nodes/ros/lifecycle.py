@@ -28,6 +28,7 @@ from __future__ import annotations
 from lifecycle_msgs.srv import ChangeState
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
+from co3sop_nodes.common.allocation import freeze_setup
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.ros.params import Param, Parameters
 
@@ -100,6 +101,7 @@ class ManagedNode(LifecycleNode):
         result = self._run(self.configure, "configure")
         if result == TransitionCallbackReturn.SUCCESS:
             self._configured = True
+            freeze_setup()  # the model and what configure built live until cleanup: out of the collector's walks
         else:
             self._run(self.release, "release after a failed configure")
         return result

@@ -1,0 +1,50 @@
+"""A process that keeps its freed memory serves a frame's large blocks without asking the kernel for new pages."""
+
+import gc
+import platform
+import subprocess
+import sys
+
+import pytest
+
+from co3sop_nodes.common.allocation import freeze_setup
+
+# minor page faults of 20 rounds of a 40 MB block (beyond the 32 MB malloc adapts to) written, then freed, after
+# a first round
+_FAULTS = """
+import resource, sys
+if sys.argv[1] == "keep":
+    from co3sop_nodes.common.allocation import keep_freed_memory
+    assert keep_freed_memory()
+def frame():
+    block = bytearray(40 << 20)  # malloc's own pages (numpy would ask the kernel for huge pages)
+    block[::4096] = bytes(len(block) // 4096)  # a write to every page
+    del block
+frame()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):
+    frame()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _faults(mode: str) -> int:
+    done = subprocess.run([sys.executable, "-c", _FAULTS, mode], capture_output=True, text=True, check=True)
+    return int(done.stdout)
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc only")
+def test_kept_memory_serves_repeated_large_blocks_without_new_pages():
+    default, kept = _faults("default"), _faults("keep")
+    assert default > 20 * 5000  # each round faults in its 10240 pages anew: what the setting is for
+    assert kept < 200  # the first round's pages serve every later one
+
+
+def test_freeze_setup_takes_live_objects_out_of_the_collector():
+    try:
+        before = gc.get_freeze_count()
+        kept = [object() for _ in range(1000)]
+        freeze_setup()
+        assert gc.get_freeze_count() >= before + len(kept)
+    finally:
+        gc.unfreeze()
