@@ -92,6 +92,29 @@ def test_the_kernel_splits_parents_in_shares_of_any_size():
     assert np.abs(torch.stack(conf).numpy().astype(int) - want_conf).max() <= 1
 
 
+@pytest.mark.parametrize("name", ["tiny-lidar", "small"])
+def test_the_reduced_precision_kernel_stays_within_its_tolerance(name):
+    """Fused multiply-adds and the shorter exp: labels equal but for float32 ties, confidence within one step; read
+    as bfloat16, the same parents give the same result bit for bit."""
+    cfg = preset(name)
+    head = random_head(cfg.head_channels, cfg.embed_dims, 6)
+    x = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims)
+    dims = tuple(2 * n for n in cfg.feature_grid.dims)
+
+    def labels(parents, precision):
+        out = octant_kernel.octant_labels(parents, dims, head.up2, head.point2, head.classify[2], 1, precision)
+        return tuple(t[None].numpy() for t in out)
+
+    want_labels, want_conf = reference(head, x)
+    got_labels, got_conf = labels(head.parents(x)[0], "float16")  # the reduced kernel on float32 parents
+    assert len(np.unique(want_labels)) >= 5
+    assert_labels_equal(got_labels, want_labels, head, x)
+    assert np.abs(got_conf.astype(int) - want_conf).max() <= 1
+    rounded = head.parents(x)[0].bfloat16()
+    for got, want in zip(labels(rounded, "bfloat16"), labels(rounded.float(), "float16")):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("CO3SOP_CACHE", str(tmp_path))
     kernels.load.cache_clear()
@@ -99,6 +122,8 @@ def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monk
     try:
         assert octant_kernel.available(16, 8, 24)  # CI machines have a C compiler, as every ROS 2 install
         assert len(list((tmp_path / "native").glob("octant_labels-*.so"))) == 1
+        assert octant_kernel.available(16, 8, 24, "bfloat16")  # compiled apart: other flags, another library
+        assert len(list((tmp_path / "native").glob("octant_labels-*.so"))) == 2
     finally:
         kernels.load.cache_clear()
         octant_kernel._kernel.cache_clear()

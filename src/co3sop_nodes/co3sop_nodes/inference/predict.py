@@ -75,7 +75,10 @@ def compile_kernels(model: Co3SOP) -> list[str]:
     compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
     cfg = model.cfg
     c1, c2, _ = cfg.head_channels
-    kernels = {"head": lambda: octant_kernel.available(c1, c2, cfg.num_classes)} if cfg.head == "conv" else {}
+    precision = model.path.precision
+    kernels = (
+        {"head": lambda: octant_kernel.available(c1, c2, cfg.num_classes, precision)} if cfg.head == "conv" else {}
+    )
     if cfg.modality == "camera":
         kernels["image sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.image_attention.heads)
     if cfg.fusion:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
+FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-std=c11")
 # False: every caller takes its PyTorch path (CO3SOP_NATIVE=0 in the environment; benchmarks toggle it to time both)
 ENABLED = os.environ.get("CO3SOP_NATIVE", "1") != "0"
 log = logging.getLogger(__name__)
@@ -49,11 +49,14 @@ def _cpu() -> str:
 
 
 @cache
-def load(name: str, **defines: int) -> ctypes.CDLL | None:
-    """The compiled `native/<name>.c` with `-D NAME=value` for each define; None (logged once) without a C compiler."""
+def load(name: str, contract: bool = False, **defines: int) -> ctypes.CDLL | None:
+    """The compiled `native/<name>.c` with `-D NAME=value` for each define; None (logged once) without a C compiler.
+    Multiplies and adds stay separate operations, rounded as PyTorch's reference rounds them, unless `contract`
+    (for a reduced-precision path, whose tolerance covers the fused multiply-adds' other rounding)."""
     source = Path(__file__).with_name(f"{name}.c").read_bytes()
     compiler = os.environ.get("CC", "cc")
-    args = [*FLAGS, *(f"-D{k}={int(v)}" for k, v in sorted(defines.items()))]
+    contraction = "-ffp-contract=fast" if contract else "-ffp-contract=off"
+    args = [*FLAGS, contraction, *(f"-D{k}={int(v)}" for k, v in sorted(defines.items()))]
     key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(args).encode(), _cpu().encode()])).hexdigest()[
         :20
     ]

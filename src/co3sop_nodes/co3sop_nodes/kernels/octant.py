@@ -23,8 +23,17 @@ _ARGS = [_POINTER, *[ctypes.c_int64] * 4, *[_POINTER] * 8]
 
 
 @cache
-def _kernel(c1: int, c2: int, classes: int):
-    lib = kernels.load("octant_labels", C1=c1, C2=c2, K=classes)
+def _kernel(c1: int, c2: int, classes: int, precision: str):
+    reduced = precision != "float32"
+    lib = kernels.load(
+        "octant_labels",
+        contract=reduced,
+        C1=c1,
+        C2=c2,
+        K=classes,
+        REDUCED=int(reduced),
+        PARENTS_BF16=int(precision == "bfloat16"),
+    )
     if lib is None:
         return None
     fn = lib.octant_labels
@@ -32,9 +41,10 @@ def _kernel(c1: int, c2: int, classes: int):
     return fn
 
 
-def available(c1: int, c2: int, classes: int) -> bool:
-    """Whether the kernel for this head shape compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
-    return kernels.ENABLED and _kernel(c1, c2, classes) is not None
+def available(c1: int, c2: int, classes: int, precision: str = "float32") -> bool:
+    """Whether the kernel for this head shape and inference precision (see `octant_labels`) compiles here (compiling
+    it on first call; CO3SOP_NATIVE=0: never)."""
+    return kernels.ENABLED and _kernel(c1, c2, classes, precision) is not None
 
 
 def octant_labels(
@@ -44,12 +54,19 @@ def octant_labels(
     point: torch.nn.Conv3d,
     classify: torch.nn.Conv3d,
     threads: int,
+    precision: str = "float32",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """parents (P, C1) of the 1/2 grid `dims`, flat order, on the CPU -> labels, confidence (2X1, 2Y1, 2Z1) uint8,
-    on `threads` threads (the kernel must be `available`)."""
+    on `threads` threads (the kernel must be `available`) for an inference path of `precision`. float32: every sum
+    rounded as the reference rounds it. A reduced precision: fused multiply-adds and a shorter exp (labels equal
+    but for near-ties, confidence within one step, as tested); bfloat16 parents are read as they are (widening
+    them first would be one more pass over the volume)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
-    fn = _kernel(c1, c2, k)
-    x = kernels.array(parents)  # (P, C1)
+    fn = _kernel(c1, c2, k, precision)
+    if precision == "bfloat16":
+        x = parents.detach().cpu().to(torch.bfloat16).contiguous().view(torch.int16).numpy()  # (P, C1) bits
+    else:
+        x = kernels.array(parents)  # (P, C1)
     up_w = kernels.array(up.weight.flatten(2).repeat(1, 1, 2))  # (C1, C2, 16): octant (offset i, j, k) last, twice
     up_b = kernels.array(up.bias[:, None].expand(c2, 16))  # (C2, 16)
     point_w, point_b = (

@@ -43,11 +43,17 @@ class ConvNorm(nn.Sequential):
         return x
 
 
+def folded_norm(norm: nn.modules.batchnorm._BatchNorm, bias: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """norm(y + bias) in eval mode as scale * y + shift, per channel: (scale, shift), both (C,)."""
+    scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)  # (C,)
+    shift = norm.bias - norm.running_mean * scale
+    if bias is not None:
+        shift = shift + bias * scale
+    return scale, shift
+
+
 def folded(conv: nn.Conv2d | nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, x: torch.Tensor) -> torch.Tensor:
     """norm(conv(x)) in eval mode as one convolution: weights scaled per output channel, the norm's shift a bias."""
-    scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)  # (Cout,)
-    shift = norm.bias - norm.running_mean * scale
-    if conv.bias is not None:
-        shift = shift + conv.bias * scale
+    scale, shift = folded_norm(norm, conv.bias)  # (Cout,)
     weight = conv.weight * scale.view(-1, *[1] * (conv.weight.dim() - 1))  # keeps the weight's memory format
     return conv._conv_forward(x, weight, shift)

@@ -14,9 +14,7 @@ from co3sop_nodes.common.classes import EMPTY, IGNORE, PALETTE
 from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.messages.sensors import LABEL_POINTS
 
-# per label value: shown as a point (neither empty nor ignored), and its packed 0x00RRGGBB colour
-_SHOWN = np.ones(256, bool)
-_SHOWN[[EMPTY, IGNORE]] = False
+# per label value: its packed 0x00RRGGBB colour
 _RGB = np.zeros(256, np.uint32)
 _RGB[: len(PALETTE)] = (PALETTE[:, 0].astype(np.uint32) << 16) | (PALETTE[:, 1].astype(np.uint32) << 8) | PALETTE[:, 2]
 _RGB[len(PALETTE) :] = _RGB[len(PALETTE) - 1]  # out-of-range labels take the last colour (unlabeled)
@@ -44,12 +42,12 @@ def occupancy_cloud_reference(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
 def occupancy_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
     """(N,) LABEL_POINTS: the centre of every voxel a viewer can see (module docstring), in the grid's frame (C order).
 
-    By table lookups, shifted slices and one pass over the kept voxels: centres per axis are computed once, a
-    voxel's x, y, z are three gathers, not index arrays and fancy indexing over the grid (the same bytes as
-    `occupancy_cloud_reference`, tested).
+    By comparisons and shifted slices over the grid and one pass over the kept voxels: centres per axis are
+    computed once, a voxel's x, y, z are three gathers, not index arrays and fancy indexing over the grid (the same
+    bytes as `occupancy_cloud_reference`, tested).
     """
     nx, ny, nz = labels.shape
-    shown = _SHOWN[labels]  # (X, Y, Z) occupied
+    shown = (labels != EMPTY) & (labels != IGNORE)  # (X, Y, Z) occupied
     enclosed = shown.copy()  # occupied, and so is every face neighbour (none outside the grid)
     for axis in range(3):
         lo, hi, first, last = ([slice(None)] * 3 for _ in range(4))
