@@ -15,6 +15,7 @@ import torch
 
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
+from co3sop_nodes.kernels import half_float
 from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.kernels.warp import compiled_available
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
@@ -71,8 +72,8 @@ def predict_frame(
 
 
 def compile_kernels(model: Co3SOP) -> list[str]:
-    """Compile (or load from the cache) the CPU kernels `model`'s inference uses, so that no frame waits for a
-    compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
+    """Compile (or load from the cache) the CPU kernels `model`'s inference and the feature codec use, so that no
+    frame waits for a compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
     cfg = model.cfg
     c1, c2, _ = cfg.head_channels
     precision = model.path.precision
@@ -84,4 +85,5 @@ def compile_kernels(model: Co3SOP) -> list[str]:
     if cfg.fusion:
         kernels["warp"] = compiled_available
         kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)
+    kernels["float16 codec"] = half_float.available  # every vehicle encodes, every ego decodes
     return [name for name, ready in kernels.items() if ready()]

@@ -35,6 +35,7 @@ from co3sop_nodes.common.errors import (
     UnknownCodecError,
 )
 from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.kernels.half_float import from_float16, to_float16
 
 CODECS = ("zstd", "none")
 # element types of the values; int4's are packed two per byte on the wire (low nibble first)
@@ -45,6 +46,8 @@ FEATURE_DTYPES = {
     "int4": np.dtype("i1"),
 }
 QUANTIZED = ("int8", "int4")  # affine per row: value = q * scale + offset
+# float32 values from this magnitude on round to infinity as float16 (halfway between its largest, 65504, and 2^16)
+FLOAT16_OVERFLOW = 65520.0
 SELECTIONS = ("dense", "topk", "threshold", "request")
 # Receivers refuse payloads that declare more uncompressed bytes than this.
 DEFAULT_MAX_RAW_BYTES = 256 * 1024 * 1024
@@ -360,10 +363,8 @@ def encode_features(
         )
     if not np.isfinite(features).all():
         raise CodecError("features: contain NaN or infinite values")
-    if cfg.dtype == "float16":
-        with np.errstate(over="ignore"):
-            if not np.isfinite(features.astype(np.float16)).all():
-                raise CodecError("features: values beyond the float16 range (|x| > 65504); use float32 or int8")
+    if cfg.dtype == "float16" and features.size and np.abs(features).max() >= FLOAT16_OVERFLOW:
+        raise CodecError("features: values beyond the float16 range (|x| > 65504); use float32 or int8")
     if cfg.learned:
         _check_code(features, cfg.dtype, learned_code)
     elif learned_code:
@@ -487,9 +488,8 @@ def _encode(
         directions, mean, coefficients = basis
         values = coefficients if keep is None else coefficients[:, keep]  # (K, N)
         sent_basis, sent_mean = tuple(directions.reshape(-1).tolist()), tuple(mean.tolist())
-        with np.errstate(over="ignore"):
-            if cfg.dtype == "float16" and not np.isfinite(values.astype(np.float16)).all():
-                raise CodecError("features: coefficients beyond the float16 range (|x| > 65504); use float32 or int8")
+        if cfg.dtype == "float16" and values.size and np.abs(values).max() >= FLOAT16_OVERFLOW:
+            raise CodecError("features: coefficients beyond the float16 range (|x| > 65504); use float32 or int8")
     num_voxels = values.shape[1]
 
     mask_raw = b""
@@ -508,7 +508,7 @@ def _encode(
         values_raw = _pack_int4(q) if cfg.dtype == "int4" else q.tobytes()
         scale, offset = tuple(s.tolist()), tuple(o.tolist())
     else:
-        values_raw = np.ascontiguousarray(values, dtype=FEATURE_DTYPES[cfg.dtype]).tobytes()
+        values_raw = _wire_floats(values, cfg.dtype).tobytes()
 
     conf_raw = b""
     if confidence is not None:
@@ -516,7 +516,7 @@ def _encode(
         if cfg.dtype in QUANTIZED:
             conf_raw = np.rint(conf * 255).astype(np.uint8).tobytes()
         else:
-            conf_raw = conf.astype(FEATURE_DTYPES[cfg.dtype]).tobytes()
+            conf_raw = _wire_floats(conf, cfg.dtype).tobytes()
 
     return EncodedFeatures(
         grid=grid,
@@ -569,6 +569,11 @@ def _basis(
     return directions, mean, coefficients.astype(np.float32)
 
 
+def _wire_floats(values: np.ndarray, dtype: str) -> np.ndarray:
+    """float32 values as the float dtype on the wire (float32 or float16), C order."""
+    return to_float16(values) if dtype == "float16" else np.ascontiguousarray(values, FEATURE_DTYPES[dtype])
+
+
 def _check_finite(field: str, values: np.ndarray) -> None:
     """One faulty sender must not poison a fused map: NaN or inf anywhere drops the whole message."""
     bad = ~np.isfinite(values)
@@ -608,7 +613,8 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes
     )
     wire = _unpack_int4(raw, rows * n) if enc.dtype == "int4" else np.frombuffer(raw, FEATURE_DTYPES[enc.dtype])
-    values = wire.reshape(rows, n).astype(np.float32)  # (C, N), or (K, N) coefficients or code
+    wide = from_float16(wire) if enc.dtype == "float16" else wire.astype(np.float32)
+    values = wide.reshape(rows, n)  # (C, N), or (K, N) coefficients or code
     if enc.learned_code:
         levels = _LEVELS[enc.dtype]
         if n and np.abs(values).max() > levels:
@@ -643,7 +649,8 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         craw = decompress_payload(
             enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes
         )
-        conf = np.frombuffer(craw, cdtype).astype(np.float32)
+        conf = np.frombuffer(craw, cdtype)
+        conf = from_float16(conf) if conf.dtype == np.float16 else conf.astype(np.float32)
         if enc.dtype in QUANTIZED:
             conf = conf / np.float32(255)
         else:
