@@ -16,6 +16,7 @@ import torch
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.kernels import half_float
+from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.kernels.warp import compiled_available
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
@@ -82,6 +83,10 @@ def compile_kernels(model: Co3SOP) -> list[str]:
     )
     if cfg.modality == "camera":
         kernels["image sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.image_attention.heads)
+    elif cfg.lidar.kind == "sscnet" and model.path.reduced:
+        kernels["scan's first layer"] = lambda: occupancy_kernel.available(
+            cfg.lidar.channels // 2, precision == "bfloat16"
+        )
     if cfg.fusion:
         kernels["warp"] = compiled_available
         kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)

@@ -101,7 +101,7 @@ class VehicleHalf(nn.Module):
                 q = layer(q, uv, visible, feats)
             volume = q.transpose(1, 2).reshape(b, -1, *fg.dims)  # (B, C, X, Y, Z)
         else:
-            volume = self.encoder(occupancy.float())
+            volume = self.encoder(occupancy)
         return VehicleOutput(volume, torch.sigmoid(self.confidence(volume)))
 
 

@@ -1,0 +1,58 @@
+/* The first layer of a LiDAR vehicle half on a reduced-precision path: see co3sop_nodes/kernels/occupancy_conv.py.
+ *
+ * A 3x3x3 convolution of stride 2 and padding 1 from one binary channel (a voxelised scan, about 1 % occupied) to
+ * C channels, then ReLU. Each output x-slab starts at the bias; every occupied voxel of the three input x-planes it
+ * reads adds its tap's C weights to the (at most 4) outputs of the slab it falls in; the slab is then rectified
+ * and written channels-last, in float32 or (OUT_BF16=1) bfloat16 rounded to nearest even. The work follows the
+ * occupied voxels, not the grid: oneDNN's convolution reads every voxel of its one-channel input.
+ */
+#include <stdint.h>
+#include <stdlib.h>
+
+static inline uint16_t to_bf16(float f) {
+  union { float f; uint32_t u; } x = {f};
+  return (uint16_t)((x.u + 0x7FFFu + ((x.u >> 16) & 1u)) >> 16);  /* finite inputs: round to nearest even */
+}
+
+/* occupancy (X, Y, Z) uint8, nonzero = occupied; w (3, 3, 3, C) taps, bias (C,) -> out (X2, Y2, Z2, C) for output
+ * x-slabs [start, end), X2 = ceil(X / 2) and so on; returns -1 if its scratch could not be allocated */
+int occupancy_conv(const uint8_t *restrict occupancy, int64_t nx, int64_t ny, int64_t nz, const float *restrict w,
+                   const float *restrict bias, void *restrict out, int64_t start, int64_t end) {
+  const int64_t ny2 = (ny + 1) / 2, nz2 = (nz + 1) / 2, slab = ny2 * nz2 * C;
+  float *acc = malloc(slab * sizeof(float));
+  if (!acc) return -1;
+  for (int64_t ox = start; ox < end; ++ox) {
+    for (int64_t v = 0; v < ny2 * nz2; ++v)
+      for (int c = 0; c < C; ++c) acc[v * C + c] = bias[c];
+    for (int di = 0; di < 3; ++di) {
+      const int64_t ix = 2 * ox - 1 + di;
+      if (ix < 0 || ix >= nx) continue;
+      for (int64_t iy = 0; iy < ny; ++iy) {
+        const uint8_t *row = occupancy + (ix * ny + iy) * nz;
+        for (int64_t iz = 0; iz < nz; ++iz) {
+          if (!row[iz]) continue;
+          for (int dj = 0; dj < 3; ++dj) {  /* output oy reads input 2 oy - 1 + dj */
+            const int64_t ty = iy + 1 - dj, oy = ty / 2;
+            if ((ty & 1) || ty < 0 || oy >= ny2) continue;
+            for (int dk = 0; dk < 3; ++dk) {
+              const int64_t tz = iz + 1 - dk, oz = tz / 2;
+              if ((tz & 1) || tz < 0 || oz >= nz2) continue;
+              const float *tap = w + ((di * 3 + dj) * 3 + dk) * C;
+              float *sum = acc + (oy * nz2 + oz) * C;
+              for (int c = 0; c < C; ++c) sum[c] += tap[c];
+            }
+          }
+        }
+      }
+    }
+#if OUT_BF16
+    uint16_t *o = (uint16_t *)out + ox * slab;
+    for (int64_t v = 0; v < slab; ++v) o[v] = to_bf16(acc[v] > 0.0f ? acc[v] : 0.0f);
+#else
+    float *o = (float *)out + ox * slab;
+    for (int64_t v = 0; v < slab; ++v) o[v] = acc[v] > 0.0f ? acc[v] : 0.0f;
+#endif
+  }
+  free(acc);
+  return 0;
+}

@@ -1,0 +1,63 @@
+"""A LiDAR vehicle half's first layer on a reduced-precision path, compiled (kernels/occupancy_conv.c).
+
+The layer convolves the voxelised scan, one binary channel of which about 1 % is occupied, with stride 2: oneDNN
+reads every voxel of it (in bfloat16, after two conversions of the whole grid) and writes its output in a layout
+the next layer converts. The kernel adds each occupied voxel's taps to the outputs it reaches, applies the ReLU and
+writes channels-last in the path's precision. Its sums are float32 in another order than the convolution's, so it
+serves reduced-precision paths only, within their tolerance (tested against the float32 layer).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from functools import cache
+
+import numpy as np
+import torch
+
+from co3sop_nodes import kernels
+
+_ARGS = [ctypes.c_void_p, *[ctypes.c_int64] * 3, *[ctypes.c_void_p] * 3, ctypes.c_int64, ctypes.c_int64]
+
+
+@cache
+def _kernel(channels: int, bfloat16: bool):
+    lib = kernels.load("occupancy_conv", C=channels, OUT_BF16=int(bfloat16))
+    if lib is None:
+        return None
+    fn = lib.occupancy_conv
+    fn.argtypes, fn.restype = _ARGS, ctypes.c_int
+    return fn
+
+
+def available(channels: int, bfloat16: bool) -> bool:
+    """Whether the kernel for `channels` outputs in bfloat16 (else float32) compiles here (compiling it on first
+    call; CO3SOP_NATIVE=0: never)."""
+    return kernels.ENABLED and _kernel(channels, bfloat16) is not None
+
+
+def occupancy_conv_relu(
+    occupancy: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, bfloat16: bool, threads: int
+) -> torch.Tensor:
+    """relu(conv3d(occupancy, weight, bias, stride=2, padding=1)) for a binary occupancy (B, 1, X, Y, Z) (uint8 or
+    bool, on the CPU) and weight (C, 1, 3, 3, 3) -> (B, C, ceil(X/2), ceil(Y/2), ceil(Z/2)), channels-last in memory,
+    bfloat16 or float32; the kernel must be `available`."""
+    b, _, nx, ny, nz = occupancy.shape
+    c = weight.shape[0]
+    fn = _kernel(c, bfloat16)
+    taps = kernels.array(weight[:, 0].permute(1, 2, 3, 0))  # (3, 3, 3, C)
+    shift = kernels.array(bias)  # (C,)
+    out = torch.empty((b, (nx + 1) // 2, (ny + 1) // 2, (nz + 1) // 2, c), dtype=torch.bfloat16 if bfloat16 else None)
+    for i in range(b):
+        grid = np.ascontiguousarray(occupancy[i, 0].cpu().numpy()).view(np.uint8)  # (X, Y, Z)
+        failed = []
+
+        def part(start: int, end: int, grid=grid, i=i, failed=failed) -> None:
+            pointers = (taps.ctypes.data, shift.ctypes.data, out[i].data_ptr())
+            if fn(grid.ctypes.data, nx, ny, nz, *pointers, start, end):
+                failed.append(end - start)
+
+        kernels.parallel(part, (), out.shape[1], threads)
+        if failed:
+            raise MemoryError("occupancy_conv: no memory for its scratch slab")
+    return out.permute(0, 4, 1, 2, 3)
