@@ -12,6 +12,7 @@ from co3sop_nodes import kernels
 from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.head import OccupancyHead
+from co3sop_nodes.model.path import InferencePath
 
 
 def random_head(channels: tuple[int, int, int], dims: int, seed: int) -> OccupancyHead:
@@ -113,6 +114,19 @@ def test_the_reduced_precision_kernel_stays_within_its_tolerance(name):
     rounded = head.parents(x)[0].bfloat16()
     for got, want in zip(labels(rounded, "bfloat16"), labels(rounded.float(), "float16")):
         np.testing.assert_array_equal(got, want)
+
+
+@torch.no_grad()
+def test_the_reduced_path_folds_the_half_resolution_norm_to_the_same_features():
+    cfg = preset("tiny-lidar")
+    head = random_head(cfg.head_channels, cfg.embed_dims, 7)
+    x = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims)
+    want = head.parents(x)  # float32: the layers as they are
+    head.path = InferencePath(precision="bfloat16")
+    with head.path.autocast():
+        got = head.parents(x)
+    assert got.dtype == torch.bfloat16 and got.shape == want.shape
+    assert (got.float() - want).abs().max() <= 0.03 * want.abs().max()  # bfloat16 rounding through three layers
 
 
 def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monkeypatch):

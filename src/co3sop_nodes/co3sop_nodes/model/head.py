@@ -58,14 +58,16 @@ class OccupancyHead(nn.Module):
         rows = f0.flatten(2).transpose(1, 2)  # (B, P0, C0)
         if self.path.reduced:
             scale, shift = folded_norm(norm, conv.bias)  # (C1,), (C1,)
-            weight = conv.weight.flatten(1) * scale.repeat_interleave(8)  # (C0, C1*8)
-            u = torch.addmm(shift.repeat_interleave(8), rows.flatten(0, 1), weight).relu_().view(b, -1, c1 * 8)
+            # columns octant-major: each octant's C1 channels land in place as one run, twice as long a copy
+            weight = (conv.weight * scale[:, None, None, None]).permute(0, 2, 3, 4, 1).flatten(1)  # (C0, 8*C1)
+            u = torch.addmm(shift.repeat(8), rows.flatten(0, 1), weight).relu_()  # (B*P0, 8*C1)
+            u = u.view(b, x0, y0, z0, 2, 2, 2, c1).permute(0, 1, 4, 2, 5, 3, 6, 7)
         else:
             u = rows @ conv.weight.flatten(1)  # (B, P0, C1*8): kernel offsets (i, j, k) last
             if conv.bias is not None:
                 u = u + conv.bias.repeat_interleave(8)
-        u = u.view(b, x0, y0, z0, c1, 2, 2, 2).permute(0, 1, 5, 2, 6, 3, 7, 4).reshape(b, 2 * x0, 2 * y0, 2 * z0, c1)
-        u = u.permute(0, 4, 1, 2, 3)  # (B, C1, X/2, Y/2, Z/2), channels-last in memory
+            u = u.view(b, x0, y0, z0, c1, 2, 2, 2).permute(0, 1, 5, 2, 6, 3, 7, 4)
+        u = u.reshape(b, 2 * x0, 2 * y0, 2 * z0, c1).permute(0, 4, 1, 2, 3)  # (B, C1, X/2, Y/2, Z/2), channels-last
         f1 = block(u if self.path.reduced else F.relu(norm(u)))
         return f1.permute(0, 2, 3, 4, 1).reshape(b, -1, c1)
 
