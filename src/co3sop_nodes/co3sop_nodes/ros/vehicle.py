@@ -296,7 +296,8 @@ class Vehicle(ManagedNode):
         self._budgets: SenderBudgets | None = None
         self.skips = DropLog(self.get_logger())  # complete frames passed over for a newer one
         self._ready: list[Frame] = []  # complete frames not yet encoded, oldest first
-        self._worker = Worker(f"cav_{self.agent_id} encoder", self._take, self.get_logger())
+        # woken by every complete frame; nothing is due otherwise
+        self._worker = Worker(f"cav_{self.agent_id} encoder", self._take, self.get_logger(), poll_s=None)
 
     def configure(self) -> None:
         p = self.params

@@ -17,11 +17,11 @@ from co3sop_nodes.common.errors import exception_line
 
 
 class Worker:
-    """Calls `take()` under `lock` whenever woken (and every `poll_s`, for deadlines); a callable it returns is
-    run outside the lock, on the worker's thread. Callbacks that change what `take` looks at hold `lock`
-    and then call `wake()`."""
+    """Calls `take()` under `lock` whenever woken (and every `poll_s`, for a `take` with deadlines; None: only when
+    woken); a callable it returns is run outside the lock, on the worker's thread. Callbacks that change what `take`
+    looks at hold `lock` and then call `wake()`."""
 
-    def __init__(self, name: str, take: Callable[[], Callable[[], None] | None], logger, poll_s: float = 0.02):
+    def __init__(self, name: str, take: Callable[[], Callable[[], None] | None], logger, poll_s: float | None = 0.02):
         self.lock = threading.Lock()
         self._cond = threading.Condition(self.lock)
         self._name, self._take, self._logger, self._poll_s = name, take, logger, poll_s
