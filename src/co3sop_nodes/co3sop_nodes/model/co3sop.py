@@ -82,7 +82,10 @@ class VehicleHalf(nn.Module):
         message)."""
         with self.path.autocast():
             out = self._forward(images, lidar2img, occupancy)
-        features, confidence = out.features.float().contiguous(), out.confidence.float().contiguous()
+        # one copy each (widened and made contiguous together) where the path computed another layout or precision
+        features, confidence = (
+            t.to(torch.float32, memory_format=torch.contiguous_format) for t in (out.features, out.confidence)
+        )
         return VehicleOutput(features, confidence, self.encode(features, confidence))
 
     def encode(self, features: torch.Tensor, confidence: torch.Tensor) -> torch.Tensor | None:
