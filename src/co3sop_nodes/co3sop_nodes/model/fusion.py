@@ -15,6 +15,7 @@ from torch import nn
 
 from co3sop_nodes.model.config import AttentionConfig
 from co3sop_nodes.model.deform_attn import DeformableAttention3d
+from co3sop_nodes.model.path import InferencePath
 from co3sop_nodes.model.positional import sine_encoding_3d
 
 
@@ -44,6 +45,7 @@ class VoxelFusion(nn.Module):
         centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (V, 3) in [0, 1]
         self.register_buffer("reference", centres, persistent=False)
         self.register_buffer("pos", sine_encoding_3d(centres, dims), persistent=False)
+        self.path = InferencePath()  # set by Co3SOP.use
 
     def forward(self, ego, values, mask, dense: bool = False):
         """ego: (B, C, X, Y, Z); values: (B, A, C, X, Y, Z) warped; mask: (B, A, X, Y, Z) -> fused (B, C, X, Y, Z)."""
@@ -51,7 +53,9 @@ class VoxelFusion(nn.Module):
         flat = ego.flatten(2).transpose(1, 2)  # (B, V, C)
         per_voxel = mask.flatten(2).transpose(1, 2)  # (B, V, A)
         selected = per_voxel.any(-1)  # (B, V)
-        out = flat.clone()
+        # float32 keeps the ego's layout; a reduced path writes whole voxels into a channels-last copy, which its
+        # channels-last convolutions take as it is (in the ego's layout each voxel's channels lie V apart)
+        out = flat.contiguous() if self.path.reduced else flat.clone()
         for i in range(b):
             idx = torch.arange(flat.shape[1], device=ego.device) if dense else selected[i].nonzero()[:, 0]
             if not len(idx):
@@ -59,6 +63,8 @@ class VoxelFusion(nn.Module):
             q, m = flat[i, idx][None], per_voxel[i, idx][None]  # (1, Q, C), (1, Q, A)
             for layer in self.layers:
                 q = layer(q, self.pos[idx][None], self.reference[idx][None], values[i : i + 1], m)
-            keep = selected[i, idx]
-            out[i, idx[keep]] = q[0, keep]
-        return out.transpose(1, 2).reshape(ego.shape)
+            if dense:  # the selected voxels' results only
+                keep = selected[i]
+                idx, q = idx[keep], q[:, keep]
+            out[i].index_copy_(0, idx, q[0].to(out.dtype))
+        return out.transpose(1, 2).reshape(ego.shape)  # a view: channels-last in memory on a reduced path
