@@ -4,9 +4,9 @@ glibc's malloc serves large blocks (from 128 KB, a threshold that adapts up
 to 32 MB) with fresh pages from the kernel and gives freed memory back, so
 every frame's tensors and multi-megabyte messages are zero-filled and
 page-faulted anew, in a virtual machine at well under a gigabyte a second:
-a third of the LiDAR vehicle half's time in float32 on one thread, a fifth
-of the ego's frame, and most of what a 3 MB message costs its subscriber
-(BENCHMARKS.md, "Memory the process keeps").
+a quarter of the LiDAR vehicle half's time in float32 on one thread, and two
+thirds of what a 3 MB message costs its subscriber (BENCHMARKS.md, "Memory
+the process keeps").
 Raising both thresholds lets freed blocks serve the next frame; the process
 then holds on to its peak, which a node reaches in its first frame anyway
 (`CO3SOP_KEEP_FREED_MEMORY=0` in the environment leaves malloc as it is).

@@ -28,9 +28,9 @@ from co3sop_nodes.viz.cloud import occupancy_cloud
 
 # play at 1 / HEADROOM of the rate the measured work allows: DDS, decoding, the player and the recorder (not measured
 # here), the ego waiting for the vehicles' features of its frame, several processes sharing few cores (the ego's frame
-# takes longer than its CPU), and jitter. On 2 cores with the LiDAR model in bfloat16 the measured work allowed 1.3x
-# real time: the graph fused 92 of 100 frames at rate 0.7 and every frame at 0.5 (BENCHMARKS.md)
-HEADROOM = 2.6
+# takes longer than its CPU), and jitter. On 2 cores with the LiDAR model in bfloat16 the measured work allows about
+# 1.2-1.3x real time; the graph fused every frame of 100 at rate 0.7 and 80 at 1.0 (BENCHMARKS.md)
+HEADROOM = 2.0
 
 
 @dataclass(frozen=True)
