@@ -57,7 +57,8 @@ class ImageCrossAttention(nn.Module):
         n = uv.shape[1]
         h, lv, p = self.heads, self.levels, self.points
         offsets = self.offsets(query).view(b, q, h, lv, p, 2)  # in pixels of each level
-        w = torch.softmax(self.weights(query).view(b, q, h, lv * p), -1).view(b, q, h, lv, p)
+        # in float32 whatever the path's precision: the CPU's softmax over bfloat16 takes three times as long
+        w = torch.softmax(self.weights(query).view(b, q, h, lv * p).float(), -1).view(b, q, h, lv, p)
         values = [self.value(f.permute(0, 2, 3, 1)) for f in feats]  # L x (B*N, Hl, Wl, C)
         # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
         compiled = self.path.kernels(query) and deform_kernel.available(c // h)
