@@ -64,7 +64,8 @@ def on_message(msg):
     if count[0] == 0:
         start[0] = time.process_time()
     count[0] += 1
-node.create_subscription(VoxelFeatures, "/bench_allocation", on_message, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+node.create_subscription(VoxelFeatures, "/bench_allocation", on_message, qos)
 print("ready", flush=True)
 end = time.monotonic() + float(sys.argv[1])
 while time.monotonic() < end and count[0] < int(sys.argv[2]):
@@ -78,7 +79,8 @@ from co3sop_msgs.msg import VoxelFeatures
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 rclpy.init()
 node = rclpy.create_node("bench_allocation_publisher")
-pub = node.create_publisher(VoxelFeatures, "/bench_allocation", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+pub = node.create_publisher(VoxelFeatures, "/bench_allocation", qos)
 msg = VoxelFeatures()
 msg.values = bytes(range(256)) * (int(sys.argv[1]) // 256)
 while pub.get_subscription_count() == 0:
@@ -91,19 +93,21 @@ time.sleep(1.0)
 """
 
 
+def _env(keep: bool) -> dict[str, str]:
+    return {**os.environ, "CO3SOP_KEEP_FREED_MEMORY": "1" if keep else "0"}
+
+
 def _run(code: str, args: list[str], keep: bool) -> dict:
-    env = {**os.environ, "CO3SOP_KEEP_FREED_MEMORY": "1" if keep else "0"}
     done = subprocess.run(
-        [sys.executable, "-c", code, *args], env=env, capture_output=True, text=True, check=True, timeout=600
+        [sys.executable, "-c", code, *args], env=_env(keep), capture_output=True, text=True, check=True, timeout=600
     )
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def _subscriber_ms(size: int, messages: int, keep: bool) -> float:
-    env = {**os.environ, "CO3SOP_KEEP_FREED_MEMORY": "1" if keep else "0"}
     sub = subprocess.Popen(
         [sys.executable, "-c", SUBSCRIBER, str(messages * 0.1 + 30), str(messages)],
-        env=env,
+        env=_env(keep),
         stdout=subprocess.PIPE,
         text=True,
     )

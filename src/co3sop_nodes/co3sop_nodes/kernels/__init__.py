@@ -99,10 +99,11 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(threads, thread_name_prefix="co3sop-native")
 
 
-def parallel(fn, args: tuple, n: int, threads: int) -> None:
-    """fn(*args, start, end) over [0, n), split in `threads` parts run at once (ctypes releases the GIL); the caller
+def parallel(fn, args: tuple, n: int, threads: int, grain: int = 1024) -> None:
+    """fn(*args, start, end) over [0, n), split in `threads` parts run at once (ctypes releases the GIL) when there
+    are `grain` items or more (fewer are not worth a thread: the default suits items of a few operations); the caller
     keeps every array the args point to referenced until this returns."""
-    if threads <= 1 or n < 1024:
+    if threads <= 1 or n < grain:
         fn(*args, 0, n)
         return
     bounds = np.linspace(0, n, threads + 1).astype(np.int64)

@@ -50,14 +50,10 @@ def occupancy_conv_relu(
     out = torch.empty((b, (nx + 1) // 2, (ny + 1) // 2, (nz + 1) // 2, c), dtype=torch.bfloat16 if bfloat16 else None)
     for i in range(b):
         grid = np.ascontiguousarray(occupancy[i, 0].cpu().numpy()).view(np.uint8)  # (X, Y, Z)
-        failed = []
-
-        def part(start: int, end: int, grid=grid, i=i, failed=failed) -> None:
-            pointers = (taps.ctypes.data, shift.ctypes.data, out[i].data_ptr())
-            if fn(grid.ctypes.data, nx, ny, nz, *pointers, start, end):
-                failed.append(end - start)
-
-        kernels.parallel(part, (), out.shape[1], threads)
-        if failed:
+        pointers = (grid.ctypes.data, nx, ny, nz, taps.ctypes.data, shift.ctypes.data, out[i].data_ptr())
+        failed = []  # a part's nonzero return: its scratch slab could not be allocated
+        # an item is a whole output x-slab: two are worth a thread
+        kernels.parallel(lambda start, end: failed.append(fn(*pointers, start, end)), (), out.shape[1], threads, 2)
+        if any(failed):
             raise MemoryError("occupancy_conv: no memory for its scratch slab")
     return out.permute(0, 4, 1, 2, 3)

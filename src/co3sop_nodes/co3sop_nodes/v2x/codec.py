@@ -574,6 +574,11 @@ def _wire_floats(values: np.ndarray, dtype: str) -> np.ndarray:
     return to_float16(values) if dtype == "float16" else np.ascontiguousarray(values, FEATURE_DTYPES[dtype])
 
 
+def _as_float32(values: np.ndarray) -> np.ndarray:
+    """Values read off the wire (float32, float16 or integers) as float32: `_wire_floats`'s inverse for floats."""
+    return from_float16(values) if values.dtype == np.float16 else values.astype(np.float32)
+
+
 def _check_finite(field: str, values: np.ndarray) -> None:
     """One faulty sender must not poison a fused map: NaN or inf anywhere drops the whole message."""
     bad = ~np.isfinite(values)
@@ -613,8 +618,7 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes
     )
     wire = _unpack_int4(raw, rows * n) if enc.dtype == "int4" else np.frombuffer(raw, FEATURE_DTYPES[enc.dtype])
-    wide = from_float16(wire) if enc.dtype == "float16" else wire.astype(np.float32)
-    values = wide.reshape(rows, n)  # (C, N), or (K, N) coefficients or code
+    values = _as_float32(wire).reshape(rows, n)  # (C, N), or (K, N) coefficients or code
     if enc.learned_code:
         levels = _LEVELS[enc.dtype]
         if n and np.abs(values).max() > levels:
@@ -649,8 +653,7 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         craw = decompress_payload(
             enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes
         )
-        conf = np.frombuffer(craw, cdtype)
-        conf = from_float16(conf) if conf.dtype == np.float16 else conf.astype(np.float32)
+        conf = _as_float32(np.frombuffer(craw, cdtype))
         if enc.dtype in QUANTIZED:
             conf = conf / np.float32(255)
         else:
