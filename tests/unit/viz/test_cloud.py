@@ -3,9 +3,11 @@
 import numpy as np
 import pytest
 
+from co3sop_nodes import kernels
 from co3sop_nodes.common.classes import IGNORE, PALETTE
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.data.bags import typestore
+from co3sop_nodes.kernels import visible_voxels
 from co3sop_nodes.messages import LABEL_POINTS, RosbagsTypes, point_cloud_msg, xyz_of
 from co3sop_nodes.viz.cloud import occupancy_cloud, occupancy_cloud_reference
 
@@ -26,7 +28,10 @@ def test_occupied_voxel_centres_in_the_palette():
 
 
 @pytest.mark.parametrize("range_name", sorted(BENCHMARK_RANGES))
-def test_the_cloud_equals_its_definition_at_every_range(range_name):
+@pytest.mark.parametrize("enabled", [True, False], ids=["compiled", "definition"])
+def test_the_cloud_equals_its_definition_at_every_range(range_name, enabled, monkeypatch):
+    monkeypatch.setattr(kernels, "ENABLED", enabled)
+    assert visible_voxels.available() == enabled  # CI machines have a C compiler
     grid = BENCHMARK_RANGES[range_name]
     rng = np.random.default_rng(len(range_name))
     labels = np.where(rng.random(grid.dims) < 0.2, rng.integers(0, 256, grid.dims), 0).astype(
@@ -34,6 +39,17 @@ def test_the_cloud_equals_its_definition_at_every_range(range_name):
     )  # every value, out of range too
     want, got = occupancy_cloud_reference(labels, grid), occupancy_cloud(labels, grid)
     assert len(got) > 1000 and got.tobytes() == want.tobytes()  # bit-identical payloads
+
+
+def test_a_grid_of_one_voxel_and_a_full_grid():
+    """Every voxel of a full grid touches its edge or is enclosed; a single voxel is seen from every side."""
+    for dims in [(1, 1, 1), (3, 1, 5), (5, 4, 3)]:
+        grid = GridSpec((0.0, 0.0, 0.0), 0.4, dims)
+        full = np.full(dims, 2, np.uint8)
+        got = occupancy_cloud(full, grid)
+        inner = int(np.prod([max(n - 2, 0) for n in dims]))
+        assert len(got) == full.size - inner
+        assert got.tobytes() == occupancy_cloud_reference(full, grid).tobytes()
 
 
 def test_only_the_voxels_a_viewer_can_see():

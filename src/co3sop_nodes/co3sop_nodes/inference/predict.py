@@ -15,7 +15,7 @@ import torch
 
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
-from co3sop_nodes.kernels import half_float
+from co3sop_nodes.kernels import half_float, visible_voxels
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.kernels.warp import compiled_available
@@ -72,9 +72,10 @@ def predict_frame(
     return FramePrediction(labels, confidence, chosen, t1 - t0, time.perf_counter() - t1)
 
 
-def compile_kernels(model: Co3SOP) -> list[str]:
-    """Compile (or load from the cache) the CPU kernels `model`'s inference and the feature codec use, so that no
-    frame waits for a compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
+def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
+    """Compile (or load from the cache) the CPU kernels `model`'s inference and the feature codec use, and with
+    `points` the point cloud's (an ego's picture of its prediction), so that no frame waits for a compiler: nodes
+    call it before they say they are ready. The kernels that compiled, by name."""
     cfg = model.cfg
     c1, c2, _ = cfg.head_channels
     precision = model.path.precision
@@ -91,4 +92,6 @@ def compile_kernels(model: Co3SOP) -> list[str]:
         kernels["warp"] = compiled_available
         kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)
     kernels["float16 codec"] = half_float.available  # every vehicle encodes, every ego decodes
+    if points:
+        kernels["point cloud"] = visible_voxels.available
     return [name for name, ready in kernels.items() if ready()]

@@ -283,7 +283,7 @@ class Ego(ManagedNode):
         path = inference_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter ")
         self.model = model.use(path)
         self.cfg = self.model.cfg
-        self.kernels = compile_kernels(self.model)  # before 'active': no frame waits for a compiler
+        self.kernels = compile_kernels(self.model, points=True)  # before 'active': no frame waits for a compiler
         self.pairing: Pairing[str, Received] = Pairing(self.own_topic)
         self._apply({name: p[name] for name in RUNTIME})
         p.on_change(self._apply)

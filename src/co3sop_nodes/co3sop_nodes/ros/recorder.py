@@ -28,6 +28,7 @@ from rclpy.utilities import remove_ros_args
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.data.recording import McapRecorder
+from co3sop_nodes.kernels import visible_voxels
 from co3sop_nodes.messages.sensors import POINT_CLOUD
 from co3sop_nodes.ros.dds import DropLog, matching_qos, spin_node
 from co3sop_nodes.ros.message_types import message_class
@@ -51,6 +52,7 @@ class Recorder(Node):
         self._subs = []
         self.mcap = McapRecorder(opts.out, chunk_size=opts.chunk_size)
         self.truth_points = TruthPoints()
+        visible_voxels.available()  # its kernel compiled now, not while the first ground truth waits
         self.drops = DropLog(self.get_logger())
         self.create_timer(0.2, self._discover)
         self.create_timer(opts.flush_period, self.mcap.flush)

@@ -12,6 +12,7 @@ import numpy as np
 
 from co3sop_nodes.common.classes import EMPTY, IGNORE, PALETTE
 from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.kernels import visible_voxels
 from co3sop_nodes.messages.sensors import LABEL_POINTS
 
 # per label value: its packed 0x00RRGGBB colour
@@ -40,28 +41,9 @@ def occupancy_cloud_reference(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
 
 
 def occupancy_cloud(labels: np.ndarray, grid: GridSpec) -> np.ndarray:
-    """(N,) LABEL_POINTS: the centre of every voxel a viewer can see (module docstring), in the grid's frame (C order).
-
-    By comparisons and shifted slices over the grid and one pass over the kept voxels: centres per axis are
-    computed once, a voxel's x, y, z are three gathers, not index arrays and fancy indexing over the grid (the same
-    bytes as `occupancy_cloud_reference`, tested).
-    """
-    nx, ny, nz = labels.shape
-    shown = (labels != EMPTY) & (labels != IGNORE)  # (X, Y, Z) occupied
-    enclosed = shown.copy()  # occupied, and so is every face neighbour (none outside the grid)
-    for axis in range(3):
-        lo, hi, first, last = ([slice(None)] * 3 for _ in range(4))
-        lo[axis], hi[axis], first[axis], last[axis] = slice(None, -1), slice(1, None), 0, -1
-        enclosed[tuple(hi)] &= shown[tuple(lo)]
-        enclosed[tuple(lo)] &= shown[tuple(hi)]
-        enclosed[tuple(first)] = enclosed[tuple(last)] = False
-    flat = np.flatnonzero(shown > enclosed)  # (N,) C-order voxel indices of the visible ones
-    lab = labels.reshape(-1)[flat]
-    ij, k = np.divmod(flat, nz)
-    i, j = np.divmod(ij, ny)
+    """(N,) LABEL_POINTS: the centre of every voxel a viewer can see (module docstring), in the grid's frame (C order):
+    by the compiled kernel where it compiles, the same bytes as `occupancy_cloud_reference` (tested)."""
+    if not visible_voxels.available():
+        return occupancy_cloud_reference(labels, grid)
     centres = [(np.arange(n, dtype=np.float64) + 0.5) * grid.voxel_size + o for n, o in zip(labels.shape, grid.origin)]
-    cloud = np.zeros(len(flat), LABEL_POINTS)  # zeroed padding: the payload is deterministic
-    cloud["x"], cloud["y"], cloud["z"] = centres[0][i], centres[1][j], centres[2][k]
-    cloud["rgb"] = _RGB[lab].view(np.float32)
-    cloud["label"] = lab
-    return cloud
+    return visible_voxels.visible_points(labels, centres, _RGB, LABEL_POINTS)
