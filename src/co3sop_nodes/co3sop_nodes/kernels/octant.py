@@ -67,7 +67,8 @@ def octant_labels(
         x = parents.detach().cpu().to(torch.bfloat16).contiguous().view(torch.int16).numpy()  # (P, C1) bits
     else:
         x = kernels.array(parents)  # (P, C1)
-    up_w = kernels.array(up.weight.flatten(2).repeat(1, 1, 2))  # (C1, C2, 16): octant (offset i, j, k) last, twice
+    # (C1, C2, 16) in the kernel's lane order: octant (dx, dy, dz) of parent `half` at lane 4 (2 dx + dy) + 2 half + dz
+    up_w = kernels.array(up.weight.flatten(2).view(c1, c2, 4, 1, 2).expand(c1, c2, 4, 2, 2).reshape(c1, c2, 16))
     up_b = kernels.array(up.bias[:, None].expand(c2, 16))  # (C2, 16)
     point_w, point_b = (
         kernels.array(point.weight[:, :, 0, 0, 0].t()),

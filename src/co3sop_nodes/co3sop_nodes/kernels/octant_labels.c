@@ -4,12 +4,14 @@
  * short sequence of vector multiply-adds kept in registers, fused with the argmax and the label's softmax
  * probability. 16 lanes fill an AVX-512 register (two AVX2 ones elsewhere, as fast as 8 lanes were). Compiled
  * per head shape: C1 (channels at 1/2), C2 (at full resolution) and K (classes) are defined on the command line.
- * GCC/Clang vector extensions, no intrinsics: any target compiles it.
+ * GCC/Clang vector extensions, no intrinsics: any target compiles it. What bounds it is chains of dependent
+ * operations more than their count: the argmax is a tree of pairwise maxima and the softmax's sum is four sums.
  * Sums run in the reference's order per voxel (over input channels), so logits match it to float rounding; with
- * REDUCED=1 (a reduced-precision path, compiled with fused multiply-adds) they round once per multiply-add and the
- * softmax's exp is a shorter series.
+ * REDUCED=1 (a reduced-precision path, compiled with fused multiply-adds) they round once per multiply-add, the
+ * classifier's weights are scaled by log2 e so that the softmax's exp is a power of two, and its series is shorter.
  */
 #include <stdint.h>
+#include <string.h>
 
 typedef float f16 __attribute__((vector_size(64)));
 typedef int32_t i16 __attribute__((vector_size(64)));
@@ -31,17 +33,15 @@ static inline f16 select(i16 m, f16 a, f16 b) { return (f16)(((i16)a & m) | ((i1
 static inline f16 relu(f16 v) { return (f16)((i16)v & (v > 0.0f)); }
 
 #if REDUCED
-/* exp(d) for d <= 0 on a reduced-precision path (compiled with fused multiply-adds), within ~5e-6 relative:
- * 2^(d log2 e) = 2^n 2^f with n = round, so |f| <= ln2 / 2 and a degree-5 series suffices; below 2^-126 it is
- * clamped (negligible in the sum) */
+/* 2^d for d <= 0 (logits in base 2), within 3e-6 relative: 2^d = 2^n 2^f with n = round(d) (adding 1.5 * 2^23
+ * rounds d and leaves n in the sum's low mantissa bits, which a shift by 23 moves into the exponent), |f| <= 1/2,
+ * 2^f by its degree-4 minimax polynomial; below 2^-126 it is clamped (negligible in the sum) */
 static inline f16 exp_nonpositive(f16 d) {
-  f16 x = d * 1.44269504f;
-  x = select(x > -126.0f, x, (f16){0} - 126.0f);
-  const f16 shift = (f16){0} + 12582912.0f;  /* 1.5 * 2^23: adding it rounds to an integer */
-  f16 n = (x + shift) - shift;
-  f16 f = (x - n) * 0.69314718f;
-  f16 p = 1.0f + f * (1.0f + f * (0.5f + f * (1.0f / 6 + f * (1.0f / 24 + f * (1.0f / 120)))));
-  return p * (f16)((__builtin_convertvector(n, i16) + 127) << 23);
+  const f16 x = select(d > -126.0f, d, (f16){0} - 126.0f);
+  const f16 shifted = x + 12582912.0f;
+  const f16 f = x - (shifted - 12582912.0f);
+  const f16 p = 0.99999928f + f * (0.69312191f + f * (0.24024744f + f * (0.05591722f + f * 0.00956987f)));
+  return p * (f16)(((i16)shifted << 23) + 0x3F800000);
 }
 #else
 /* exp(d) for d <= 0 within ~2e-5 relative (the confidence needs 1/255): 2^(d log2 e) = 2^i 2^f with
@@ -57,51 +57,101 @@ static inline f16 exp_nonpositive(f16 d) {
 }
 #endif
 
+typedef uint8_t b16 __attribute__((vector_size(16)));
+
+/* A pair's 16 lanes, lane = 4 (2 dx + dy) + 2 half + dz for octant (dx, dy, dz) of parent p + half: for two parents
+ * p, p + 1 of one z-row each (dx, dy) column's four fine voxels are four consecutive lanes and four consecutive
+ * bytes of the output, written at once. */
+static inline void write_pair(uint8_t *restrict out, b16 lanes, int64_t fine, int64_t fz, int64_t fy) {
+  uint32_t run[4];
+  memcpy(run, &lanes, 16);
+  memcpy(out + fine, run, 4);
+  memcpy(out + fine + fz, run + 1, 4);
+  memcpy(out + fine + fy, run + 2, 4);
+  memcpy(out + fine + fy + fz, run + 3, 4);
+}
+
 /* parents (N, C1) of a (X1, Y1, Z1) grid in flat order; up_w (C1, C2, 16) and up_b (C2, 16): the transposed
- * convolution, octant (i, j, k) last, twice (a lane per octant of each of two parents); point_w (C2 in, C2 out);
- * cls_w (C2, K) -> labels and round(255 p(label)), both (2 X1, 2 Y1, 2 Z1) uint8: each octant written at its fine
- * voxel */
+ * convolution in lane order (write_pair); point_w (C2 in, C2 out); cls_w (C2, K) -> labels and round(255 p(label)),
+ * both (2 X1, 2 Y1, 2 Z1) uint8: each octant written at its fine voxel */
 void octant_labels(const parent_t *restrict parents, int64_t y1, int64_t z1, int64_t start, int64_t end,
                    const f16u *restrict up_w, const f16u *restrict up_b, const float *restrict point_w,
                    const float *restrict point_b, const float *restrict cls_w, const float *restrict cls_b,
                    uint8_t *restrict labels, uint8_t *restrict confidence) {
-  for (int64_t p = start; p < end; p += 2) {
-    const int64_t pair[2] = {p, p + 1 < end ? p + 1 : p};  /* an odd share's last parent fills both halves */
-    const parent_t *xa = parents + pair[0] * C1, *xb = parents + pair[1] * C1;
+  const int64_t fz = 2 * z1, fy = 2 * y1 * fz;  /* strides of the fine grid along y and x (z: 1) */
+#if REDUCED
+  float w_cls[C2 * K], b_cls[K];  /* logits in base 2 */
+  for (int i = 0; i < C2 * K; ++i) w_cls[i] = cls_w[i] * 1.44269504f;
+  for (int q = 0; q < K; ++q) b_cls[q] = cls_b[q] * 1.44269504f;
+#else
+  const float *w_cls = cls_w, *b_cls = cls_b;
+#endif
+  int64_t px = start / (y1 * z1), py = (start / z1) % y1, pz = start % z1;
+  for (int64_t p = start; p < end;) {
+    const int paired = p + 1 < end && pz + 1 < z1;  /* else p alone, in both halves */
+    const parent_t *xa = parents + p * C1, *xb = parents + (paired ? p + 1 : p) * C1;
     f16 h[C2], g[C2], logits[K];
+#pragma GCC unroll 64
     for (int j = 0; j < C2; ++j) h[j] = up_b[j];
+#pragma GCC unroll 64
     for (int c = 0; c < C1; ++c) {
       const float a = parent_value(xa[c]), b = parent_value(xb[c]);
-      const f16 xc = {a, a, a, a, a, a, a, a, b, b, b, b, b, b, b, b};
+      const f16 xc = {a, a, b, b, a, a, b, b, a, a, b, b, a, a, b, b};
+#pragma GCC unroll 64
       for (int j = 0; j < C2; ++j) h[j] += xc * up_w[c * C2 + j];
     }
+#pragma GCC unroll 64
     for (int d = 0; d < C2; ++d) g[d] = (f16){0} + point_b[d];
+#pragma GCC unroll 64
     for (int c = 0; c < C2; ++c) {
-      f16 r = relu(h[c]);
+      const f16 r = relu(h[c]);
+#pragma GCC unroll 64
       for (int d = 0; d < C2; ++d) g[d] += r * point_w[c * C2 + d];
     }
-    for (int q = 0; q < K; ++q) logits[q] = (f16){0} + cls_b[q];
+#pragma GCC unroll 64
+    for (int q = 0; q < K; ++q) logits[q] = (f16){0} + b_cls[q];
+#pragma GCC unroll 64
     for (int d = 0; d < C2; ++d) {
-      f16 r = relu(g[d]);
-      for (int q = 0; q < K; ++q) logits[q] += r * cls_w[d * K + q];
+      const f16 r = relu(g[d]);
+#pragma GCC unroll 64
+      for (int q = 0; q < K; ++q) logits[q] += r * w_cls[d * K + q];
     }
-    f16 best = logits[0];
-    i16 label = {0};
-    for (int q = 1; q < K; ++q) {
-      i16 better = logits[q] > best;  /* strictly: the first maximum wins, as in torch's argmax */
-      label = (better & q) | (~better & label);
-      best = select(better, logits[q], best);
-    }
-    f16 total = {0};
-    for (int q = 0; q < K; ++q) total += exp_nonpositive(logits[q] - best);
-    f16 conf = 255.0f / total + 0.5f;  /* total >= 1, so conf in [0.5, 255.5] */
-    for (int half = 0; half < 2; ++half) {
-      const int64_t q = pair[half], px = q / (y1 * z1), py = (q / z1) % y1, pz = q % z1;
-      for (int o = 0; o < 8; ++o) {
-        const int64_t fine = ((2 * px + (o >> 2)) * 2 * y1 + 2 * py + ((o >> 1) & 1)) * 2 * z1 + 2 * pz + (o & 1);
-        labels[fine] = (uint8_t)label[8 * half + o];
-        confidence[fine] = (uint8_t)(int)conf[8 * half + o];
+    /* argmax: at each level the later of two neighbours wins only if strictly greater, so the first maximum wins
+     * as in torch's argmax */
+    f16 val[K];
+    i16 idx[K];
+#pragma GCC unroll 64
+    for (int q = 0; q < K; ++q) val[q] = logits[q], idx[q] = (i16){0} + q;
+#pragma GCC unroll 8
+    for (int width = 1; width < K; width *= 2)
+#pragma GCC unroll 64
+      for (int q = 0; q + width < K; q += 2 * width) {
+        const i16 later = val[q + width] > val[q];
+        val[q] = select(later, val[q + width], val[q]);
+        idx[q] = (later & idx[q + width]) | (~later & idx[q]);
       }
+    f16 part[4] = {{0}, {0}, {0}, {0}};
+#pragma GCC unroll 64
+    for (int q = 0; q < K; ++q) part[q % 4] += exp_nonpositive(logits[q] - val[0]);
+    const f16 conf = 255.0f / ((part[0] + part[1]) + (part[2] + part[3])) + 0.5f;  /* the sum >= 1: in [0.5, 255.5] */
+    const b16 label8 = __builtin_convertvector(idx[0], b16);
+    const b16 conf8 = __builtin_convertvector(__builtin_convertvector(conf, i16), b16);
+    const int64_t fine = 2 * (px * fy + py * fz + pz);
+    if (paired) {
+      write_pair(labels, label8, fine, fz, fy);
+      write_pair(confidence, conf8, fine, fz, fy);
+    } else {
+      for (int lane = 0; lane < 16; lane += (lane & 1) ? 3 : 1) {  /* half 0's lanes: 0, 1, 4, 5, 8, ... */
+        const int64_t at = fine + (lane >> 3) * fy + ((lane >> 2) & 1) * fz + (lane & 1);
+        labels[at] = label8[lane];
+        confidence[at] = conf8[lane];
+      }
+    }
+    const int step = paired ? 2 : 1;
+    p += step;
+    if ((pz += step) == z1) {
+      pz = 0;
+      if (++py == y1) py = 0, ++px;
     }
   }
 }
