@@ -25,7 +25,7 @@ _I = ctypes.c_int64
 
 _ARGS = {
     "deform_sample_2d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
-    "deform_sample_3d": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I],
+    "deform_sample_3d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
 }
 
 
@@ -90,23 +90,32 @@ def sample_pairs(
     return torch.from_numpy(out)
 
 
+# the 3D sampler's softmax terms per query and head (agents x points) at most: MAX_TERMS in deform_sample.c
+MAX_TERMS = 256
+
+
 def sample_3d(
     values: torch.Tensor,
     reference: torch.Tensor,
     offsets: torch.Tensor,
     scale: torch.Tensor,
-    weights: torch.Tensor,
+    logits: torch.Tensor,
+    allowed: torch.Tensor,
     threads: int,
 ) -> torch.Tensor:
-    """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, slots, P, 3) in voxels, scale (3,)
-    voxels -> [0, 1]; weights (Q, H, A, P), agents the first A slots -> (Q, H*Ch). `available` first."""
+    """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, A, P, 3) in voxels, scale
+    (3,) voxels -> [0, 1]; logits (Q, H, A, P) of the attention weights, softmax over the agents `allowed` (Q, A) bool
+    and their points (a query with none reads nothing) -> (Q, H*Ch). `available` first."""
     a, c = values.shape[0], values.shape[-1]
-    q, h, slots, p, _ = offsets.shape
+    q, h, _, p, _ = offsets.shape
+    if a * p > MAX_TERMS:
+        raise ValueError(f"sample_3d: {a} agents x {p} points is above the kernel's {MAX_TERMS} terms")
     fn = _kernel(c // h, "deform_sample_3d")
     maps = kernels.array(values)
     pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
     dims = np.array(maps.shape[1:4], np.int64)
-    ref, off, sc, w = (kernels.array(t) for t in (reference, offsets, scale, weights))
+    ref, off, sc, w = (kernels.array(t) for t in (reference, offsets, scale, logits))
+    may = kernels.array(allowed, np.uint8)
     out = np.empty((q, c), np.float32)
     kernels.parallel(
         fn,
@@ -114,13 +123,13 @@ def sample_3d(
             ctypes.addressof(pointers),
             dims.ctypes.data,
             a,
-            slots,
             h,
             p,
             ref.ctypes.data,
             off.ctypes.data,
             sc.ctypes.data,
             w.ctypes.data,
+            may.ctypes.data,
             out.ctypes.data,
         ),
         q,

@@ -57,27 +57,42 @@ void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t
 }
 
 /* Voxel-to-voxel deformable sampling (the ego's queries over the warped agents' volumes) for queries [start, end);
- * the definition is deform_attn.DeformableAttention3d's PyTorch path (sample_3d: trilinear grid_sample, zeros
- * outside, align_corners=False).
+ * the definition is deform_attn.DeformableAttention3d's PyTorch path (the softmax over a query's allowed agents and
+ * points per head, then sample_3d: trilinear grid_sample, zeros outside, align_corners=False). The softmax is taken
+ * here, per query and head over at most MAX_TERMS logits: PyTorch's softmax over rows of 8 costs more than the
+ * sampling.
  *
  * values[a]: (X, Y, Z, heads * CH) channels-last per agent; dims: X, Y, Z; reference: (Q, 3) in [0, 1];
- * offsets: (Q, heads, slots, points, 3) in voxels; scale: 1 / dims per axis; weights: (Q, heads, agents, points),
- * the agents being the first `agents` of the slots -> out: (Q, heads * CH) */
-void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t slots, int64_t heads,
-                      int64_t points, const float *restrict reference, const float *restrict offsets,
-                      const float *restrict scale, const float *restrict weights, float *restrict out, int64_t start,
-                      int64_t end) {
-  const int64_t c = heads * CH, nx = dims[0], ny = dims[1], nz = dims[2];
+ * offsets: (Q, heads, agents, points, 3) in voxels; scale: 1 / dims per axis; logits: (Q, heads, agents, points)
+ * of the attention weights; allowed: (Q, agents), nonzero where the query may attend to the agent (none: it reads
+ * nothing) -> out: (Q, heads * CH) */
+#define MAX_TERMS 256
+void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
+                      const float *restrict reference, const float *restrict offsets, const float *restrict scale,
+                      const float *restrict logits, const uint8_t *restrict allowed, float *restrict out,
+                      int64_t start, int64_t end) {
+  const int64_t c = heads * CH, nx = dims[0], ny = dims[1], nz = dims[2], terms = agents * points;
+  float weights[MAX_TERMS];
   for (int64_t q = start; q < end; ++q)
     for (int64_t h = 0; h < heads; ++h) {
       f8 acc[NV];
       for (int j = 0; j < NV; ++j) acc[j] = (f8){0};
-      for (int64_t a = 0; a < agents; ++a) {
+      const float *l = logits + (q * heads + h) * terms;
+      const uint8_t *may = allowed + q * agents;
+      float top = -INFINITY, total = 0.0f;
+      for (int64_t a = 0; a < agents; ++a)
+        for (int64_t p = 0; p < points && may[a]; ++p) top = fmaxf(top, l[a * points + p]);
+      for (int64_t t = 0; t < terms; ++t) {
+        weights[t] = may[t / points] ? expf(l[t] - top) : 0.0f;
+        total += weights[t];
+      }
+      for (int64_t a = 0; a < agents && total > 0.0f; ++a) {
+        if (!may[a]) continue;
         const float *map = values[a] + h * CH;
         for (int64_t p = 0; p < points; ++p) {
-          const float w = weights[((q * heads + h) * agents + a) * points + p];
-          if (w == 0.0f) continue;  /* a masked agent (or one a query may not attend to) */
-          const float *o = offsets + (((q * heads + h) * slots + a) * points + p) * 3;
+          const float w = weights[a * points + p] / total;
+          if (w == 0.0f) continue;
+          const float *o = offsets + (((q * heads + h) * agents + a) * points + p) * 3;
           float pos[3];
           for (int d = 0; d < 3; ++d) pos[d] = (reference[3 * q + d] + o[d] * scale[d]) * dims[d] - 0.5f;
           if (!(pos[0] > -1.0f && pos[0] < nx && pos[1] > -1.0f && pos[1] < ny && pos[2] > -1.0f && pos[2] < nz)) continue;

@@ -83,26 +83,43 @@ class DeformableAttention3d(nn.Module):
         b, q, c = query.shape
         a = values.shape[1]
         h, p = self.heads, self.points
+        if self.path.kernels(query) and deform_kernel.available(c // h) and a * p <= deform_kernel.MAX_TERMS:
+            return self.output(self._sampled(query, reference, values, mask))
         v = self.value(values.permute(0, 1, 3, 4, 5, 2))  # (B, A, X, Y, Z, C)
         offsets = self.offsets(query).view(b, q, h, self.slots, p, 3)  # in voxels
         logits = self.weights(query).view(b, q, h, self.slots, p)[:, :, :, :a]
         logits = logits.masked_fill(~mask[:, :, None, :, None], float("-inf"))
         w = torch.softmax(logits.reshape(b, q, h, a * p), -1).view(b, q, h, a, p)
         w = torch.nan_to_num(w)  # a query with no agent allowed attends to nothing
-        if self.path.kernels(query) and deform_kernel.available(c // h):
-            # inference on the CPU: the compiled sampler, from the channels-last volumes (tested equal to sample_3d)
-            threads = torch.get_num_threads()
-            return self.output(
-                torch.stack(
-                    [
-                        deform_kernel.sample_3d(v[i], reference[i], offsets[i], self.scale, w[i], threads)
-                        for i in range(b)
-                    ]
-                )
-            )
         v = v.permute(0, 1, 5, 2, 3, 4)  # (B, A, C, X, Y, Z)
         v = v.reshape(b, a, h, c // h, *v.shape[-3:]).transpose(1, 2).reshape(b * h, a, c // h, *v.shape[-3:])
         loc = (
             reference[:, :, None, None, None, :] + offsets[:, :, :, :a] * self.scale
         )  # (B, Q, H, A, P, 3), voxels -> [0, 1]
         return self.output(sample_3d(v, loc, w))  # (B, Q, C)
+
+    def _sampled(self, query, reference, values, mask):
+        """Inference on the CPU: the compiled sampler (tested equal to sample_3d), which takes the attention's logits
+        and takes their masked softmax itself, from channels-last volumes -> (B, Q, C) before the output projection.
+        The projections run in float32 whatever the path's precision, offsets and logits for the A agents present
+        only: their products are small (C inputs), and reduced precision would cost a conversion of each for the
+        kernel, which reads float32."""
+        b, q, c = query.shape
+        a = values.shape[1]
+        h, p = self.heads, self.points
+        with torch.autocast(query.device.type, enabled=False):
+            x = query.float()
+            rows = self.offsets.weight.view(h, self.slots, p * 3, c)[:, :a].reshape(-1, c)
+            bias = self.offsets.bias.view(h, self.slots, p * 3)[:, :a].reshape(-1)
+            offsets = F.linear(x, rows, bias).view(b, q, h, a, p, 3)  # in voxels
+            rows = self.weights.weight.view(h, self.slots, p, c)[:, :a].reshape(-1, c)
+            bias = self.weights.bias.view(h, self.slots, p)[:, :a].reshape(-1)
+            logits = F.linear(x, rows, bias).view(b, q, h, a, p)
+            v = self.value(values.float().permute(0, 1, 3, 4, 5, 2))  # (B, A, X, Y, Z, C)
+        threads = torch.get_num_threads()
+        return torch.stack(
+            [
+                deform_kernel.sample_3d(v[i], reference[i], offsets[i], self.scale, logits[i], mask[i], threads)
+                for i in range(b)
+            ]
+        )
