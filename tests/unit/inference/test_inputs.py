@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from co3sop_nodes.common.grid import GridSpec
-from co3sop_nodes.inference.inputs import hits_in_ego_grid, merged_occupancy
+from co3sop_nodes.inference.inputs import hits_in_ego_grid, lidar_occupancy, merged_occupancy
 
 GRID = GridSpec((-4.0, -4.0, -1.0), 0.5, (16, 16, 4))
 
@@ -37,3 +37,25 @@ def test_merged_scan_is_the_union_of_the_ego_and_its_collaborators_in_the_ego_gr
     assert np.argwhere(merged[0]).tolist() == [[0, 0, 0], [5, 4, 1]]
     np.testing.assert_array_equal(merged_occupancy(ego, [], np.zeros((0, 4, 4)), GRID), ego)  # alone: its own scan
     assert ego.sum() == 1  # the ego's array is not written to
+
+
+def test_a_scan_marks_the_voxels_its_points_fall_in_and_nothing_outside():
+    grid = GridSpec((-2.0, -1.0, 0.0), 0.5, (8, 4, 3))
+    points = np.array(
+        [
+            [-2.0, -1.0, 0.0],  # the first voxel's corner: inside
+            [1.99, 0.99, 1.49],  # the last voxel
+            [0.1, 0.2, 0.7],  # voxel (4, 2, 1), twice
+            [0.2, 0.3, 0.8],
+            [-2.01, 0.0, 0.5],  # just outside, one axis each
+            [0.0, 1.0, 0.5],
+            [0.0, 0.0, 1.5],
+            [np.nan, 0.0, 0.5],  # not a point: never a voxel
+            [np.inf, 0.0, 0.5],
+            [-1e12, 0.0, 0.5],  # beyond int64's range after the division: outside too
+        ],
+        np.float32,
+    )
+    occupancy = lidar_occupancy(points, grid)
+    assert occupancy.shape == (1, 8, 4, 3) and occupancy.dtype == np.uint8
+    assert sorted(map(tuple, np.argwhere(occupancy[0]))) == [(0, 0, 0), (4, 2, 1), (7, 3, 2)]
