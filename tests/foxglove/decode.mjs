@@ -6,6 +6,7 @@ import { McapIndexedReader } from "@mcap/core";
 import { parse } from "@foxglove/rosmsg";
 import { MessageReader } from "@foxglove/rosmsg2-serialization";
 import { decompress } from "fzstd";
+import lz4 from "@foxglove/wasm-lz4";
 
 async function decodeFile(path) {
   const handle = await open(path, "r");
@@ -20,7 +21,10 @@ async function decodeFile(path) {
     };
     const reader = await McapIndexedReader.Initialize({
       readable,
-      decompressHandlers: { zstd: (data, size) => decompress(data, new Uint8Array(Number(size))) },
+      decompressHandlers: {
+        zstd: (data, size) => decompress(data, new Uint8Array(Number(size))),
+        lz4: (data, size) => lz4(data, Number(size)),
+      },
     });
     const readers = new Map();
     const topics = {};
@@ -65,6 +69,7 @@ function summary(msg) {
   return out;
 }
 
+await lz4.isLoaded; // its WebAssembly module
 const result = {};
 for (const path of process.argv.slice(2)) {
   try {

@@ -52,6 +52,25 @@ def test_recording_round_trip_and_recovery_after_a_crash(tmp_path):
     assert again.complete and again.messages == 30
 
 
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_every_chunk_compression_reads_back_as_written(tmp_path, compression):
+    store = typestore()
+    labels = np.zeros(GRID.dims, np.uint8)
+    labels[:3] = 7
+    path = tmp_path / f"{compression}.mcap"
+    with McapRecorder(path, chunk_size=4096, compression=compression) as rec:
+        for i in range(5):
+            rec.write("/ego/occupancy", TYPE, message(store, 1, i, labels), 1000 + i)
+    assert read(path) == [("/ego/occupancy", 1000 + i) for i in range(5)]
+    assert np.array_equal(next(iter(read_recording(path).predictions.values())), labels)
+
+
+def test_an_unknown_compression_is_refused_by_name(tmp_path):
+    with pytest.raises(DatasetError, match="compression 'gzip'"):
+        McapRecorder(tmp_path / "r.mcap", compression="gzip")
+    assert not (tmp_path / "r.mcap").exists()
+
+
 def test_recover_refuses_what_is_not_mcap(tmp_path):
     (tmp_path / "x.mcap").write_bytes(b"hello")
     with pytest.raises(DatasetError, match="x.mcap"):

@@ -1,6 +1,7 @@
 """`recorder`: writes predictions, ground truth and diagnostics to one MCAP file, never deserialising.
 
     ros2 run co3sop_nodes recorder --out results/demo/demo.mcap [--topics REGEX ...] [--flush-period 1.0]
+        [--compression zstd|lz4|none]
 
 Subscribes raw (the CDR bytes as they arrived) to every topic whose name
 matches one of the patterns, as topics appear (default: /ego/occupancy and
@@ -27,7 +28,7 @@ from rclpy.utilities import remove_ros_args
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
-from co3sop_nodes.data.recording import McapRecorder
+from co3sop_nodes.data.recording import COMPRESSIONS, McapRecorder
 from co3sop_nodes.kernels import visible_voxels
 from co3sop_nodes.messages.sensors import POINT_CLOUD
 from co3sop_nodes.ros.dds import DropLog, matching_qos, spin_node
@@ -50,7 +51,7 @@ class Recorder(Node):
         self._patterns = [re.compile(f"^{t}$") for t in opts.topics]
         self._types: dict[str, str] = {}
         self._subs = []
-        self.mcap = McapRecorder(opts.out, chunk_size=opts.chunk_size)
+        self.mcap = McapRecorder(opts.out, chunk_size=opts.chunk_size, compression=opts.compression)
         self.truth_points = TruthPoints()
         visible_voxels.available()  # its kernel compiled now, not while the first ground truth waits
         self.drops = DropLog(self.get_logger())
@@ -109,6 +110,12 @@ def main(args: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--flush-period", type=float, default=1.0, help="seconds between flushes of a partly filled chunk"
+    )
+    parser.add_argument(
+        "--compression",
+        choices=list(COMPRESSIONS),
+        default="zstd",
+        help="chunk compression: zstd (smallest), lz4 (about half zstd's CPU, 2.5x the bytes), none",
     )
     argv = sys.argv if args is None else args
     opts = parser.parse_args(remove_ros_args(argv)[1:])
