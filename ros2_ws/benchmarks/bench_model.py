@@ -74,12 +74,15 @@ def stage_table(name: str, repeats: int, device: torch.device) -> str:
         rel = torch.eye(4)[None].repeat(1, 2, 1, 1)
         rel[0, :, 0, 3] = torch.tensor([6.0, -9.0])
         rel = rel.to(device)
-        both = torch.cat([others[0].features, others[0].confidence], 1)
         if device.type == "cpu":
             t_warp, _ = timed(
-                lambda: warp_compiled(both, rel[:, 0], cfg.feature_grid, torch.get_num_threads()), repeats
+                lambda: warp_compiled(
+                    others[0].features, others[0].confidence, rel[:, 0], cfg.feature_grid, torch.get_num_threads()
+                ),
+                repeats,
             )
         else:
+            both = torch.cat([others[0].features, others[0].confidence], 1)
             t_warp, _ = timed_on(lambda: warp_with_mask(both, rel[:, 0], cfg.feature_grid), repeats)
         t_fuse, fused = timed_on(lambda: model.ego.fuse(ego, others, rel), repeats)
         t_head, _ = timed_on(lambda: model.ego.head.labels(fused), repeats)

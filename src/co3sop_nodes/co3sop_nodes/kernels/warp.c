@@ -7,14 +7,15 @@
 #include <math.h>
 #include <stdint.h>
 
-/* src: (X, Y, Z, C); grid: (V, 3) as grid_sample's (w, h, d) = (z, y, x) coordinates in [-1, 1] -> dst (V, C),
- * filled (V,) */
+/* src: (X, Y, Z, C); grid: (V, 3) as grid_sample's (w, h, d) = (z, y, x) coordinates in [-1, 1] -> dst (V, C - 1)
+ * the first C - 1 channels, last (V,) the last one (a confidence beside its features), filled (V,) */
 void warp_trilinear(const float *restrict src, int64_t nx, int64_t ny, int64_t nz, int64_t c, const float *restrict grid,
-                    float *restrict dst, float *restrict filled, int64_t start, int64_t end) {
+                    float *restrict dst, float *restrict last, float *restrict filled, int64_t start, int64_t end) {
+  const int64_t cf = c - 1;
   for (int64_t v = start; v < end; ++v) {
-    float *out = dst + v * c;
-    for (int64_t k = 0; k < c; ++k) out[k] = 0.0f;
-    filled[v] = 0.0f;
+    float *out = dst + v * cf;
+    for (int64_t k = 0; k < cf; ++k) out[k] = 0.0f;
+    last[v] = filled[v] = 0.0f;
     /* grid_sample's unnormalisation: ((g + 1) * size - 1) / 2 */
     const float x = ((grid[3 * v + 2] + 1) * nx - 1) / 2, y = ((grid[3 * v + 1] + 1) * ny - 1) / 2,
                 z = ((grid[3 * v] + 1) * nz - 1) / 2;
@@ -26,7 +27,8 @@ void warp_trilinear(const float *restrict src, int64_t nx, int64_t ny, int64_t n
       if (i < 0 || i >= nx || j < 0 || j >= ny || l < 0 || l >= nz) continue;
       const float w = ((corner >> 2) ? ax : 1 - ax) * (((corner >> 1) & 1) ? ay : 1 - ay) * ((corner & 1) ? az : 1 - az);
       const float *in = src + ((i * ny + j) * nz + l) * c;
-      for (int64_t k = 0; k < c; ++k) out[k] += w * in[k];
+      for (int64_t k = 0; k < cf; ++k) out[k] += w * in[k];
+      last[v] += w * in[cf];
       filled[v] += w;
     }
   }

@@ -62,7 +62,7 @@ def _kernel():
         return None
     fn = lib.warp_trilinear
     fn.argtypes, fn.restype = (
-        [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 3, ctypes.c_int64, ctypes.c_int64],
+        [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 4, ctypes.c_int64, ctypes.c_int64],
         None,
     )
     return fn
@@ -73,20 +73,42 @@ def compiled_available() -> bool:
     return kernels.ENABLED and _kernel() is not None
 
 
-def warp_compiled(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid: GridSpec, threads: int):
-    """`warp_with_mask` for one CPU volume (1, C, X, Y, Z), channels-last out: warped (X, Y, Z, C), warp mask (X, Y, Z)."""
-    _, c, nx, ny, nz = volume.shape
+def warp_compiled(
+    features: torch.Tensor,
+    confidence: torch.Tensor,
+    neighbour_from_ego: torch.Tensor,
+    grid: GridSpec,
+    threads: int,
+    out: tuple[torch.Tensor, torch.Tensor] | None = None,
+):
+    """`warp_with_mask` of one CPU volume's features (1, C, X, Y, Z) and confidence (1, 1, X, Y, Z), channels-last
+    out: warped features (X, Y, Z, C), confidence (X, Y, Z) and warp mask (X, Y, Z). `out`: contiguous float32 tensors
+    of those shapes to write the features and confidence into (a fusion's stack of neighbours), fresh ones otherwise."""
+    _, c, nx, ny, nz = features.shape
     sampling = F.affine_grid(
         warp_theta(neighbour_from_ego, grid), [1, c, nx, ny, nz], align_corners=False
     )  # (1, X, Y, Z, 3)
-    src = kernels.array(volume[0].permute(1, 2, 3, 0))  # (X, Y, Z, C)
+    src = np.empty((nx, ny, nz, c + 1), np.float32)  # channels-last, the confidence last: one copy of both
+    src[..., :c] = features[0].detach().cpu().numpy().transpose(1, 2, 3, 0)
+    src[..., c] = confidence[0, 0].detach().cpu().numpy()
     points = kernels.array(sampling[0]).reshape(-1, 3)
-    out, filled = np.empty((nx, ny, nz, c), np.float32), np.empty((nx, ny, nz), np.float32)
+    warped, conf = out if out is not None else (torch.empty(nx, ny, nz, c), torch.empty(nx, ny, nz))
+    filled = np.empty((nx, ny, nz), np.float32)
     fn = _kernel()
     kernels.parallel(
         fn,
-        (src.ctypes.data, nx, ny, nz, c, points.ctypes.data, out.ctypes.data, filled.ctypes.data),
+        (
+            src.ctypes.data,
+            nx,
+            ny,
+            nz,
+            c + 1,
+            points.ctypes.data,
+            warped.data_ptr(),
+            conf.data_ptr(),
+            filled.ctypes.data,
+        ),
         len(points),
         threads,
     )
-    return torch.from_numpy(out), torch.from_numpy(filled) > 0.5
+    return warped, conf, torch.from_numpy(filled) > 0.5

@@ -138,17 +138,25 @@ class EgoHalf(nn.Module):
         fg = self.cfg.feature_grid
         feats, confs, masks = [], [], []
         if self.path.kernels(ego.features) and len(ego.features) == 1 and compiled_available():
-            # inference on the CPU: the compiled warp, channels-last (the attention reads the features so)
-            threads = torch.get_num_threads()
-            for a, other in enumerate(others):
-                warped, filled = warp_compiled(
-                    torch.cat([other.features, other.confidence], 1), neighbour_from_ego[:, a], fg, threads
-                )
-                feats.append(warped[..., :-1])
-                confs.append(warped[..., -1])
-                masks.append(filled)
-            feats = torch.stack(feats)[None].permute(0, 1, 5, 2, 3, 4)  # (1, A, C, X, Y, Z), channels-last in memory
-            confs, filled = torch.stack(confs)[None], torch.stack(masks)[None]
+            # inference on the CPU: the compiled warp, channels-last (the attention reads the features so), each
+            # neighbour written in place into the stack
+            threads, a = torch.get_num_threads(), len(others)
+            feats = torch.empty(1, a, *fg.dims, self.cfg.embed_dims)  # (1, A, X, Y, Z, C)
+            confs = torch.empty(1, a, *fg.dims)
+            filled = torch.stack(
+                [
+                    warp_compiled(
+                        other.features,
+                        other.confidence,
+                        neighbour_from_ego[:, i],
+                        fg,
+                        threads,
+                        (feats[0, i], confs[0, i]),
+                    )[2]
+                    for i, other in enumerate(others)
+                ]
+            )[None]
+            feats = feats.permute(0, 1, 5, 2, 3, 4)  # (1, A, C, X, Y, Z), channels-last in memory
             return feats, confs, hybrid_mask(ego.confidence, confs, filled)
         for a, other in enumerate(others):
             both = torch.cat([other.features, other.confidence], 1)
