@@ -19,6 +19,7 @@ codec comes from `evaluate --ablation codec` on a trained model.
 from __future__ import annotations
 
 import argparse
+import itertools
 import resource
 from dataclasses import replace
 from pathlib import Path
@@ -30,11 +31,14 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.common.allocation import keep_freed_memory
+from co3sop_nodes.data.bags import BagReader
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
+from co3sop_nodes.inference.inputs import lidar_occupancy
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
+from co3sop_nodes.messages import xyz_of
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, resolve_device
@@ -162,11 +166,26 @@ def frame_table(repeats: int) -> str:
     return "\n".join(rows)
 
 
+def bag_scans(bag: Path, grid, count: int = 12) -> list[torch.Tensor]:
+    """The first `count` LiDAR scans of a bag, voxelised on `grid` as a vehicle node does: (1, 1, X, Y, Z) uint8."""
+    with BagReader(bag) as reader:
+        points = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"]
+        scans = []
+        for conn, stamp, raw in reader.messages(connections=points):
+            scans.append(torch.from_numpy(lidar_occupancy(xyz_of(reader.deserialize(raw, conn, stamp)), grid))[None])
+            if len(scans) == count:
+                break
+    if not scans:
+        raise SystemExit(f"bench_model: error: {bag} holds no PointCloud2 scan")
+    return scans
+
+
 @torch.no_grad()
-def precision_table(device: torch.device, precisions: list[str], repeats: int) -> str:
+def precision_table(device: torch.device, precisions: list[str], repeats: int, bag: Path | None = None) -> str:
     """Each shipped model at 51.2 m, as the nodes run it on `device` (its compiled kernels on the CPU): wall time of
     the vehicle half and of the ego's frame (2 neighbours 10 m away, fusion, labels) per precision, with the ratio
-    to float32 measured in the same run."""
+    to float32 measured in the same run. With `bag`, a LiDAR model's vehicle half runs on the bag's scans in turn
+    (the random scan of 3 % hit otherwise)."""
     rows = [
         "| model | precision | vehicle half ms | ego frame ms | vehicle: float32 / this | ego: float32 / this |",
         "|---|---|---:|---:|---:|---:|",
@@ -175,10 +194,15 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int) -
     for name in ("tiny-lidar", "tiny", "small"):
         model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
         base = None
+        scans = bag_scans(bag, model.cfg.grid) if bag is not None and model.cfg.modality == "lidar" else None
         for precision in ["float32", *(p for p in precisions if p != "float32")]:
             model.use(InferencePath(str(device), precision))
             inputs = pace.shaped_inputs(model)
-            t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
+            if scans is not None:
+                turn = itertools.cycle([s.to(device) for s in scans])
+                t_vehicle, ego = timed_on(lambda: model.vehicle(occupancy=next(turn)), repeats)
+            else:
+                t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
             others = pace.shaped_neighbours(ego)
             t_ego, _ = timed_on(lambda: predict_frame(model, ego, np.eye(4), others), repeats)
             base = base or (t_vehicle, t_ego)
@@ -357,6 +381,9 @@ def main() -> None:
     )
     parser.add_argument("--precision-only", action="store_true", help="only the precision table")
     parser.add_argument(
+        "--bag", type=Path, help="in the precision table, LiDAR vehicle halves on this bag's scans (a random one else)"
+    )
+    parser.add_argument(
         "--roofline",
         action="store_true",
         help="only this CPU's measured peak (one thread) and each shipped "
@@ -370,7 +397,7 @@ def main() -> None:
     precision = (
         [
             f"### Precision: the shipped models at 51.2 m ({where}, median of {opts.repeats})",
-            precision_table(device, opts.precisions, opts.repeats),
+            precision_table(device, opts.precisions, opts.repeats, opts.bag),
         ]
         if opts.precisions
         else []
