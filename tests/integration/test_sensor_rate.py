@@ -30,7 +30,7 @@ from co3sop_msgs.msg import VoxelFeatures
 from co3sop_nodes.common import topics
 
 FRAMES = 40
-PERIOD_NS = 20_000_000  # 50 Hz: several times what one core fuses or encodes
+PERIOD_NS = 20_000_000  # 50 Hz: faster than one core fuses, or encodes in float32
 
 
 def stop(*procs) -> None:
@@ -75,9 +75,9 @@ def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skippe
 
 def test_a_vehicle_fed_faster_than_it_encodes_encodes_the_newest_complete_frame(tmp_path, peer, sup):
     model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
-    vehicle = start(
-        tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), "--ros-args", "-p", f"checkpoint:={model}"
-    )
+    # float32: reduced precision encodes a scan in less than the feed's 20 ms on this project's CPUs
+    args = ("--ros-args", "-p", f"checkpoint:={model}", "-p", "precision:=float32")
+    vehicle = start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), *args)
     try:
         wait_ready(sup, topics.vehicle_node(LIDAR_CAV), *vehicle)
         got: list = []

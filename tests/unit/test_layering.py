@@ -96,7 +96,7 @@ LAYERS = {
     "v2x": {"common", "kernels"},
     "messages": {"common", "v2x"},
     "data": {"common", "messages", "v2x"},
-    "viz": {"common", "data", "messages"},
+    "viz": {"common", "kernels", "data", "messages"},
     "sim": {"common", "kernels", "data", "viz"},
     "inference": {"common", "kernels", "model", "v2x", "viz", "sim"},
     "train": {"common", "data", "inference", "model", "v2x"},
