@@ -25,7 +25,7 @@ _I = ctypes.c_int64
 
 _ARGS = {
     "deform_sample_2d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
-    "deform_sample_3d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
+    "deform_sample_3d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I],
 }
 
 
@@ -98,14 +98,13 @@ def sample_3d(
     values: torch.Tensor,
     reference: torch.Tensor,
     offsets: torch.Tensor,
-    scale: torch.Tensor,
     logits: torch.Tensor,
     allowed: torch.Tensor,
     threads: int,
 ) -> torch.Tensor:
-    """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, A, P, 3) in voxels, scale
-    (3,) voxels -> [0, 1]; logits (Q, H, A, P) of the attention weights, softmax over the agents `allowed` (Q, A) bool
-    and their points (a query with none reads nothing) -> (Q, H*Ch). `available` first."""
+    """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, A, P, 3) in voxels; logits
+    (Q, H, A, P) of the attention weights, softmax over the agents `allowed` (Q, A) bool and their points (a query
+    with none reads nothing) -> (Q, H*Ch). `available` first."""
     a, c = values.shape[0], values.shape[-1]
     q, h, _, p, _ = offsets.shape
     if a * p > MAX_TERMS:
@@ -114,7 +113,7 @@ def sample_3d(
     maps = kernels.array(values)
     pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
     dims = np.array(maps.shape[1:4], np.int64)
-    ref, off, sc, w = (kernels.array(t) for t in (reference, offsets, scale, logits))
+    ref, off, w = (kernels.array(t) for t in (reference, offsets, logits))
     may = kernels.array(allowed, np.uint8)
     out = np.empty((q, c), np.float32)
     kernels.parallel(
@@ -127,7 +126,6 @@ def sample_3d(
             p,
             ref.ctypes.data,
             off.ctypes.data,
-            sc.ctypes.data,
             w.ctypes.data,
             may.ctypes.data,
             out.ctypes.data,

@@ -33,10 +33,12 @@ void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t
       for (int64_t l = 0; l < levels; ++l) {
         const float *map = values[camera[pair] * levels + l] + h * CH;
         const int64_t rows = shapes[2 * l], cols = shapes[2 * l + 1];
+        /* the reference's (u + offset / cols) * cols - 0.5 without its division (pixel centres at i + 0.5): the
+         * same location up to float rounding */
+        const float u0 = u * cols - 0.5f, v0 = v * rows - 0.5f;
         for (int64_t p = 0; p < points; ++p) {
           const int64_t i = ((q * heads + h) * levels + l) * points + p;
-          const float lx = u + offsets[2 * i] / (float)cols, ly = v + offsets[2 * i + 1] / (float)rows;
-          const float x = lx * cols - 0.5f, y = ly * rows - 0.5f;  /* pixel centres at i + 0.5 */
+          const float x = u0 + offsets[2 * i], y = v0 + offsets[2 * i + 1];
           if (!(x > -1.0f && x < cols && y > -1.0f && y < rows)) continue;  /* every corner outside (or NaN): zeros */
           const float fx = floorf(x), fy = floorf(y), ax = x - fx, ay = y - fy, w = weights[i];
           const int64_t x0 = (int64_t)fx, y0 = (int64_t)fy;
@@ -63,12 +65,12 @@ void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t
  * sampling.
  *
  * values[a]: (X, Y, Z, heads * CH) channels-last per agent; dims: X, Y, Z; reference: (Q, 3) in [0, 1];
- * offsets: (Q, heads, agents, points, 3) in voxels; scale: 1 / dims per axis; logits: (Q, heads, agents, points)
+ * offsets: (Q, heads, agents, points, 3) in voxels; logits: (Q, heads, agents, points)
  * of the attention weights; allowed: (Q, agents), nonzero where the query may attend to the agent (none: it reads
  * nothing) -> out: (Q, heads * CH) */
 #define MAX_TERMS 256
 void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
-                      const float *restrict reference, const float *restrict offsets, const float *restrict scale,
+                      const float *restrict reference, const float *restrict offsets,
                       const float *restrict logits, const uint8_t *restrict allowed, float *restrict out,
                       int64_t start, int64_t end) {
   const int64_t c = heads * CH, nx = dims[0], ny = dims[1], nz = dims[2], terms = agents * points;
@@ -77,6 +79,10 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
     for (int64_t h = 0; h < heads; ++h) {
       f8 acc[NV];
       for (int j = 0; j < NV; ++j) acc[j] = (f8){0};
+      /* the reference's (reference + offset / dims) * dims - 0.5 as the query's voxel position plus the offset in
+       * voxels: the same location up to float rounding */
+      float centre[3];
+      for (int d = 0; d < 3; ++d) centre[d] = reference[3 * q + d] * dims[d] - 0.5f;
       const float *l = logits + (q * heads + h) * terms;
       const uint8_t *may = allowed + q * agents;
       float top = -INFINITY, total = 0.0f;
@@ -94,7 +100,7 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
           if (w == 0.0f) continue;
           const float *o = offsets + (((q * heads + h) * agents + a) * points + p) * 3;
           float pos[3];
-          for (int d = 0; d < 3; ++d) pos[d] = (reference[3 * q + d] + o[d] * scale[d]) * dims[d] - 0.5f;
+          for (int d = 0; d < 3; ++d) pos[d] = centre[d] + o[d];
           if (!(pos[0] > -1.0f && pos[0] < nx && pos[1] > -1.0f && pos[1] < ny && pos[2] > -1.0f && pos[2] < nz)) continue;
           const float fx = floorf(pos[0]), fy = floorf(pos[1]), fz = floorf(pos[2]);
           const float ax = pos[0] - fx, ay = pos[1] - fy, az = pos[2] - fz;

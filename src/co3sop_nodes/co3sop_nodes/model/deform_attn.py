@@ -118,8 +118,5 @@ class DeformableAttention3d(nn.Module):
             v = self.value(values.float().permute(0, 1, 3, 4, 5, 2))  # (B, A, X, Y, Z, C)
         threads = torch.get_num_threads()
         return torch.stack(
-            [
-                deform_kernel.sample_3d(v[i], reference[i], offsets[i], self.scale, logits[i], mask[i], threads)
-                for i in range(b)
-            ]
+            [deform_kernel.sample_3d(v[i], reference[i], offsets[i], logits[i], mask[i], threads) for i in range(b)]
         )
