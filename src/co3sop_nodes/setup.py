@@ -8,7 +8,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "tests"]),
-    package_data={PACKAGE: ["kernels/*.c"]},  # C kernels, compiled on first use (co3sop_nodes.kernels)
+    package_data={PACKAGE: ["kernels/*.c", "kernels/*.h"]},  # C kernels, compiled on first use (co3sop_nodes.kernels)
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml", "rosdep.yaml"]),

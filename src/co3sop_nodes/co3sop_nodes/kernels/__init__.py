@@ -5,7 +5,7 @@ shape (compile-time constants let the compiler keep everything in registers)
 and per CPU (`-march=native`), which a package built once cannot be. The
 compiler is the system's C compiler (`$CC`, else `cc`), which every ROS 2
 install has. The library is cached under `$CO3SOP_CACHE` (default
-`~/.cache/co3sop/native`), keyed by source, defines, flags and CPU; written
+`~/.cache/co3sop/native`), keyed by source (and the headers beside it), defines, flags and CPU; written
 atomically, so concurrent nodes never load a half-written file. Without a
 compiler, `load` returns None and callers take their PyTorch or NumPy path
 (tested equal); `CO3SOP_NATIVE=0` makes them take it anyway.
@@ -54,12 +54,12 @@ def load(name: str, contract: bool = False, **defines: int) -> ctypes.CDLL | Non
     Multiplies and adds stay separate operations, rounded as PyTorch's reference rounds them, unless `contract`
     (for a reduced-precision path, whose tolerance covers the fused multiply-adds' other rounding)."""
     source = Path(__file__).with_name(f"{name}.c").read_bytes()
+    headers = {h.name: h.read_bytes() for h in sorted(Path(__file__).parent.glob("*.h"))}  # what sources include
     compiler = os.environ.get("CC", "cc")
     contraction = "-ffp-contract=fast" if contract else "-ffp-contract=off"
     args = [*FLAGS, contraction, *(f"-D{k}={int(v)}" for k, v in sorted(defines.items()))]
-    key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(args).encode(), _cpu().encode()])).hexdigest()[
-        :20
-    ]
+    parts = [source, *headers.values(), compiler.encode(), " ".join(args).encode(), _cpu().encode()]
+    key = hashlib.sha256(b"\0".join(parts)).hexdigest()[:20]
     path = cache_dir() / f"{name}-{key}.so"
     if not path.exists():
         if shutil.which(compiler) is None:
@@ -69,6 +69,8 @@ def load(name: str, contract: bool = False, **defines: int) -> ctypes.CDLL | Non
         with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
             src, out = Path(tmp) / f"{name}.c", Path(tmp) / path.name
             src.write_bytes(source)
+            for header, text in headers.items():
+                (Path(tmp) / header).write_bytes(text)
             done = subprocess.run([compiler, *args, str(src), "-o", str(out)], capture_output=True, text=True)
             if done.returncode != 0:
                 log.warning(

@@ -8,7 +8,8 @@
  */
 #include <stdint.h>
 #include <stdlib.h>
-#include <string.h>
+
+#include "nonzero.h"
 
 static inline uint16_t to_bf16(float f) {
   union { float f; uint32_t u; } x = {f};
@@ -30,16 +31,7 @@ int occupancy_conv(const uint8_t *restrict occupancy, int64_t nx, int64_t ny, in
       if (ix < 0 || ix >= nx) continue;
       for (int64_t iy = 0; iy < ny; ++iy) {
         const uint8_t *row = occupancy + (ix * ny + iy) * nz;
-        for (int64_t iz = 0; iz < nz; ++iz) {
-          if (iz + 8 <= nz) {  /* about 1 % occupied: skip eight empty voxels at once */
-            uint64_t word;
-            memcpy(&word, row + iz, 8);
-            if (!word) {
-              iz += 7;
-              continue;
-            }
-          }
-          if (!row[iz]) continue;
+        for (int64_t iz = next_nonzero(row, 0, nz); iz < nz; iz = next_nonzero(row, iz + 1, nz)) {
           for (int dj = 0; dj < 3; ++dj) {  /* output oy reads input 2 oy - 1 + dj */
             const int64_t ty = iy + 1 - dj, oy = ty / 2;
             if ((ty & 1) || ty < 0 || oy >= ny2) continue;

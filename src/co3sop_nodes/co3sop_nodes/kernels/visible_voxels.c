@@ -8,6 +8,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "nonzero.h"
+
 /* labels (X, Y, Z); shown and mask: (X+2, Y+2, Z+2) scratch, shown's border zero -> mask's voxels marked (its
  * border too: zero), their count returned. Marking runs over each x-plane as one flat range, the border columns
  * included (a border voxel is not shown, so never marked): long runs the compiler vectorises. */
@@ -57,16 +59,7 @@ void visible_points(const uint8_t *restrict labels, const uint8_t *restrict mask
     for (int64_t j = 0; j < ny; ++j) {
       const uint8_t *m = mask + (i + 1) * sx + (j + 1) * sy + 1;
       const uint8_t *l = labels + (i * ny + j) * nz;
-      for (int64_t k = 0; k < nz; ++k) {
-        if (k + 8 <= nz) {  /* most of a row is hidden: skip eight unmarked voxels at once */
-          uint64_t word;
-          memcpy(&word, m + k, 8);
-          if (!word) {
-            k += 7;
-            continue;
-          }
-        }
-        if (!m[k]) continue;
+      for (int64_t k = next_nonzero(m, 0, nz); k < nz; k = next_nonzero(m, k + 1, nz)) {  /* most are hidden */
         struct point p = {(float)cx[i], (float)cy[j], (float)cz[k], rgb[l[k]], l[k], {0, 0, 0}};
         memcpy(points + n++, &p, sizeof p);
       }
