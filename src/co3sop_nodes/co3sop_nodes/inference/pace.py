@@ -29,7 +29,7 @@ from co3sop_nodes.viz.cloud import occupancy_cloud
 # play at 1 / HEADROOM of the rate the measured work allows: DDS, decoding, the player and the recorder (not measured
 # here), the ego waiting for the vehicles' features of its frame, several processes sharing few cores (the ego's frame
 # takes longer than its CPU), and jitter. On 2 cores with the LiDAR model in bfloat16 the measured work allows about
-# 1.2-1.3x real time; the graph fused every frame of 100 at rate 0.7 and 80 at 1.0 (BENCHMARKS.md)
+# 1.6x real time, yet the graph fuses every frame of 100 at rate 0.7 only, not at 1.0 (BENCHMARKS.md)
 HEADROOM = 2.0
 
 

@@ -136,7 +136,6 @@ class EgoHalf(nn.Module):
     def align(self, ego: VehicleOutput, others: list[VehicleOutput], neighbour_from_ego: torch.Tensor):
         """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
         fg = self.cfg.feature_grid
-        feats, confs, masks = [], [], []
         if self.path.kernels(ego.features) and len(ego.features) == 1 and compiled_available():
             # inference on the CPU: the compiled warp, channels-last (the attention reads the features so), each
             # neighbour written in place into the stack
@@ -158,6 +157,7 @@ class EgoHalf(nn.Module):
             )[None]
             feats = feats.permute(0, 1, 5, 2, 3, 4)  # (1, A, C, X, Y, Z), channels-last in memory
             return feats, confs, hybrid_mask(ego.confidence, confs, filled)
+        feats, confs, masks = [], [], []
         for a, other in enumerate(others):
             both = torch.cat([other.features, other.confidence], 1)
             warped, filled = warp_with_mask(both, neighbour_from_ego[:, a], fg)

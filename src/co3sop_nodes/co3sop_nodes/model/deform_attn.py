@@ -109,14 +109,17 @@ class DeformableAttention3d(nn.Module):
         h, p = self.heads, self.points
         with torch.autocast(query.device.type, enabled=False):
             x = query.float()
-            rows = self.offsets.weight.view(h, self.slots, p * 3, c)[:, :a].reshape(-1, c)
-            bias = self.offsets.bias.view(h, self.slots, p * 3)[:, :a].reshape(-1)
-            offsets = F.linear(x, rows, bias).view(b, q, h, a, p, 3)  # in voxels
-            rows = self.weights.weight.view(h, self.slots, p, c)[:, :a].reshape(-1, c)
-            bias = self.weights.bias.view(h, self.slots, p)[:, :a].reshape(-1)
-            logits = F.linear(x, rows, bias).view(b, q, h, a, p)
+            offsets = self._present(self.offsets, x, a).view(b, q, h, a, p, 3)  # in voxels
+            logits = self._present(self.weights, x, a).view(b, q, h, a, p)
             v = self.value(values.float().permute(0, 1, 3, 4, 5, 2))  # (B, A, X, Y, Z, C)
         threads = torch.get_num_threads()
         return torch.stack(
             [deform_kernel.sample_3d(v[i], reference[i], offsets[i], logits[i], mask[i], threads) for i in range(b)]
         )
+
+    def _present(self, linear: nn.Linear, x: torch.Tensor, a: int) -> torch.Tensor:
+        """`linear` (outputs ordered by head, slot, then within a slot) of x (..., C) for the first `a` slots only:
+        (..., H a k), k outputs per slot."""
+        c = x.shape[-1]
+        rows = linear.weight.view(self.heads, self.slots, -1, c)[:, :a].reshape(-1, c)
+        return F.linear(x, rows, linear.bias.view(self.heads, self.slots, -1)[:, :a].reshape(-1))

@@ -63,8 +63,8 @@ class SSCNetEncoder(nn.Module):
 
     def forward(self, occupancy):  # (B, 1, X, Y, Z) 0/1
         f = self.down[1](self._first(occupancy)) if self._first_compiled(occupancy) else self.down(occupancy.float())
+        phases = self.path.reduced and self.path.kernels(f)
         for layer in self.dilated:
-            phases = self.path.reduced and self.path.kernels(f)
             f = F.relu(f + (phase_conv_relu(layer, f) if phases and thin(layer, f) else layer(f)))
         return self.out(f)  # (B, C, X/4, Y/4, Z/4)
 
