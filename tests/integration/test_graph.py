@@ -19,6 +19,7 @@ from ament_index_python.packages import get_package_share_directory
 from conftest import executable
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import PointCloud2
 
 from co3sop_msgs.msg import RequestMap, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
@@ -31,6 +32,7 @@ from co3sop_nodes.messages import features_of, pose_of, request_of, scan_of, sta
 from co3sop_nodes.model.co3sop import build_model, with_wire
 from co3sop_nodes.model.config import WireConfig, preset
 from co3sop_nodes.ros import links
+from co3sop_nodes.ros.dds import OCCUPANCY_QOS
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.v2x.request_map import request_for_neighbour
@@ -770,7 +772,18 @@ def test_recordings_and_bags_decode_with_foxglove_readers_and_draw_in_3d(graph, 
     """Every message of a graph recording and of a generated bag decodes with Foxglove's own readers, and the
     recording holds the ego's prediction and its ground truth as coloured points in the ego's LiDAR frame."""
     bag, cavs = scenario
-    mcap = run_graph(graph, bag, cavs, [])
+    live: dict[int, bytes] = {}  # a live viewer's clouds, by stamp: the ego makes them while one subscribes
+
+    def viewer() -> None:
+        def seen(raw: bytes) -> None:
+            msg = deserialize_message(raw, PointCloud2)
+            live[stamp_ns(msg.header.stamp)] = bytes(msg.data)
+
+        sub = graph.supervisor.node.create_subscription(PointCloud2, topics.EGO_POINTS, seen, OCCUPANCY_QOS, raw=True)
+        graph.supervisor.wait("the viewer matched with the ego", lambda: sub.get_publisher_count() == 1, 60)
+        time.sleep(1.0)  # and the ego with the viewer (discovery completes on both sides, not at once)
+
+    mcap = run_graph(graph, bag, cavs, [], before_play=viewer)
     files = [mcap, *bag.glob("*.mcap")]
     decoded = foxglove_decode(*files)
     for path in files:
@@ -782,6 +795,12 @@ def test_recordings_and_bags_decode_with_foxglove_readers_and_draw_in_3d(graph, 
             path
         )  # every message, as the mcap library counts
     rec = decoded[str(mcap)]
+    # the recorder draws the prediction's points itself: the same points the ego sends a live viewer
+    drawn = {
+        stamp_ns(m.header.stamp): bytes(m.data)
+        for _, m in recorded_messages(mcap, re.escape(topics.EGO_POINTS), PointCloud2)
+    }
+    assert len(live) == len(drawn) == FRAMES and live == drawn
     for topic in (topics.EGO_POINTS, topics.EGO_TRUTH_POINTS):
         assert rec[topic]["decoded"] == FRAMES and rec[topic]["schema"] == "sensor_msgs/msg/PointCloud2"
         sample = rec[topic]["sample"]

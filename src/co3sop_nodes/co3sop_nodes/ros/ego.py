@@ -21,7 +21,7 @@ bounded at any play rate; frames are fused on a thread of their own
 comm_range m, optionally perturbs their poses (Co3SOP's pose noise),
 runs the model's ego half and publishes ego/occupancy
 (co3sop_msgs/SemanticOccupancy), ego/occupancy/points (PointCloud2: x, y, z,
-rgb, label) and its diagnostics on /diagnostics (neighbours used and missing,
+rgb, label; while someone subscribes) and its diagnostics on /diagnostics (neighbours used and missing,
 their age, bytes received, time per stage, drops by reason). A lifecycle node
 (ros/lifecycle.py).
 """
@@ -158,7 +158,11 @@ PARAMS = (
         (0.001, 65536.0),
     ),
     Param(
-        "publish_points", bool, "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove", True, True
+        "publish_points",
+        bool,
+        "also publish /ego/occupancy/points (PointCloud2) for RViz2 and Foxglove, while they subscribe",
+        True,
+        True,
     ),
     Param(
         "request_maps",
@@ -586,7 +590,8 @@ class Ego(ManagedNode):
         enc = encode_labels(pred.labels, self.cfg.grid, self.cfg.num_classes, confidence=pred.confidence)
         self._occupancy.publish(occupancy_msg(RCLPY, enc, stamp_ns=stamp, frame_id=frame, agent_id=self.ego_id))
         published_wall = time.time_ns()
-        if self.publish_points:
+        # a frame's megabytes of points only for a live viewer: the recorder draws its own from /ego/occupancy
+        if self.publish_points and self._points.get_subscription_count():
             cloud = (occupancy_cloud_reference if self.reference_paths else occupancy_cloud)(pred.labels, self.cfg.grid)
             self._points.publish(point_cloud_msg(RCLPY, cloud, stamp_ns=stamp, frame_id=frame))
         t3 = time.perf_counter()

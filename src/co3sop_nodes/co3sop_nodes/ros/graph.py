@@ -122,9 +122,7 @@ def describe(
         raise Co3sopError(f"egos {egos!r}: one of {', '.join(EGOS)}")
     common, first, every = dict(common or {}), cavs[0], egos == "all"
     shown = [re.escape(topics.camera_image(first, cam)) for cam in CAMERAS]
-    outputs = (
-        [rf"/cav_\d+{t}" for t in (re.escape(topics.EGO_OCCUPANCY), re.escape(topics.EGO_POINTS))] if every else []
-    )
+    outputs = [rf"/cav_\d+{re.escape(topics.EGO_OCCUPANCY)}"] if every else []
     recorder = NodeSpec(
         "recorder",
         "recorder",

@@ -4,13 +4,14 @@
         [--compression zstd|lz4|none]
 
 Subscribes raw (the CDR bytes as they arrived) to every topic whose name
-matches one of the patterns, as topics appear (default: /ego/occupancy and
-its coloured points, the ground truth of every CAV, /diagnostics), and writes
-them to an MCAP file in the ros2 profile with their schemas embedded
-(rosbags, `ros2 bag` and Foxglove read it). The ego's ground truth at its
-prediction's range is also written as coloured points on
-/ego/ground_truth/points (viz/truth_points.py), so a viewer draws prediction and
-truth side by side. Chunks are flushed as they fill and at least every
+matches one of the patterns, as topics appear (default: /ego/occupancy, the
+ground truth of every CAV, /diagnostics), and writes them to an MCAP file in
+the ros2 profile with their schemas embedded (rosbags, `ros2 bag` and Foxglove
+read it). The ego's prediction and its ground truth at the prediction's range
+are also written as coloured points, on /ego/occupancy/points and
+/ego/ground_truth/points (viz/recording_clouds.py), so a viewer draws them
+side by side; the recorder draws them from the label grids rather than
+recording the ego's own cloud, which the ego then only makes for a live viewer. Chunks are flushed as they fill and at least every
 --flush-period s; SIGINT or SIGTERM finalises the file. After a crash, at
 most the last chunk is lost and `recover` makes the file readable again.
 """
@@ -33,11 +34,10 @@ from co3sop_nodes.kernels import visible_voxels
 from co3sop_nodes.messages.sensors import POINT_CLOUD
 from co3sop_nodes.ros.dds import DropLog, matching_qos, spin_node
 from co3sop_nodes.ros.message_types import message_class
-from co3sop_nodes.viz.truth_points import TruthPoints
+from co3sop_nodes.viz.recording_clouds import RecordingClouds, is_drawn
 
 DEFAULT_TOPICS = (
     re.escape(topics.EGO_OCCUPANCY),
-    re.escape(topics.EGO_POINTS),
     r"/cav_\d+/ground_truth/occupancy_\w+",
     re.escape(topics.DIAGNOSTICS),
 )
@@ -52,7 +52,7 @@ class Recorder(Node):
         self._types: dict[str, str] = {}
         self._subs = []
         self.mcap = McapRecorder(opts.out, chunk_size=opts.chunk_size, compression=opts.compression)
-        self.truth_points = TruthPoints()
+        self.clouds = RecordingClouds()
         visible_voxels.available()  # its kernel compiled now, not while the first ground truth waits
         self.drops = DropLog(self.get_logger())
         self.create_timer(0.2, self._discover)
@@ -62,7 +62,7 @@ class Recorder(Node):
 
     def _discover(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self._types or not any(p.match(topic) for p in self._patterns):
+            if topic in self._types or is_drawn(topic) or not any(p.match(topic) for p in self._patterns):
                 continue
             qos = matching_qos(self, topic, RECORD_DEPTH)  # each publisher's QoS adopted, as ros2 bag record does
             if qos is None:  # only subscribers so far
@@ -83,9 +83,7 @@ class Recorder(Node):
         self.mcap.write(topic, self._types[topic], raw, now)
         try:
             clouds = (
-                self.truth_points.prediction(raw, topic)
-                if topics.is_ego_occupancy(topic)
-                else self.truth_points.truth(topic, raw)
+                self.clouds.prediction(raw, topic) if topics.is_ego_occupancy(topic) else self.clouds.truth(topic, raw)
             )
         except Co3sopError as exc:  # recorded as it came; only its picture is missing
             return self.drops(topic, "not drawn", str(exc))
