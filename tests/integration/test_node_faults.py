@@ -858,6 +858,16 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
         assert set_(vehicle, "codec.selection", "dense").successful
         assert set_(vehicle, "request_timeout", 2.0).successful  # a run-time value outside the codec
 
+        # request maps subscribed with selection request only: an ego makes its maps for subscribers alone
+        node = topics.vehicle_node(LIDAR_CAV)
+        sup.wait_published("/ego", topics.EGO_REQUEST)
+        time.sleep(1.5)  # three of the vehicle's discovery periods
+        assert not sup.subscribes(node, topics.EGO_REQUEST)
+        assert set_(vehicle, "codec.selection", "request").successful
+        sup.wait_subscribed(node, topics.EGO_REQUEST, 30)
+        assert set_(vehicle, "codec.selection", "dense").successful
+        sup.wait("the request map released", lambda: not sup.subscribes(node, topics.EGO_REQUEST), 30)
+
         # a changed codec is used from the next frame on
         assert set_(vehicle, "codec.dtype", "int8").successful
         got = lidar_features(peer, *procs["lidar"])

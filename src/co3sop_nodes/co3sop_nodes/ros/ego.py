@@ -167,7 +167,8 @@ PARAMS = (
     Param(
         "request_maps",
         bool,
-        "publish /ego/request_map as each own frame arrives (vehicles with codec.selection request use it)",
+        "publish /ego/request_map as each own frame arrives, while someone subscribes (vehicles with codec.selection "
+        "request do)",
         True,
         True,
     ),
@@ -507,7 +508,7 @@ class Ego(ManagedNode):
             return self.drops(topic, "payload", str(exc))
         if topic == self.own_topic:
             self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
-            if self.request_maps:
+            if self.request_maps and self._request.get_subscription_count():  # only vehicles that use them subscribe
                 self._publish_request(stamp, out.confidence, pose)
         record = Received(agent, stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
         with self._worker.lock:

@@ -387,13 +387,20 @@ class Vehicle(ManagedNode):
         self._request_subs, self._request_timer, self._requests = {}, None, None
 
     def _discover_requests(self) -> None:
-        """Every RequestMap topic in the graph, up to max_request_topics (topics without a publisher are released);
-        then the links, as this vehicle sees them."""
+        """Sending features with codec.selection request, every RequestMap topic in the graph, up to max_request_topics (topics
+        without a publisher are released); with another selection, none (an ego makes its maps only for those who
+        subscribe); then the links, as this vehicle sees them."""
         limit = self.params["max_request_topics"]
+        wanted = self.send == "features" and self.codec.selection == "request"
+        if not wanted:
+            for topic in list(self._request_subs):
+                self.destroy_subscription(self._request_subs.pop(topic))
+                with self._worker.lock:
+                    self._requests.release(topic)
         new = [
             name
             for name, types in self.get_topic_names_and_types()
-            if REQUEST_TYPE in types and name not in self._request_subs
+            if wanted and REQUEST_TYPE in types and name not in self._request_subs
         ]
         if new and len(self._request_subs) + len(new) > limit:
             for topic in [t for t in self._request_subs if self.count_publishers(t) == 0]:
