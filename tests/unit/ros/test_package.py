@@ -15,7 +15,7 @@ from ament_index_python.packages import get_package_share_directory
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.ros import ego, vehicle
-from co3sop_nodes.ros.graph import LOSSLESS, describe
+from co3sop_nodes.ros.graph import LOSSLESS, answers_requests, describe
 from co3sop_nodes.ros.lifecycle import AUTOSTART
 
 REPO = Path(__file__).resolve().parents[3]
@@ -248,6 +248,9 @@ def test_the_described_graph_runs_existing_executables_with_declared_parameters(
         ("cav8", "/cav_8", "int8"),
     ]
     assert own.ros_arguments()[:3] == ["--ros-args", "-r", "__ns:=/cav_3"] and "id:=3" in own.ros_arguments()
+    defaults = {p.name: p.default for p in NODE_PARAMS["vehicle"]}
+    assert (defaults["send"], defaults["codec.selection"]) == ("features", "dense")  # as answers_requests takes them
+    assert not any(answers_requests(v) for v in graph.vehicles)  # dense: no request maps subscribed
     assert graph.player.arguments[:3] == (str(tmp_path / "bag"), "--rate", "0.5")
     assert "/cav_8/lidar/points" in graph.player.arguments and "/cav_8/camera0/image_raw" not in graph.player.arguments
 
@@ -269,6 +272,7 @@ def test_every_cav_an_ego_gets_its_own_features_on_board_and_the_others_over_v2x
         c = v.parameters["id"]
         assert e.parameters["ego_id"] == c and e.node == f"/cav_{c}/ego" and e.car == v.car == car
         assert v.parameters["local_features"] is True and v.parameters["codec.selection"] == "request"
+        assert answers_requests(v)  # so it subscribes to the egos' request maps
         # the ego's own features, named relative to its namespace, come from its car's lossless topic
         assert e.remappings == ((f"cav_{c}/voxel_features", f"/cav_{c}/voxel_features/local"),)
         assert ["-r", f"cav_{c}/voxel_features:=/cav_{c}/voxel_features/local"] == e.ros_arguments()[3:5]

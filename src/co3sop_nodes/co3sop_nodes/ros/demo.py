@@ -27,7 +27,7 @@ from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, r
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import channel_environment, channel_profiles, v2x_priority_port
-from co3sop_nodes.ros.graph import NodeSpec, bag_contents, car_of, describe, played_topics
+from co3sop_nodes.ros.graph import NodeSpec, answers_requests, bag_contents, car_of, describe, played_topics
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.sim.generation import GenerateOptions, generate, scenario_name
 from co3sop_nodes.v2x.channel import Channel, Link
@@ -372,7 +372,7 @@ def _graph(
         say("configuring the nodes (each loads the model), then activating them")
         supervisor.bring_up(list(nodes))
         # every link up as its receiver sees it: each ego matched to every vehicle's features or scans (or it fuses
-        # that neighbour's first frames without it), each vehicle to every other car's ego's request maps
+        # that neighbour's first frames without it), each vehicle that answers request maps to every other car's ego's
         sent = {
             v.parameters["id"]: topics.voxel_scan if v.parameters.get("send") == "scan" else topics.voxel_features
             for v in graph.vehicles
@@ -381,14 +381,14 @@ def _graph(
         for ego in graph.egos:
             own = ego.parameters["ego_id"]
             needs[status_of(ego)] = [topics.local_features(c) if every and c == own else sent[c](c) for c in cavs]
+            # the nodes' outputs are recorded from their first frame on
+            supervisor.wait_subscribed("/recorder", topics.ego_output(topics.EGO_OCCUPANCY, own if every else None))
             if str(ego.parameters.get("request_maps", True)).lower() == "false":
                 continue
             request = topics.ego_output(topics.EGO_REQUEST, own if every else None)
             for v in graph.vehicles:
-                if v.parameters["id"] != own:
+                if v.parameters["id"] != own and answers_requests(v):
                     needs.setdefault(f"vehicle cav_{v.parameters['id']}", []).append(request)
-            # the nodes' outputs are recorded from their first frame on
-            supervisor.wait_subscribed("/recorder", topics.ego_output(topics.EGO_OCCUPANCY, own if every else None))
         supervisor.wait_subscribed("/recorder", topics.DIAGNOSTICS)
         supervisor.wait(
             "every V2X link up (each ego matched to every vehicle, each vehicle to every other ego)",

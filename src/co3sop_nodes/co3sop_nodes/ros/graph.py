@@ -95,6 +95,12 @@ def played_topics(cavs: list[int], sensors: str) -> list[str]:
     return played + [t for cam in CAMERAS if (t := topics.camera_image(cavs[0], cam)) not in played]
 
 
+def answers_requests(vehicle: NodeSpec) -> bool:
+    """The vehicle sends features chosen by the egos' request maps (codec.selection request), so subscribes to them."""
+    params = vehicle.parameters
+    return params.get("send", "features") == "features" and params.get("codec.selection", "dense") == "request"
+
+
 def car_of(cav: int, cavs: list[int]) -> str:
     """The car (an emulated channel's member) of CAV `cav`: "ego" for the first, the one the machine's side
     shares memory with, "cav<N>" for the others."""
