@@ -47,11 +47,18 @@ def assert_bag_matches_folder(bag: Path, root: Path, split: str, scenario: str, 
     return compared
 
 
+def chunk_compressions(bag: Path) -> set[str]:
+    """The compression of every chunk of a bag's MCAP file ("" for none)."""
+    with open(next(bag.glob("*.mcap")), "rb") as f:
+        return {chunk.compression for chunk in make_reader(f).get_summary().chunk_indexes}
+
+
 def test_convert_real_format_fixture_round_trip(tmp_path):
     result = tool("convert", str(FIXTURE), "--out", str(tmp_path / "bags"))
     assert result.returncode == 0, result.stderr
     bag = tmp_path / "bags" / "test" / SCENARIO
     assert assert_bag_matches_folder(bag, FIXTURE, "test", SCENARIO, ("51.2m",)) == 4
+    assert chunk_compressions(bag) == {""}  # as ros2 bag record writes, unless --compress
     assert not list((tmp_path / "bags" / "test").glob(".*partial*"))
 
 
@@ -150,6 +157,7 @@ def generated(tmp_path_factory):
         "10",
         "--bags",
         str(out / "bags"),
+        "--compress-bags",
         "--pictures",
     )
     first = tool(*args)
@@ -170,6 +178,7 @@ def test_generate_writes_folders_labels_bags_and_pictures(generated):
             assert (out / "data" / folder / split / name / cavs[0] / "000070_voxels.npz").is_file()
         assert len(list((out / "data" / "pictures" / split / name).glob("*/*.png"))) == 4
         assert_bag_matches_folder(out / "bags" / split / name, out / "data", split, name, tuple(opv2v.LABEL_FOLDERS))
+        assert chunk_compressions(out / "bags" / split / name) == {"zstd"}  # --compress-bags
     assert not list((out / "data").glob("**/.*partial*"))
 
 

@@ -19,17 +19,19 @@ from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.data import opv2v
-from co3sop_nodes.data.bags import BagWriter
+from co3sop_nodes.data.bags import COMPRESS_HELP, BagWriter
 
 
-def convert_scenario(root: Path, split: str, scenario: str, bag: Path, on_error: str, ranges) -> list[str]:
+def convert_scenario(
+    root: Path, split: str, scenario: str, bag: Path, on_error: str, ranges, compress: bool = False
+) -> list[str]:
     """Writes one scenario's bag; returns the problems skipped (on_error="skip")."""
     problems = []
     if on_error == "stop":  # check everything before writing anything
         for _, frames in opv2v.read_scenario(root, split, scenario, ranges):
             if isinstance(frames, DatasetError):
                 raise frames
-    with BagWriter(bag) as writer:
+    with BagWriter(bag, compress=compress) as writer:
         for ts, frames in opv2v.read_scenario(root, split, scenario, ranges):
             if isinstance(frames, DatasetError):
                 problems.append(f"{split}/{scenario} timestamp {ts:06d} skipped: {frames}")
@@ -60,12 +62,15 @@ def main(args: list[str] | None = None) -> int:
         choices=list(BENCHMARK_RANGES),
         help="label ranges to include",
     )
+    parser.add_argument("--compress", action="store_true", help=COMPRESS_HELP)
     opts = parser.parse_args(args)
     scenarios = [(s, n) for s, n in opv2v.find_scenarios(opts.root) if s in opts.splits]
     problems = []
     bar = progress(len(scenarios), "scenarios", "scenario")
     for split, name in scenarios:
-        problems += convert_scenario(opts.root, split, name, opts.out / split / name, opts.on_error, opts.ranges)
+        problems += convert_scenario(
+            opts.root, split, name, opts.out / split / name, opts.on_error, opts.ranges, opts.compress
+        )
         bar.update(1)
     bar.close()
     for p in problems:

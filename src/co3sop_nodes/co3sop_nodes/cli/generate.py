@@ -15,6 +15,7 @@ from pathlib import Path
 
 from co3sop_nodes.cli.common import run
 from co3sop_nodes.data import opv2v
+from co3sop_nodes.data.bags import COMPRESS_HELP
 from co3sop_nodes.sim.generation import REAL_SIZE, GenerateOptions, generate, read_recipe
 
 DEFAULTS = GenerateOptions(out=Path())  # the library's defaults are the command's
@@ -68,6 +69,7 @@ def main(args: list[str] | None = None) -> int:
     )
     parser.add_argument("--extras", action="store_true", help="also write depth and semantic camera images")
     parser.add_argument("--bags", type=Path, help="also write one rosbag2 (MCAP) bag per scenario under this folder")
+    parser.add_argument("--compress-bags", action="store_true", help=COMPRESS_HELP)
     parser.add_argument(
         "--pictures", action="store_true", help="write a BEV + cameras picture per CAV frame under OUT/pictures"
     )

@@ -88,10 +88,18 @@ def typestore():
     return store
 
 
-class BagWriter:
-    """Writes CAV frames to a rosbag2 MCAP bag; use as a context manager."""
+COMPRESS_HELP = (
+    "bags with zstd chunks (about a third of the size; a player spends about 4 ms more CPU a frame of 3 CAVs "
+    "decompressing them); default uncompressed, as ros2 bag record writes"
+)
 
-    def __init__(self, path: Path, compress: bool = True):
+
+class BagWriter:
+    """Writes CAV frames to a rosbag2 MCAP bag; use as a context manager. Uncompressed by default, as `ros2 bag
+    record` writes: a player then reads a frame's messages without decompressing every chunk (about 4 ms of CPU a
+    frame of 3 CAVs); `compress`: zstd chunks, about a third of the size on disk."""
+
+    def __init__(self, path: Path, compress: bool = False):
         self.path = Path(path)
         # written as <parent>/.<name>.partial/<name> (the MCAP file takes the folder's name), moved when complete
         self._partial = self.path.parent / f".{self.path.name}.partial"

@@ -137,7 +137,7 @@ def generate_scenario(job: dict, events) -> str:
 
         bag = Path(job["bags"]) / split / name
         bag.parent.mkdir(parents=True, exist_ok=True)
-        with BagWriter(bag) as writer:
+        with BagWriter(bag, compress=job["compress_bags"]) as writer:
             for _, frames in opv2v.read_scenario(out, split, name, cfg.ranges):
                 if isinstance(frames, DatasetError):
                     raise frames
@@ -207,6 +207,7 @@ class GenerateOptions:
     label_margin: str = "0,0"
     extras: bool = False
     bags: Path | None = None
+    compress_bags: bool = False
     pictures: bool = False
     picture_range: str = "51.2m"
 
@@ -272,6 +273,7 @@ def generate(opts: GenerateOptions) -> int:
                 seed=seed,
                 config=cfg,
                 bags=opts.bags and str(opts.bags),
+                compress_bags=opts.compress_bags,
                 pictures=opts.pictures,
                 picture_range=opts.picture_range,
             )
