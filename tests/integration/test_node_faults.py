@@ -240,7 +240,7 @@ def test_recorder_finalises_on_sigterm_with_every_message(tmp_path, peer):
     rec.send_signal(signal.SIGTERM)
     assert rec.wait(30) == 0, log.read_text()
     assert "finalised" in log.read_text() and "/ego/occupancy 40" in log.read_text()
-    assert count(out) == 40
+    assert count(out) == 80  # each prediction with the points the recorder draws of it
 
 
 def test_recover_after_the_recorder_is_killed(tmp_path, peer):
@@ -252,8 +252,8 @@ def test_recover_after_the_recorder_is_killed(tmp_path, peer):
         count(out)
     done = subprocess.run([executable("recover"), str(out)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
-    assert "was damaged" in done.stdout and "40 messages kept" in done.stdout
-    assert count(out) == 40
+    assert "was damaged" in done.stdout and "80 messages kept" in done.stdout  # and their points
+    assert "/ego/occupancy: 40" in done.stdout and count(out) == 80
 
 
 def test_score_and_recover_explain_bad_files(tmp_path):
