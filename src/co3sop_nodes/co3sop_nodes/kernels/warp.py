@@ -23,6 +23,8 @@ import torch.nn.functional as F
 from co3sop_nodes import kernels
 from co3sop_nodes.common.grid import GridSpec
 
+MAX_FEATURES = 256  # as warp.c's
+
 _REVERSE = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
 
 
@@ -56,13 +58,20 @@ def warp_with_mask(volume: torch.Tensor, neighbour_from_ego: torch.Tensor, grid:
 
 
 @cache
+def _base_grid(*dims: int) -> np.ndarray:
+    """affine_grid's voxel centres along each axis (align_corners=False), computed as it computes them: x's, y's,
+    then z's, concatenated."""
+    return np.concatenate([(torch.linspace(-1, 1, n) * (n - 1) / n).numpy() for n in dims]).astype(np.float32)
+
+
+@cache
 def _kernel():
     lib = kernels.load("warp")
     if lib is None:
         return None
     fn = lib.warp_trilinear
     fn.argtypes, fn.restype = (
-        [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 4, ctypes.c_int64, ctypes.c_int64],
+        [ctypes.c_void_p, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 5, ctypes.c_int64, ctypes.c_int64],
         None,
     )
     return fn
@@ -85,13 +94,13 @@ def warp_compiled(
     out: warped features (X, Y, Z, C), confidence (X, Y, Z) and warp mask (X, Y, Z). `out`: contiguous float32 tensors
     of those shapes to write the features and confidence into (a fusion's stack of neighbours), fresh ones otherwise."""
     _, c, nx, ny, nz = features.shape
-    sampling = F.affine_grid(
-        warp_theta(neighbour_from_ego, grid), [1, c, nx, ny, nz], align_corners=False
-    )  # (1, X, Y, Z, 3)
-    src = np.empty((nx, ny, nz, c + 1), np.float32)  # channels-last, the confidence last: one copy of both
-    src[..., :c] = features[0].detach().cpu().numpy().transpose(1, 2, 3, 0)
-    src[..., c] = confidence[0, 0].detach().cpu().numpy()
-    points = kernels.array(sampling[0]).reshape(-1, 3)
+    if c > MAX_FEATURES:
+        raise ValueError(f"warp_compiled: {c} channels, above the kernel's {MAX_FEATURES}")
+    theta = kernels.array(warp_theta(neighbour_from_ego, grid)[0])  # (3, 4): the kernel applies affine_grid's map
+    base = _base_grid(nx, ny, nz)
+    # channels-last, the confidence last: one 2D transposition of both (PyTorch's is the fastest copy)
+    both = torch.cat([features.detach(), confidence.detach()], 1).cpu().float().view(c + 1, -1)
+    src = kernels.array(both.t().contiguous())  # (X*Y*Z, C + 1)
     warped, conf = out if out is not None else (torch.empty(nx, ny, nz, c), torch.empty(nx, ny, nz))
     filled = np.empty((nx, ny, nz), np.float32)
     fn = _kernel()
@@ -103,12 +112,13 @@ def warp_compiled(
             ny,
             nz,
             c + 1,
-            points.ctypes.data,
+            theta.ctypes.data,
+            base.ctypes.data,
             warped.data_ptr(),
             conf.data_ptr(),
             filled.ctypes.data,
         ),
-        len(points),
+        nx * ny * nz,
         threads,
     )
     return warped, conf, torch.from_numpy(filled) > 0.5
