@@ -24,13 +24,18 @@ def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
     # the ego encoding its two neighbours' scans: 0.1 + 2 x 0.05 s a frame, more than the 0.35 s of CPU over 2 cores
     assert pace.sustainable_rate(cost, 3, 0.1, 2, scans=True) == pytest.approx(0.1 / (0.2 * h))
     assert pace.sustainable_rate(cost, 3, 0.1, 2, egos=3, scans=True) < pace.sustainable_rate(cost, 3, 0.1, 2, egos=3)
+    # the recorder's pictures of each ego's prediction count towards the CPU, not towards the ego's own time
+    drawn = pace.FrameCost(vehicle_s=0.05, ego_s=0.1, recording_s=0.02)
+    # 3 x 0.05 + 2 x (0.1 + 0.02) = 0.39 s of CPU over 2 cores
+    assert pace.sustainable_rate(drawn, 3, 0.1, 2, egos=2) == pytest.approx(0.1 / (0.39 / 2 * h))
+    assert pace.sustainable_rate(drawn, 3, 0.1, 64) == pytest.approx(0.1 / (0.1 * h))
 
 
 @pytest.mark.parametrize("name", ["tiny", "tiny-lidar"])
 def test_a_frame_is_measured_for_both_modalities(name):
     model = build_model(preset(name, **MICRO)).eval()
     cost = pace.frame_cost(model, repeats=1)
-    assert 0 < cost.vehicle_s < 10 and 0 < cost.ego_s < 10
+    assert 0 < cost.vehicle_s < 10 and 0 < cost.ego_s < 10 and 0 < cost.recording_s < 10
     inputs = pace.shaped_inputs(model)
     assert set(inputs) == ({"occupancy"} if name == "tiny-lidar" else {"images", "lidar2img"})
 

@@ -125,7 +125,8 @@ def measured_rate(model, vehicles: int, period: float, egos: int = 1, scans: boo
     n = pace.cores()
     rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n, egos=egos, scans=scans)) / 100
     say(
-        f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms"
+        f"measured per frame on one thread: vehicle {1e3 * cost.vehicle_s:.0f} ms, ego {1e3 * cost.ego_s:.0f} ms, "
+        f"the recorder's pictures {1e3 * cost.recording_s:.0f} ms"
         + (" and a vehicle half per neighbour's scan" if scans else "")
         + f"; {vehicles} vehicles + {egos} ego{'s' if egos > 1 else ''} on {n} cores keep up with rate {rate:g} "
         f"(a frame every {period / max(rate, 0.01):.2f} s)"
