@@ -40,9 +40,14 @@ def test_a_frame_is_measured_for_both_modalities(name):
     assert set(inputs) == ({"occupancy"} if name == "tiny-lidar" else {"images", "lidar2img"})
 
 
-def test_warm_up_runs_only_on_a_gpu():
+def test_warm_up_runs_both_halves_on_the_cpu(monkeypatch):
     model = build_model(preset("tiny", **MICRO)).eval()
-    assert pace.warm_up(model, ego=True) == 0.0  # on the CPU first use costs little: nothing runs
+    calls = []
+    monkeypatch.setattr(
+        model.ego, "fuse", lambda *a, **k: calls.append("fuse") or model.ego.__class__.fuse(model.ego, *a, **k)
+    )
+    assert pace.warm_up(model, ego=False) > 0 and calls == []  # a vehicle: its half only
+    assert pace.warm_up(model, ego=True) > 0 and calls == ["fuse"]
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CI has none)")

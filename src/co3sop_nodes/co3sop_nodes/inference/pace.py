@@ -70,17 +70,16 @@ def shaped_neighbours(own: VehicleOutput) -> dict[int, tuple[VehicleOutput, np.n
 
 @torch.inference_mode()
 def warm_up(model: Co3SOP, ego: bool) -> float:
-    """On a GPU, a vehicle half (and with `ego`, a fusion of 2 neighbours and the head) on inputs of the model's
-    shapes, so that no frame waits for what CUDA does on first use (loading kernels, choosing cuDNN algorithms:
-    seconds); nodes call it before they say they are ready. Nothing elsewhere, where first use costs little. The
-    seconds it took."""
-    if model.path.torch_device.type != "cuda":
-        return 0.0
+    """A vehicle half (and with `ego`, a fusion of 2 neighbours and the head) on inputs of the model's shapes, so
+    that no frame waits for what a device does on first use: on a GPU, loading kernels and choosing cuDNN algorithms
+    (seconds); on a CPU, oneDNN's kernels made for each shape and the first allocations (tens of ms, on a graph's
+    first and busiest frames); nodes call it before they say they are ready. The seconds it took."""
     t0 = time.perf_counter()
     own = model.vehicle(**shaped_inputs(model))
     if ego:
         predict_frame(model, own, np.eye(4), shaped_neighbours(own))
-    torch.cuda.synchronize(model.path.torch_device)
+    if model.path.torch_device.type == "cuda":
+        torch.cuda.synchronize(model.path.torch_device)
     return time.perf_counter() - t0
 
 
