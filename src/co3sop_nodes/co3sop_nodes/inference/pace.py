@@ -29,8 +29,8 @@ from co3sop_nodes.viz.cloud import occupancy_cloud
 # play at 1 / HEADROOM of the rate the measured work allows: DDS, decoding, the player and the recorder's own work
 # (not measured here), the ego waiting for the vehicles' features of its frame, several processes sharing few cores
 # (the ego's frame takes longer than its CPU), and jitter. Calibrated by bench_graph's sweeps: on 2 cores with the
-# LiDAR model in bfloat16 the measured work allows about 1.8x real time and the graph fuses every frame of 100 at
-# 1.0 (BENCHMARKS.md)
+# LiDAR model in bfloat16 the measured work allows about 1.9x real time, and the graph fuses every frame of 100 at
+# 1.0 in most runs (BENCHMARKS.md)
 HEADROOM = 1.8
 
 
@@ -136,7 +136,8 @@ def sustainable_rate(
     scans: bool = False,
 ) -> float:
     """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores (the recorder's
-    pictures of each ego's prediction included), and an ego (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real time. With
+    pictures of each ego's prediction included), and an ego (one process, every frame in turn) each bound the wall
+    time per frame; with headroom, at most real time. With
     `scans` the vehicles send their scans and each ego runs the vehicle half once per neighbour too."""
     ego_s = cost.ego_s + (vehicles - 1) * cost.vehicle_s if scans else cost.ego_s
     cpu = vehicles * cost.vehicle_s + egos * (ego_s + cost.recording_s)

@@ -10,9 +10,9 @@
 
 #define MAX_FEATURES 256
 
-/* One output voxel (the presets' channel counts, 32, 48 and 128, as constants): its features' first cf channels into out, the last channel (the confidence) and the in-bounds
- * weight returned through last and filled. Inlined with cf a constant where the caller's is one, so that acc
- * lives in registers. */
+/* One output voxel: its features' first cf channels into out, the last channel (the confidence) and the
+ * in-bounds weight returned through last and filled. Inlined with cf a constant where the caller's is one (the
+ * presets' 32, 48 and 128), so that acc lives in registers. */
 static inline __attribute__((always_inline)) void warp_voxel(const float *restrict src, int64_t nx, int64_t ny,
                                                               int64_t nz, const int64_t cf, float x, float y, float z,
                                                               float *restrict out, float *restrict last,
@@ -42,9 +42,9 @@ static inline __attribute__((always_inline)) void warp_voxel(const float *restri
  * grid_sample's (w, h, d) = (z, y, x) order; base: affine_grid's voxel centres in [-1, 1] along x, then y, then z
  * (X + Y + Z values) -> dst (V, C - 1) the first C - 1 channels, last (V,) the last one,
  * filled (V,); C - 1 at most MAX_FEATURES */
-void warp_trilinear(const float *restrict src, int64_t nx, int64_t ny, int64_t nz, int64_t c, const float *restrict theta,
-                    const float *restrict base, float *restrict dst, float *restrict last, float *restrict filled,
-                    int64_t start, int64_t end) {
+void warp_trilinear(const float *restrict src, int64_t nx, int64_t ny, int64_t nz, int64_t c,
+                    const float *restrict theta, const float *restrict base, float *restrict dst,
+                    float *restrict last, float *restrict filled, int64_t start, int64_t end) {
   const int64_t cf = c - 1;
   for (int64_t v = start; v < end; ++v) {
     const int64_t i = v / (ny * nz), j = v / nz % ny, l = v % nz;

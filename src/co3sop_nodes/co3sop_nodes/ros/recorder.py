@@ -11,8 +11,9 @@ read it). The ego's prediction and its ground truth at the prediction's range
 are also written as coloured points, on /ego/occupancy/points and
 /ego/ground_truth/points (viz/recording_clouds.py), so a viewer draws them
 side by side; the recorder draws them from the label grids rather than
-recording the ego's own cloud, which the ego then only makes for a live viewer. Chunks are flushed as they fill and at least every
---flush-period s; SIGINT or SIGTERM finalises the file. After a crash, at
+recording the ego's own cloud, which the ego then only makes for a live
+viewer. Chunks are flushed as they fill and at least every --flush-period s;
+SIGINT or SIGTERM finalises the file. After a crash, at
 most the last chunk is lost and `recover` makes the file readable again.
 """
 

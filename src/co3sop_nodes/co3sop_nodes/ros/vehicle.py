@@ -387,9 +387,9 @@ class Vehicle(ManagedNode):
         self._request_subs, self._request_timer, self._requests = {}, None, None
 
     def _discover_requests(self) -> None:
-        """Sending features with codec.selection request, every RequestMap topic in the graph, up to max_request_topics (topics
-        without a publisher are released); with another selection, none (an ego makes its maps only for those who
-        subscribe); then the links, as this vehicle sees them."""
+        """Sending features with codec.selection request, every RequestMap topic in the graph, up to
+        max_request_topics (topics without a publisher are released); otherwise none (an ego makes its maps only
+        for those who subscribe); then the links, as this vehicle sees them."""
         limit = self.params["max_request_topics"]
         wanted = self.send == "features" and self.codec.selection == "request"
         if not wanted:
