@@ -79,14 +79,16 @@ def test_channel_shapes_rate_and_loss_and_removes_everything():
         seconds = float(client.communicate(timeout=60)[0])
         assert int(server.communicate(timeout=30)[0]) == 1_000_000
         assert 0.85 < seconds < 3.0, seconds  # 8 Mbit/s: 1.0 s; an unshaped veth would take milliseconds
-        # loss: 20 % of the lossy member's packets are dropped at random, and counted
+        # loss: 20 % of the lossy member's packets are dropped at random, and counted (the datagrams' drops alone:
+        # the stream's acknowledgements above, as many as the machine's scheduling makes, were dropped too)
+        tcp_dropped = channel.dropped("lossy")
         receiver = in_namespace(channel, "ego", RECEIVE)
         time.sleep(0.5)
         sender = in_namespace(channel, "lossy", SEND.format(address=channel.addresses["ego"]))
         assert sender.wait(60) == 0
         received = int(receiver.communicate(timeout=30)[0])
         assert 1450 < received < 1750, received  # binomial(2000, 0.8): mean 1600, sd 18
-        assert 250 < channel.dropped("lossy") < 550 and channel.dropped("ego") == 0
+        assert 250 < channel.dropped("lossy") - tcp_dropped < 550 and channel.dropped("ego") == 0
         shaping = subprocess.run(
             channel.wrap("ego", ["tc", "qdisc", "show", "dev", "eth0"]), capture_output=True, text=True
         ).stdout
