@@ -60,7 +60,8 @@ class VoxelFusion(nn.Module):
             idx = torch.arange(flat.shape[1], device=ego.device) if dense else selected[i].nonzero()[:, 0]
             if not len(idx):
                 continue
-            # the queries from the copy: whole rows of it, where the ego's layout would gather each channel V apart
+            # the queries from the copy: on a reduced path whole channels-last rows, where the ego's layout has a
+            # voxel's channels V apart
             q, m = out[i, idx][None], per_voxel[i, idx][None]  # (1, Q, C), (1, Q, A)
             for layer in self.layers:
                 q = layer(q, self.pos[idx][None], self.reference[idx][None], values[i : i + 1], m)
