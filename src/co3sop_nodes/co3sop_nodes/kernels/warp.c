@@ -10,32 +10,44 @@
 
 #define MAX_FEATURES 256
 
-/* One output voxel: its features' first cf channels into out, the last channel (the confidence) and the
- * in-bounds weight returned through last and filled. Inlined with cf a constant where the caller's is one (the
- * presets' 32, 48 and 128), so that acc lives in registers. */
-static inline __attribute__((always_inline)) void warp_voxel(const float *restrict src, int64_t nx, int64_t ny,
-                                                              int64_t nz, const int64_t cf, float x, float y, float z,
-                                                              float *restrict out, float *restrict last,
-                                                              float *restrict filled) {
-  float acc[MAX_FEATURES];
-  float conf = 0.0f, sum = 0.0f;
-  for (int64_t k = 0; k < cf; ++k) acc[k] = 0.0f;
-  if (x > -1.0f && x < nx && y > -1.0f && y < ny && z > -1.0f && z < nz) { /* else outside (or NaN) */
-    const float fx = floorf(x), fy = floorf(y), fz = floorf(z), ax = x - fx, ay = y - fy, az = z - fz;
-    const int64_t x0 = (int64_t)fx, y0 = (int64_t)fy, z0 = (int64_t)fz, c = cf + 1;
-    for (int corner = 0; corner < 8; ++corner) {
-      const int64_t i = x0 + (corner >> 2), j = y0 + ((corner >> 1) & 1), l = z0 + (corner & 1);
-      if (i < 0 || i >= nx || j < 0 || j >= ny || l < 0 || l >= nz) continue;
-      const float w = ((corner >> 2) ? ax : 1 - ax) * (((corner >> 1) & 1) ? ay : 1 - ay) * ((corner & 1) ? az : 1 - az);
-      const float *in = src + ((i * ny + j) * nz + l) * c;
-      for (int64_t k = 0; k < cf; ++k) acc[k] += w * in[k];
-      conf += w * in[cf];
-      sum += w;
+/* Output voxels [start, end): their features' first cf channels into dst, the last channel (the confidence) into
+ * last and the in-bounds weight into filled. Inlined with cf a constant where the caller's is one (the presets' 32,
+ * 48 and 128), so that a voxel's accumulators live in registers. */
+static inline __attribute__((always_inline)) void warp_voxels(const float *restrict src, int64_t nx, int64_t ny,
+                                                               int64_t nz, const int64_t cf,
+                                                               const float *restrict theta, const float *restrict base,
+                                                               float *restrict dst, float *restrict last,
+                                                               float *restrict filled, int64_t start, int64_t end) {
+  const int64_t c = cf + 1;
+  for (int64_t v = start; v < end; ++v) {
+    const int64_t i = v / (ny * nz), j = v / nz % ny, l = v % nz;
+    const float bx = base[i], by = base[nx + j], bz = base[nx + ny + l];
+    const float gz = theta[0] * bz + theta[1] * by + theta[2] * bx + theta[3];
+    const float gy = theta[4] * bz + theta[5] * by + theta[6] * bx + theta[7];
+    const float gx = theta[8] * bz + theta[9] * by + theta[10] * bx + theta[11];
+    /* grid_sample's unnormalisation: ((g + 1) * size - 1) / 2 */
+    const float x = ((gx + 1) * nx - 1) / 2, y = ((gy + 1) * ny - 1) / 2, z = ((gz + 1) * nz - 1) / 2;
+    float acc[MAX_FEATURES];
+    float conf = 0.0f, sum = 0.0f;
+    for (int64_t k = 0; k < cf; ++k) acc[k] = 0.0f;
+    if (x > -1.0f && x < nx && y > -1.0f && y < ny && z > -1.0f && z < nz) { /* else outside (or NaN) */
+      const float fx = floorf(x), fy = floorf(y), fz = floorf(z), ax = x - fx, ay = y - fy, az = z - fz;
+      const int64_t x0 = (int64_t)fx, y0 = (int64_t)fy, z0 = (int64_t)fz;
+      for (int corner = 0; corner < 8; ++corner) {
+        const int64_t ci = x0 + (corner >> 2), cj = y0 + ((corner >> 1) & 1), cl = z0 + (corner & 1);
+        if (ci < 0 || ci >= nx || cj < 0 || cj >= ny || cl < 0 || cl >= nz) continue;
+        const float w =
+            ((corner >> 2) ? ax : 1 - ax) * (((corner >> 1) & 1) ? ay : 1 - ay) * ((corner & 1) ? az : 1 - az);
+        const float *in = src + ((ci * ny + cj) * nz + cl) * c;
+        for (int64_t k = 0; k < cf; ++k) acc[k] += w * in[k];
+        conf += w * in[cf];
+        sum += w;
+      }
     }
+    for (int64_t k = 0; k < cf; ++k) dst[v * cf + k] = acc[k];
+    last[v] = conf;
+    filled[v] = sum;
   }
-  for (int64_t k = 0; k < cf; ++k) out[k] = acc[k];
-  *last = conf;
-  *filled = sum;
 }
 
 /* src: (X, Y, Z, C) the features then the confidence; theta: (3, 4) affine_grid's matrix, rows and columns in
@@ -46,21 +58,12 @@ void warp_trilinear(const float *restrict src, int64_t nx, int64_t ny, int64_t n
                     const float *restrict theta, const float *restrict base, float *restrict dst,
                     float *restrict last, float *restrict filled, int64_t start, int64_t end) {
   const int64_t cf = c - 1;
-  for (int64_t v = start; v < end; ++v) {
-    const int64_t i = v / (ny * nz), j = v / nz % ny, l = v % nz;
-    const float bx = base[i], by = base[nx + j], bz = base[nx + ny + l];
-    const float gz = theta[0] * bz + theta[1] * by + theta[2] * bx + theta[3];
-    const float gy = theta[4] * bz + theta[5] * by + theta[6] * bx + theta[7];
-    const float gx = theta[8] * bz + theta[9] * by + theta[10] * bx + theta[11];
-    /* grid_sample's unnormalisation: ((g + 1) * size - 1) / 2 */
-    const float x = ((gx + 1) * nx - 1) / 2, y = ((gy + 1) * ny - 1) / 2, z = ((gz + 1) * nz - 1) / 2;
-    if (cf == 32)
-      warp_voxel(src, nx, ny, nz, 32, x, y, z, dst + v * cf, last + v, filled + v);
-    else if (cf == 48)
-      warp_voxel(src, nx, ny, nz, 48, x, y, z, dst + v * cf, last + v, filled + v);
-    else if (cf == 128)
-      warp_voxel(src, nx, ny, nz, 128, x, y, z, dst + v * cf, last + v, filled + v);
-    else
-      warp_voxel(src, nx, ny, nz, cf, x, y, z, dst + v * cf, last + v, filled + v);
-  }
+  if (cf == 32)
+    warp_voxels(src, nx, ny, nz, 32, theta, base, dst, last, filled, start, end);
+  else if (cf == 48)
+    warp_voxels(src, nx, ny, nz, 48, theta, base, dst, last, filled, start, end);
+  else if (cf == 128)
+    warp_voxels(src, nx, ny, nz, 128, theta, base, dst, last, filled, start, end);
+  else
+    warp_voxels(src, nx, ny, nz, cf, theta, base, dst, last, filled, start, end);
 }

@@ -99,8 +99,7 @@ def warp_compiled(
     theta = kernels.array(warp_theta(neighbour_from_ego, grid)[0])  # (3, 4): the kernel applies affine_grid's map
     base = _base_grid(nx, ny, nz)
     # channels-last, the confidence last: one 2D transposition of both (PyTorch's is the fastest copy)
-    both = torch.cat([features.detach(), confidence.detach()], 1).cpu().float().view(c + 1, -1)
-    src = kernels.array(both.t().contiguous())  # (X*Y*Z, C + 1)
+    src = kernels.array(torch.cat([features, confidence], 1).view(c + 1, -1).t().contiguous())  # (X*Y*Z, C + 1)
     warped, conf = out if out is not None else (torch.empty(nx, ny, nz, c), torch.empty(nx, ny, nz))
     filled = np.empty((nx, ny, nz), np.float32)
     fn = _kernel()

@@ -391,22 +391,19 @@ class Vehicle(ManagedNode):
         max_request_topics (topics without a publisher are released); otherwise none (an ego makes its maps only
         for those who subscribe); then the links, as this vehicle sees them."""
         limit = self.params["max_request_topics"]
-        wanted = self.send == "features" and self.codec.selection == "request"
-        if not wanted:
+        new = []
+        if self.send == "features" and self.codec.selection == "request":
+            new = [
+                name
+                for name, types in self.get_topic_names_and_types()
+                if REQUEST_TYPE in types and name not in self._request_subs
+            ]
+        else:
             for topic in list(self._request_subs):
-                self.destroy_subscription(self._request_subs.pop(topic))
-                with self._worker.lock:
-                    self._requests.release(topic)
-        new = [
-            name
-            for name, types in self.get_topic_names_and_types()
-            if wanted and REQUEST_TYPE in types and name not in self._request_subs
-        ]
+                self._release_request(topic)
         if new and len(self._request_subs) + len(new) > limit:
             for topic in [t for t in self._request_subs if self.count_publishers(t) == 0]:
-                self.destroy_subscription(self._request_subs.pop(topic))
-                with self._worker.lock:
-                    self._requests.release(topic)
+                self._release_request(topic)
         for name in new:
             if len(self._request_subs) >= limit:
                 self.drops(
@@ -419,6 +416,12 @@ class Vehicle(ManagedNode):
                 self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg), REQUEST_QOS, self.drops
             )
         publish_links(self, self._diag, f"vehicle cav_{self.agent_id}", self.lidar_frame, self._request_subs)
+
+    def _release_request(self, topic: str) -> None:
+        """`topic`'s request maps no longer subscribed."""
+        self.destroy_subscription(self._request_subs.pop(topic))
+        with self._worker.lock:
+            self._requests.release(topic)
 
     def _on_request(self, topic: str, msg: RequestMap) -> None:
         try:
