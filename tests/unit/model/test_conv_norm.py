@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from co3sop_nodes.model.conv_norm import ConvNorm
+from co3sop_nodes.model.conv_norm import ConvNorm, folded, is_z_outer, z_outer
 from co3sop_nodes.model.path import InferencePath
 
 
@@ -45,3 +45,16 @@ def test_on_a_reduced_path_the_norm_is_folded_into_the_convolution():
     assert torch.allclose(got.float(), want, atol=0.05 * want.abs().max())  # bfloat16 rounding of weights and inputs
     folded.path = InferencePath()
     assert torch.equal(folded(x), want)  # back to float32: nothing was stored
+
+
+@torch.no_grad()
+def test_a_z_outer_volume_stays_z_outer_through_a_folded_convolution():
+    """The same convolution on the (B, C, Z, X, Y) views, whatever its per-axis stride, padding and dilation."""
+    torch.manual_seed(1)
+    conv, norm = nn.Conv3d(4, 6, (3, 3, 3), (2, 1, 1), (1, 0, 2), (1, 1, 2)), nn.BatchNorm3d(6).eval()
+    x = torch.randn(2, 4, 9, 7, 6)
+    want = folded(conv, norm, x)  # (B, C, X', Y', Z')
+    got = folded(conv, norm, z_outer(x))
+    assert is_z_outer(z_outer(x)) and not is_z_outer(x) and is_z_outer(got)
+    assert got.shape == want.shape
+    assert torch.allclose(got, want, atol=1e-5)  # float32: another summation order

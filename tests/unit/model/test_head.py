@@ -84,10 +84,7 @@ def test_the_kernel_splits_parents_in_shares_of_any_size():
     x = torch.randn(2, 8, 8, 6, 4)
     want_labels, want_conf = reference(head, x)
     labels, conf = zip(
-        *(
-            octant_kernel.octant_labels(p, (16, 12, 8), head.up2, head.point2, head.classify[2], 5)
-            for p in head.parents(x)
-        )
+        *(octant_kernel.octant_labels(p, head.up2, head.point2, head.classify[2], 5) for p in head.parents(x))
     )
     assert_labels_equal(torch.stack(labels).numpy(), want_labels, head, x)
     assert np.abs(torch.stack(conf).numpy().astype(int) - want_conf).max() <= 1
@@ -100,10 +97,9 @@ def test_the_reduced_precision_kernel_stays_within_its_tolerance(name):
     cfg = preset(name)
     head = random_head(cfg.head_channels, cfg.embed_dims, 6)
     x = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims)
-    dims = tuple(2 * n for n in cfg.feature_grid.dims)
 
     def labels(parents, precision):
-        out = octant_kernel.octant_labels(parents, dims, head.up2, head.point2, head.classify[2], 1, precision)
+        out = octant_kernel.octant_labels(parents, head.up2, head.point2, head.classify[2], 1, precision)
         return tuple(t[None].numpy() for t in out)
 
     want_labels, want_conf = reference(head, x)
@@ -122,11 +118,29 @@ def test_the_reduced_path_folds_the_half_resolution_norm_to_the_same_features():
     head = random_head(cfg.head_channels, cfg.embed_dims, 7)
     x = torch.randn(1, cfg.embed_dims, *cfg.feature_grid.dims)
     want = head.parents(x)  # float32: the layers as they are
-    head.path = InferencePath(precision="bfloat16")
+    for module in head.modules():  # as Co3SOP.use sets it
+        if "path" in vars(module):
+            module.path = InferencePath(precision="bfloat16")
     with head.path.autocast():
         got = head.parents(x)
     assert got.dtype == torch.bfloat16 and got.shape == want.shape
     assert (got.float() - want).abs().max() <= 0.03 * want.abs().max()  # bfloat16 rounding through three layers
+    assert got.permute(0, 3, 1, 2, 4).is_contiguous()  # z-outer in memory, as the convolutions left it: no copy
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_the_kernel_reads_parents_in_any_layout(precision):
+    """Parents stored z-outer (the reduced path's layout) or transposed give what their contiguous copy gives."""
+    head = random_head((8, 8, 4), 8, 8)
+    parents = head.parents(torch.randn(1, 8, 4, 6, 3))[0].detach().to(getattr(torch, precision))  # (X1, Y1, Z1, C1)
+    want = octant_kernel.octant_labels(parents.contiguous(), head.up2, head.point2, head.classify[2], 2, precision)
+    for layout in ((2, 0, 1, 3), (1, 0, 2, 3), (3, 0, 1, 2)):  # z outermost, y before x, channels outermost (copied)
+        order = [layout.index(i) for i in range(4)]
+        stored = parents.permute(*layout).contiguous().permute(*order)
+        assert torch.equal(stored, parents)
+        got = octant_kernel.octant_labels(stored, head.up2, head.point2, head.classify[2], 2, precision)
+        for g, w in zip(got, want):
+            assert torch.equal(g, w)
 
 
 def test_the_compiled_kernel_is_the_default_on_the_cpu_and_cached(tmp_path, monkeypatch):

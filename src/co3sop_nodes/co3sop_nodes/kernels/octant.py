@@ -19,7 +19,7 @@ import torch
 from co3sop_nodes import kernels
 
 _POINTER = ctypes.c_void_p
-_ARGS = [_POINTER, *[ctypes.c_int64] * 4, *[_POINTER] * 8]
+_ARGS = [_POINTER, *[ctypes.c_int64] * 7, *[_POINTER] * 8]
 
 
 @cache
@@ -49,24 +49,22 @@ def available(c1: int, c2: int, classes: int, precision: str = "float32") -> boo
 
 def octant_labels(
     parents: torch.Tensor,
-    dims: tuple[int, int, int],
     up: torch.nn.ConvTranspose3d,
     point: torch.nn.Conv3d,
     classify: torch.nn.Conv3d,
     threads: int,
     precision: str = "float32",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """parents (P, C1) of the 1/2 grid `dims`, flat order, on the CPU -> labels, confidence (2X1, 2Y1, 2Z1) uint8,
-    on `threads` threads (the kernel must be `available`) for an inference path of `precision`. float32: every sum
-    rounded as the reference rounds it. A reduced precision: fused multiply-adds and a shorter exp (labels equal
-    but for near-ties, confidence within one step, as tested); bfloat16 parents are read as they are (widening
-    them first would be one more pass over the volume)."""
+    """parents (X1, Y1, Z1, C1) of the 1/2 grid on the CPU, in any memory layout with channels innermost (others are
+    copied) -> labels, confidence (2X1, 2Y1, 2Z1) uint8, on `threads` threads (the kernel must be `available`) for an
+    inference path of `precision`. float32: every sum rounded as the reference rounds it. A reduced precision: fused
+    multiply-adds and a shorter exp (labels equal but for near-ties, confidence within one step, as tested);
+    bfloat16 parents are read as they are (widening them first would be one more pass over the volume)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k, precision)
-    if precision == "bfloat16":
-        x = parents.detach().cpu().to(torch.bfloat16).contiguous().view(torch.int16).numpy()  # (P, C1) bits
-    else:
-        x = kernels.array(parents)  # (P, C1)
+    x = parents.detach().cpu().to(torch.bfloat16 if precision == "bfloat16" else torch.float32)
+    if x.stride(-1) != 1:
+        x = x.contiguous()
     # (C1, C2, 16) in the kernel's lane order: octant (dx, dy, dz) of parent `half` at lane 4 (2 dx + dy) + 2 half + dz
     up_w = kernels.array(up.weight.flatten(2).view(c1, c2, 4, 1, 2).expand(c1, c2, 4, 2, 2).reshape(c1, c2, 16))
     up_b = kernels.array(up.bias[:, None].expand(c2, 16))  # (C2, 16)
@@ -75,9 +73,9 @@ def octant_labels(
         kernels.array(point.bias),
     )  # (C2 in, C2 out), (C2,)
     cls_w, cls_b = kernels.array(classify.weight[:, :, 0, 0, 0].t()), kernels.array(classify.bias)  # (C2, K), (K,)
-    n = x.shape[0]
-    x1, y1, z1 = dims
+    x1, y1, z1 = x.shape[:3]
     labels, confidence = np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8), np.empty((2 * x1, 2 * y1, 2 * z1), np.uint8)
     ptrs = [a.ctypes.data for a in (up_w, up_b, point_w, point_b, cls_w, cls_b, labels, confidence)]
-    kernels.parallel(lambda *bounds: fn(x.ctypes.data, y1, z1, *bounds, *ptrs), (), n, threads)
+    grid = (x.data_ptr(), *x.stride()[:3], y1, z1)  # the parents and their strides in elements
+    kernels.parallel(lambda *bounds: fn(*grid, *bounds, *ptrs), (), x1 * y1 * z1, threads)
     return torch.from_numpy(labels), torch.from_numpy(confidence)

@@ -71,10 +71,12 @@ static inline void write_pair(uint8_t *restrict out, b16 lanes, int64_t fine, in
   memcpy(out + fine + fy + fz, run + 3, 4);
 }
 
-/* parents (N, C1) of a (X1, Y1, Z1) grid in flat order; up_w (C1, C2, 16) and up_b (C2, 16): the transposed
- * convolution in lane order (write_pair); point_w (C2 in, C2 out); cls_w (C2, K) -> labels and round(255 p(label)),
- * both (2 X1, 2 Y1, 2 Z1) uint8: each octant written at its fine voxel */
-void octant_labels(const parent_t *restrict parents, int64_t y1, int64_t z1, int64_t start, int64_t end,
+/* parents (X1, Y1, Z1, C1), channels contiguous, parent (x, y, z) at element x sx + y sy + z sz (any layout: the
+ * head's reduced path stores z outermost); [start, end) in flat (x, y, z) order; up_w (C1, C2, 16) and up_b (C2, 16):
+ * the transposed convolution in lane order (write_pair); point_w (C2 in, C2 out); cls_w (C2, K) -> labels and
+ * round(255 p(label)), both (2 X1, 2 Y1, 2 Z1) uint8: each octant written at its fine voxel */
+void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int64_t sz, int64_t y1, int64_t z1,
+                   int64_t start, int64_t end,
                    const f16u *restrict up_w, const f16u *restrict up_b, const float *restrict point_w,
                    const float *restrict point_b, const float *restrict cls_w, const float *restrict cls_b,
                    uint8_t *restrict labels, uint8_t *restrict confidence) {
@@ -89,7 +91,7 @@ void octant_labels(const parent_t *restrict parents, int64_t y1, int64_t z1, int
   int64_t px = start / (y1 * z1), py = (start / z1) % y1, pz = start % z1;
   for (int64_t p = start; p < end;) {
     const int paired = p + 1 < end && pz + 1 < z1;  /* else p alone, in both halves */
-    const parent_t *xa = parents + p * C1, *xb = parents + (paired ? p + 1 : p) * C1;
+    const parent_t *xa = parents + px * sx + py * sy + pz * sz, *xb = paired ? xa + sz : xa;
     f16 h[C2], g[C2], logits[K];
 #pragma GCC unroll 64
     for (int j = 0; j < C2; ++j) h[j] = up_b[j];

@@ -6,11 +6,17 @@ every norm costs two copies of its activation between the precisions (a fifth of
 on the CPU) besides the norm itself. Float32 and training keep the layers as they are, so float32 inference
 stays bit for bit what it was; the folded weights are computed at each call (a few thousand values) and never
 stored, so the module's state is the plain layers' and `Co3SOP.use` may switch paths at any time.
+
+A folded 3D convolution keeps its input's memory layout, channels-last or `z_outer` (channels-last with z the
+outermost spatial axis): oneDNN's kernels tile the innermost spatial axis, and a driving grid's z is its
+shortest (4 to 8 voxels against 64 to 128 along y), so a head's 3x3x3 layers run about twice as fast on z-outer
+volumes on the CPU.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from co3sop_nodes.model.path import InferencePath
@@ -52,8 +58,38 @@ def folded_norm(norm: nn.modules.batchnorm._BatchNorm, bias: torch.Tensor | None
     return scale, shift
 
 
+def z_outer(x: torch.Tensor) -> torch.Tensor:
+    """x (B, C, X, Y, Z) -> the same tensor stored (B, Z, X, Y, C) in memory (a copy unless it already is)."""
+    return x.permute(0, 1, 4, 2, 3).contiguous(memory_format=torch.channels_last_3d).permute(0, 1, 3, 4, 2)
+
+
+def is_z_outer(x: torch.Tensor) -> bool:
+    return x.dim() == 5 and x.permute(0, 1, 4, 2, 3).is_contiguous(memory_format=torch.channels_last_3d)
+
+
+def _zxy(t: tuple[int, int, int]) -> tuple[int, int, int]:
+    return t[2], t[0], t[1]
+
+
 def folded(conv: nn.Conv2d | nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, x: torch.Tensor) -> torch.Tensor:
-    """norm(conv(x)) in eval mode as one convolution: weights scaled per output channel, the norm's shift a bias."""
+    """norm(conv(x)) in eval mode as one convolution: weights scaled per output channel, the norm's shift a bias.
+    A z-outer x (B, C, X, Y, Z) gives a z-outer result: the convolution runs on the (B, C, Z, X, Y) views."""
     scale, shift = folded_norm(norm, conv.bias)  # (Cout,)
     weight = conv.weight * scale.view(-1, *[1] * (conv.weight.dim() - 1))  # keeps the weight's memory format
+    if (
+        isinstance(conv, nn.Conv3d)
+        and conv.padding_mode == "zeros"
+        and not isinstance(conv.padding, str)
+        and is_z_outer(x)
+    ):
+        y = F.conv3d(
+            x.permute(0, 1, 4, 2, 3),
+            weight.permute(0, 1, 4, 2, 3),
+            shift,
+            _zxy(conv.stride),
+            _zxy(conv.padding),
+            _zxy(conv.dilation),
+            conv.groups,
+        )  # (B, Cout, Z', X', Y')
+        return y.permute(0, 1, 3, 4, 2)
     return conv._conv_forward(x, weight, shift)

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from co3sop_nodes.kernels import octant as octant_kernel
-from co3sop_nodes.model.conv_norm import ConvNorm, folded_norm
+from co3sop_nodes.model.conv_norm import ConvNorm, folded_norm, z_outer
 from co3sop_nodes.model.path import InferencePath
 
 
@@ -46,30 +46,35 @@ class OccupancyHead(nn.Module):
         return f0, self.up1(f0)
 
     def parents(self, x):
-        """x: (B, C, X/4, Y/4, Z/4) -> the 1/2 features as (B, P, C1), parents in flat (x, y, z) order: `coarse`'s f1
-        computed channels-last. The stride-2 transposed convolution is one matrix product per coarse voxel whose
+        """x: (B, C, X/4, Y/4, Z/4) -> the 1/2 features as (B, X/2, Y/2, Z/2, C1) with channels innermost in memory:
+        `coarse`'s f1, channels last. The stride-2 transposed convolution is one matrix product per coarse voxel whose
         8 octants land in place, and the 3x3x3 block reads and writes channels-last, so no layout copy is left.
-        On a reduced-precision path the batch norm is folded into that product and the ReLU applied in place, in
-        the path's precision: at 1/2 every pass over the volume is memory traffic, and this saves three of them."""
-        f0 = self.stage0(x)  # (B, C0, X0, Y0, Z0)
+        On a reduced-precision path the volumes are z-outer (conv_norm.py: oneDNN's convolutions run twice as fast
+        on them), the batch norm is folded into that product and the ReLU applied in place, in the path's
+        precision: at 1/2 every pass over the volume is memory traffic, and this saves three of them."""
+        reduced = self.path.reduced
+        f0 = self.stage0(z_outer(x) if reduced else x)  # (B, C0, X0, Y0, Z0)
         conv, norm, block = self.up1[0], self.up1[1], self.up1[3]
         b, c0, x0, y0, z0 = f0.shape
         c1 = conv.out_channels
-        rows = f0.flatten(2).transpose(1, 2)  # (B, P0, C0)
-        if self.path.reduced:
+        if reduced:
+            rows = f0.permute(0, 4, 2, 3, 1).reshape(b * z0 * x0 * y0, c0)  # (B*P0, C0) in (z, x, y) order: no copy
             scale, shift = folded_norm(norm, conv.bias)  # (C1,), (C1,)
             # columns octant-major: each octant's C1 channels land in place as one run, twice as long a copy
             weight = (conv.weight * scale[:, None, None, None]).permute(0, 2, 3, 4, 1).flatten(1)  # (C0, 8*C1)
-            u = torch.addmm(shift.repeat(8), rows.flatten(0, 1), weight).relu_()  # (B*P0, 8*C1)
-            u = u.view(b, x0, y0, z0, 2, 2, 2, c1).permute(0, 1, 4, 2, 5, 3, 6, 7)
+            u = torch.addmm(shift.repeat(8), rows, weight).relu_()  # (B*P0, 8*C1)
+            u = u.view(b, z0, x0, y0, 2, 2, 2, c1).permute(0, 1, 6, 2, 4, 3, 5, 7)  # (B, Z0, dz, X0, dx, Y0, dy, C1)
+            u = u.reshape(b, 2 * z0, 2 * x0, 2 * y0, c1).permute(0, 4, 2, 3, 1)  # (B, C1, X/2, Y/2, Z/2), z-outer
+            f1 = block(u)
         else:
+            rows = f0.flatten(2).transpose(1, 2)  # (B, P0, C0)
             u = rows @ conv.weight.flatten(1)  # (B, P0, C1*8): kernel offsets (i, j, k) last
             if conv.bias is not None:
                 u = u + conv.bias.repeat_interleave(8)
             u = u.view(b, x0, y0, z0, c1, 2, 2, 2).permute(0, 1, 5, 2, 6, 3, 7, 4)
-        u = u.reshape(b, 2 * x0, 2 * y0, 2 * z0, c1).permute(0, 4, 1, 2, 3)  # (B, C1, X/2, Y/2, Z/2), channels-last
-        f1 = block(u if self.path.reduced else F.relu(norm(u)))
-        return f1.permute(0, 2, 3, 4, 1).reshape(b, -1, c1)
+            u = u.reshape(b, 2 * x0, 2 * y0, 2 * z0, c1).permute(0, 4, 1, 2, 3)  # (B, C1, X/2, Y/2, Z/2), channels-last
+            f1 = block(F.relu(norm(u)))
+        return f1.permute(0, 2, 3, 4, 1)  # (B, X/2, Y/2, Z/2, C1): no copy
 
     def forward(self, x):
         f0, f1 = self.coarse(x)
@@ -86,8 +91,8 @@ class OccupancyHead(nn.Module):
         PyTorch loop. The 1/2 features follow the path's precision; the last stage computes in float32.
         """
         with self.path.autocast():
-            parents = self.parents(x)  # (B, P, C1)
-        b, (x1, y1, z1) = x.shape[0], (2 * n for n in x.shape[2:])
+            parents = self.parents(x)  # (B, X1, Y1, Z1, C1)
+        b, x1, y1, z1 = parents.shape[:4]
         c1, c2 = self.up2.in_channels, self.up2.out_channels
         precision = self.path.precision
         if compiled is None:
@@ -97,12 +102,12 @@ class OccupancyHead(nn.Module):
         if compiled:
             pairs = [
                 octant_kernel.octant_labels(
-                    p, (x1, y1, z1), self.up2, self.point2, self.classify[2], torch.get_num_threads(), precision
+                    p, self.up2, self.point2, self.classify[2], torch.get_num_threads(), precision
                 )
                 for p in parents
             ]
             return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
-        parents = parents.float()
+        parents = parents.float().reshape(b, -1, c1)  # (B, P, C1), flat (x, y, z) order
         up_w = self.up2.weight.flatten(2).permute(0, 2, 1).reshape(c1, 8 * c2)  # (C1, 8*C2): octant-major
         up_b = self.up2.bias.repeat(8)  # (8*C2,)
         point_w, point_b = self.point2.weight[:, :, 0, 0, 0].t(), self.point2.bias  # (C2, C2), (C2,)
