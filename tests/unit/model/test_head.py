@@ -171,3 +171,14 @@ def test_without_a_compiler_the_head_takes_its_pytorch_path(tmp_path, monkeypatc
     finally:
         kernels.load.cache_clear()
         octant_kernel._kernel.cache_clear()
+
+
+def test_a_head_with_an_odd_channel_count_at_half_resolution_takes_the_pytorch_loop():
+    """The kernel reads parents' channels in pairs: with an odd C1 it is not offered, and labels stay exact."""
+    head = random_head((8, 7, 4), 8, 9)
+    x = torch.randn(1, 8, 4, 4, 2)
+    assert not octant_kernel.available(7, 4, 24) and octant_kernel.available(8, 4, 24)
+    labels, conf = head.labels(x)
+    want_labels, want_conf = reference(head, x)
+    assert_labels_equal(labels.numpy(), want_labels, head, x)
+    assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1

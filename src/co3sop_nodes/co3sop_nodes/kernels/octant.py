@@ -43,8 +43,8 @@ def _kernel(c1: int, c2: int, classes: int, precision: str):
 
 def available(c1: int, c2: int, classes: int, precision: str = "float32") -> bool:
     """Whether the kernel for this head shape and inference precision (see `octant_labels`) compiles here (compiling
-    it on first call; CO3SOP_NATIVE=0: never)."""
-    return kernels.ENABLED and _kernel(c1, c2, classes, precision) is not None
+    it on first call; CO3SOP_NATIVE=0: never). It reads parents' channels in pairs: C1 must be even."""
+    return c1 % 2 == 0 and kernels.ENABLED and _kernel(c1, c2, classes, precision) is not None
 
 
 def octant_labels(

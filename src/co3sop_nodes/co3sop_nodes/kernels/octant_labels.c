@@ -20,16 +20,35 @@ typedef f16 f16u __attribute__((aligned(4)));  /* for loads from arrays numpy al
 /* parents as the head computed them: float32, or bfloat16 (PARENTS_BF16=1: its bits are a float32's upper half) */
 #if PARENTS_BF16
 typedef uint16_t parent_t;
-static inline float parent_value(parent_t v) {
-  union { uint32_t u; float f; } x = {(uint32_t)v << 16};
-  return x.f;
-}
 #else
 typedef float parent_t;
-static inline float parent_value(parent_t v) { return v; }
+#endif
+
+#if C1 % 2
+#error "C1 must be even: parents' channels are read in pairs"
 #endif
 
 static inline f16 select(i16 m, f16 a, f16 b) { return (f16)(((i16)a & m) | ((i16)b & ~m)); }
+
+/* the lanes of parent p (half 0; p + 1: half 1), lane = 4 (2 dx + dy) + 2 half + dz as in write_pair */
+static const i16 HALF0 = {-1, -1, 0, 0, -1, -1, 0, 0, -1, -1, 0, 0, -1, -1, 0, 0};
+
+/* channels c and c + 1 of parents a (half 0) and b (half 1), each as one vector of their lanes */
+#if PARENTS_BF16
+static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]) {
+  int32_t pa, pb;  /* both channels at once: c in the low half, c + 1 in the high half (little-endian) */
+  memcpy(&pa, a, 4);
+  memcpy(&pb, b, 4);
+  const i16 ab = (((i16){0} + pa) & HALF0) | (((i16){0} + pb) & ~HALF0);
+  out[0] = (f16)(ab << 16);
+  out[1] = (f16)(ab & (int32_t)0xFFFF0000);
+}
+#else
+static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]) {
+  for (int k = 0; k < 2; ++k) out[k] = select(HALF0, (f16){0} + a[k], (f16){0} + b[k]);
+}
+#endif
+
 static inline f16 relu(f16 v) { return (f16)((i16)v & (v > 0.0f)); }
 
 #if REDUCED
@@ -96,11 +115,13 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
 #pragma GCC unroll 64
     for (int j = 0; j < C2; ++j) h[j] = up_b[j];
 #pragma GCC unroll 64
-    for (int c = 0; c < C1; ++c) {
-      const float a = parent_value(xa[c]), b = parent_value(xb[c]);
-      const f16 xc = {a, a, b, b, a, a, b, b, a, a, b, b, a, a, b, b};
+    for (int c = 0; c < C1; c += 2) {
+      f16 xc[2];
+      parent_lanes(xa + c, xb + c, xc);
+#pragma GCC unroll 2
+      for (int k = 0; k < 2; ++k)
 #pragma GCC unroll 64
-      for (int j = 0; j < C2; ++j) h[j] += xc * up_w[c * C2 + j];
+        for (int j = 0; j < C2; ++j) h[j] += xc[k] * up_w[(c + k) * C2 + j];
     }
 #pragma GCC unroll 64
     for (int d = 0; d < C2; ++d) g[d] = (f16){0} + point_b[d];
