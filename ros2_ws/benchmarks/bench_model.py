@@ -41,6 +41,7 @@ from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
 from co3sop_nodes.messages import xyz_of
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.conv_norm import folded, z_outer
 from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, resolve_device
 
 
@@ -261,6 +262,35 @@ def peak_table(repeats: int) -> tuple[str, dict[str, float]]:
 
 
 @torch.no_grad()
+def layout_table(repeats: int) -> str:
+    """The head's 3x3x3 convolutions (`tiny-lidar` at 51.2 m: 32 -> 32 channels at 1/4, 16 -> 16 at 1/2) in bfloat16
+    on one thread, on channels-last volumes against z-outer ones (conv_norm.z_outer: the same tensor, z the outermost
+    spatial axis in memory), the two calls alternating so that both see the same machine."""
+    rows = ["| convolution | channels-last ms | z-outer ms | channels-last / z-outer |", "|---|---:|---:|---:|"]
+    gen = torch.Generator().manual_seed(0)
+    dims = preset("tiny-lidar").feature_grid.dims
+    for c, scale in ((32, 1), (16, 2)):
+        shape = tuple(scale * n for n in dims)
+        conv = torch.nn.Conv3d(c, c, 3, padding=1, bias=False).to(torch.bfloat16)
+        x = torch.randn(1, c, *shape, generator=gen).to(torch.bfloat16)
+        last = x.contiguous(memory_format=torch.channels_last_3d)
+        outer = z_outer(x)
+        norm = torch.nn.BatchNorm3d(c).eval().to(torch.bfloat16)
+        calls = {"last": lambda t=last: folded(conv, norm, t), "outer": lambda t=outer: folded(conv, norm, t)}
+        times = {k: [] for k in calls}
+        for call in calls.values():
+            call()  # oneDNN's kernel for each layout, made once
+        for _ in range(max(repeats, 5)):
+            for k, call in calls.items():
+                t, _ = timed(call, 1)
+                times[k].append(t)
+        a, b = (1e3 * float(np.median(times[k])) for k in ("last", "outer"))
+        rows.append(f"| {c} -> {c}, {'x'.join(map(str, shape))} | {a:.2f} | {b:.2f} | {a / b:.2f}x |")
+        print(f"  layout {c} -> {c} {shape}: channels-last {a:.2f} ms, z-outer {b:.2f} ms", flush=True)
+    return "\n".join(rows)
+
+
+@torch.no_grad()
 def roofline_table(repeats: int, peak: dict[str, float]) -> str:
     """Each shipped model's stages at 51.2 m on one thread as the nodes run them (compiled kernels), in float32 and,
     on a CPU that computes it, bfloat16: FLOPs per frame (the convolutions and matrix products, counted on the
@@ -386,8 +416,8 @@ def main() -> None:
     parser.add_argument(
         "--roofline",
         action="store_true",
-        help="only this CPU's measured peak (one thread) and each shipped "
-        "model's FLOPs and GFLOP/s per stage against it",
+        help="only this CPU's measured peak (one thread), each shipped model's FLOPs and GFLOP/s per stage against "
+        "it, and the head's convolutions by memory layout",
     )
     opts = parser.parse_args()
     keep_freed_memory()  # as every node and command-line tool allocates
@@ -411,6 +441,8 @@ def main() -> None:
             peaks,
             "### Each stage against it (51.2 m, one thread, compiled kernels)",
             roofline_table(opts.repeats, peak),
+            "### The head's convolutions by memory layout (bfloat16, one thread, alternating calls)",
+            layout_table(opts.repeats),
         ]
     elif opts.precision_only:
         parts = precision
