@@ -49,8 +49,8 @@ class OccupancyHead(nn.Module):
         """x: (B, C, X/4, Y/4, Z/4) -> the 1/2 features as (B, X/2, Y/2, Z/2, C1) with channels innermost in memory:
         `coarse`'s f1, channels last. The stride-2 transposed convolution is one matrix product per coarse voxel whose
         8 octants land in place, and the 3x3x3 block reads and writes channels-last, so no layout copy is left.
-        On a reduced-precision path the volumes are z-outer (conv_norm.py: oneDNN's convolutions run twice as fast
-        on them), the batch norm is folded into that product and the ReLU applied in place, in the path's
+        On a reduced-precision path the volumes are z-outer (conv_norm.py: oneDNN's convolutions run faster on
+        them), the batch norm is folded into that product and the ReLU applied in place, in the path's
         precision: at 1/2 every pass over the volume is memory traffic, and this saves three of them."""
         reduced = self.path.reduced
         f0 = self.stage0(z_outer(x) if reduced else x)  # (B, C0, X0, Y0, Z0)
