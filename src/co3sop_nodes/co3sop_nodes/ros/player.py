@@ -127,7 +127,10 @@ def main(args: list[str] | None = None) -> int:
             player.play()
         finally:
             player.close()
-        raise SystemExit(0)  # done: spin_node cleans up
+            # spin_node never holds this node (it is done before spinning): its DDS entities go now, before
+            # the context shuts down, not in the interpreter's teardown
+            player.destroy_node()
+        raise SystemExit(0)
 
     return spin_node(make, argv, "player")
 
