@@ -632,6 +632,20 @@ def test_truncated_label_payload(small, field, data):
     _assert_error(info, CorruptPayloadError, field)
 
 
+def test_labels_alone_leave_the_confidence_undecoded(small):
+    """Readers of the labels alone skip the confidence: the same labels, and a damaged confidence goes unread."""
+    enc = small[4]
+    whole, alone = decode_labels(enc), decode_labels(enc, with_confidence=False)
+    np.testing.assert_array_equal(alone.labels, whole.labels)
+    assert alone.confidence is None and whole.confidence is not None
+    damaged = dataclasses.replace(enc, confidence=enc.confidence[:3])
+    np.testing.assert_array_equal(decode_labels(damaged, with_confidence=False).labels, whole.labels)
+    with pytest.raises(CorruptPayloadError):
+        decode_labels(damaged)
+    with pytest.raises(CorruptPayloadError):  # the labels themselves are still checked
+        decode_labels(dataclasses.replace(enc, labels=enc.labels[:3]), with_confidence=False)
+
+
 @pytest.mark.parametrize("index", range(5))  # the 4 magic bytes and the frame header descriptor
 @pytest.mark.parametrize("field", FEATURE_FIELDS)
 def test_corrupt_feature_payload(small, field, index):

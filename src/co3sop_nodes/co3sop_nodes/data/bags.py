@@ -211,9 +211,9 @@ class BagWriter:
 
 
 def occupancy_labels(msg) -> tuple[np.ndarray, GridSpec]:
-    """Decoded (nx, ny, nz) labels and grid of a SemanticOccupancy."""
+    """Decoded (nx, ny, nz) labels and grid of a SemanticOccupancy (its confidence, if any, left undecoded)."""
     enc = occupancy_of(msg)
-    return decode_labels(enc).labels, enc.grid
+    return decode_labels(enc, with_confidence=False).labels, enc.grid
 
 
 # --- reading ---------------------------------------------------------------------------------------

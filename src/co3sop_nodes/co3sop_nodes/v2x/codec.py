@@ -749,14 +749,18 @@ def _check_labels(labels: np.ndarray, num_classes: int) -> None:
         raise CodecError(f"labels: unknown label value(s) {bad.tolist()} for {num_classes} classes")
 
 
-def decode_labels(enc: EncodedLabels, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES) -> DecodedLabels:
-    """Inverse of encode_labels; raises a CodecError subclass naming the bad field."""
+def decode_labels(
+    enc: EncodedLabels, max_raw_bytes: int = DEFAULT_MAX_RAW_BYTES, with_confidence: bool = True
+) -> DecodedLabels:
+    """Inverse of encode_labels; raises a CodecError subclass naming the bad field. Without `with_confidence` the
+    confidence is neither decompressed nor checked (None): for readers of the labels alone, since a prediction's
+    noisy confidence takes several times its labels' time to decompress."""
     n = enc.grid.num_voxels
     raw = decompress_payload(enc.labels, enc.codec, enc.labels_raw_size, n, "labels", max_raw_bytes)
     labels = np.frombuffer(raw, np.uint8).reshape(enc.grid.dims)
     _check_labels(labels, enc.num_classes)
     confidence = None
-    if enc.confidence_raw_size or enc.confidence:
+    if with_confidence and (enc.confidence_raw_size or enc.confidence):
         craw = decompress_payload(enc.confidence, enc.codec, enc.confidence_raw_size, n, "confidence", max_raw_bytes)
         confidence = np.frombuffer(craw, np.uint8).reshape(enc.grid.dims)
     return DecodedLabels(labels=labels, confidence=confidence)
