@@ -83,14 +83,15 @@ def warm_up(model: Co3SOP, ego: bool) -> float:
     return time.perf_counter() - t0
 
 
-def _median_cpu(fn, repeats: int) -> float:
-    fn()  # warm-up: first-call allocations, the compiled head kernel
+def _median_cpu(fn, repeats: int) -> tuple[float, object]:
+    """Median CPU seconds of `repeats` calls of fn after one to warm up, and the last call's result."""
+    result = fn()  # warm-up: first-call allocations, the compiled head kernel
     times = []
     for _ in range(repeats):
         t0 = time.process_time()
-        fn()
+        result = fn()
         times.append(time.process_time() - t0)
-    return float(np.median(times))
+    return float(np.median(times)), result
 
 
 @torch.inference_mode()
@@ -102,7 +103,7 @@ def frame_cost(model: Co3SOP, repeats: int = 3) -> FrameCost:
     torch.set_num_threads(1)
     try:
         inputs = shaped_inputs(model)
-        vehicle_s = _median_cpu(
+        vehicle_s, _ = _median_cpu(
             lambda: encode_output(model.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats
         )
         ego = model.vehicle(**inputs)
@@ -113,9 +114,8 @@ def frame_cost(model: Co3SOP, repeats: int = 3) -> FrameCost:
             encode_labels(pred.labels, cfg.grid, cfg.num_classes, confidence=pred.confidence)
             return pred.labels
 
-        ego_s = _median_cpu(ego_frame, repeats)
-        labels = ego_frame()
-        recording_s = _median_cpu(lambda: [occupancy_cloud(labels, cfg.grid) for _ in range(2)], repeats)
+        ego_s, labels = _median_cpu(ego_frame, repeats)
+        recording_s, _ = _median_cpu(lambda: [occupancy_cloud(labels, cfg.grid) for _ in range(2)], repeats)
     finally:
         torch.set_num_threads(threads)
     return FrameCost(vehicle_s, ego_s, recording_s)
