@@ -10,7 +10,8 @@ stored, so the module's state is the plain layers' and `Co3SOP.use` may switch p
 A folded 3D convolution keeps its input's memory layout, channels-last or `z_outer` (channels-last with z the
 outermost spatial axis): oneDNN's kernels tile the innermost spatial axis, and a driving grid's z is its
 shortest (6 or 12 voxels against 64 or 128 along y in the head of `tiny-lidar`), so the head's 3x3x3 layers run
-1.25-1.4x as fast on z-outer volumes on the CPU (bench_model.py --roofline).
+1.25-1.4x as fast on z-outer volumes on the CPU, and the LiDAR vehicle half's dilated ones 1.5-2x (bench_model.py
+--roofline).
 """
 
 from __future__ import annotations
