@@ -9,16 +9,8 @@
 # 3 vehicles, ego, recorder; `--device cuda`, precision auto) for tiny-lidar, small and the untrained paper preset.
 # Each step's output goes to LOGS.
 set -uo pipefail
-bundle="$(realpath "$1")" target="$2" logs="$(realpath "$3")"
-here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
-bash "$here/ros2_ws/offline_bundle.sh" unpack "$bundle" "$target" || exit 1
-cd /tmp/co3sop-offline || exit 1
-set +u
-# shellcheck disable=SC1091
-. ros2_ws/env.sh
-set -u
-export PYTHONUNBUFFERED=1
-{ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader; nproc; } | tee "$logs/machine.txt"
+# shellcheck source=ros2_ws/benchmarks/gpu_setup.sh
+. "$(dirname "${BASH_SOURCE[0]}")/gpu_setup.sh" "$@"
 python -c 'from co3sop_nodes.ros.demo import DemoOptions, ensure_scenario; ensure_scenario(DemoOptions(frames=100))' \
   >"$logs/generate.log" 2>&1 &
 generating=$!
