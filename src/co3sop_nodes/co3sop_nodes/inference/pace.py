@@ -95,9 +95,11 @@ def _median_cpu(fn, repeats: int) -> tuple[float, object]:
 
 
 @torch.inference_mode()
-def frame_cost(model: Co3SOP, repeats: int = 3) -> FrameCost:
+def frame_cost(model: Co3SOP, repeats: int = 9) -> FrameCost:
     """CPU seconds per frame of a vehicle and of the ego with 2 neighbours 10 m away, on one thread, as the nodes
-    compute them (the nodes' conversions of messages excepted)."""
+    compute them (the nodes' conversions of messages excepted). Medians of `repeats` calls: on a shared machine
+    single calls vary by 10 % and more, and a median of few lets one slow spell set the demo's rate (under a
+    second at the default)."""
     cfg = model.cfg
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
