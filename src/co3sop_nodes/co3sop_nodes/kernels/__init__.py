@@ -39,13 +39,19 @@ def cache_dir() -> Path:
     return Path(os.environ.get("CO3SOP_CACHE") or Path.home() / ".cache" / "co3sop") / "native"
 
 
+@cache
+def cpu_flags() -> tuple[str, ...]:
+    """The CPU's feature flags as /proc/cpuinfo lists them (none where there is no such file)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return ()
+    return tuple(next((line for line in text.splitlines() if line.startswith("flags")), "").split(":")[-1].split())
+
+
 def _cpu() -> str:
     """What `-march=native` depends on: the machine and its CPU's feature flags."""
-    try:
-        flags = next((line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags")), "")
-    except OSError:
-        flags = ""
-    return f"{platform.machine()} {flags}"
+    return f"{platform.machine()} {' '.join(cpu_flags())}"
 
 
 @cache

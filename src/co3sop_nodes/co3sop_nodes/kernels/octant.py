@@ -22,6 +22,12 @@ _POINTER = ctypes.c_void_p
 _ARGS = [_POINTER, *[ctypes.c_int64] * 7, *[_POINTER] * 8]
 
 
+def dot_bf16(precision: str, c2: int) -> bool:
+    """Whether the kernel for `precision` takes its products as bfloat16 dot products of channel pairs: bfloat16
+    inference on a CPU that computes them (AVX-512 BF16, which every CPU with AMX also has), C2 even."""
+    return precision == "bfloat16" and c2 % 2 == 0 and "avx512_bf16" in kernels.cpu_flags()
+
+
 @cache
 def _kernel(c1: int, c2: int, classes: int, precision: str):
     reduced = precision != "float32"
@@ -33,6 +39,7 @@ def _kernel(c1: int, c2: int, classes: int, precision: str):
         K=classes,
         REDUCED=int(reduced),
         PARENTS_BF16=int(precision == "bfloat16"),
+        DOT_BF16=int(dot_bf16(precision, c2)),
     )
     if lib is None:
         return None
@@ -59,7 +66,8 @@ def octant_labels(
     copied) -> labels, confidence (2X1, 2Y1, 2Z1) uint8, on `threads` threads (the kernel must be `available`) for an
     inference path of `precision`. float32: every sum rounded as the reference rounds it. A reduced precision: fused
     multiply-adds and a shorter exp (labels equal but for near-ties, confidence within one step, as tested);
-    bfloat16 parents are read as they are (widening them first would be one more pass over the volume)."""
+    bfloat16 parents are read as they are (widening them first would be one more pass over the volume), and where
+    `dot_bf16` the layers compute as bfloat16 layers do (tested against that definition)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k, precision)
     x = parents.detach().cpu().to(torch.bfloat16 if precision == "bfloat16" else torch.float32)

@@ -9,9 +9,15 @@
  * Sums run in the reference's order per voxel (over input channels), so logits match it to float rounding; with
  * REDUCED=1 (a reduced-precision path, compiled with fused multiply-adds) they round once per multiply-add, the
  * classifier's weights are scaled by log2 e so that the softmax's exp is a power of two, and its series is shorter.
+ * With DOT_BF16=1 (bfloat16 parents on a CPU with AVX-512 BF16) the three layers' products are bfloat16 dot products
+ * of channel pairs (vdpbf16ps, two multiply-adds per lane): weights and hidden activations rounded to bfloat16 as a
+ * bfloat16 layer rounds them, sums in float32.
  */
 #include <stdint.h>
 #include <string.h>
+#if DOT_BF16
+#include <immintrin.h>
+#endif
 
 typedef float f16 __attribute__((vector_size(64)));
 typedef int32_t i16 __attribute__((vector_size(64)));
@@ -35,11 +41,15 @@ static const i16 HALF0 = {-1, -1, 0, 0, -1, -1, 0, 0, -1, -1, 0, 0, -1, -1, 0, 0
 
 /* channels c and c + 1 of parents a (half 0) and b (half 1), each as one vector of their lanes */
 #if PARENTS_BF16
-static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]) {
-  int32_t pa, pb;  /* both channels at once: c in the low half, c + 1 in the high half (little-endian) */
+/* both channels at once, each lane a bfloat16 pair: c in the low half, c + 1 in the high half (little-endian) */
+static inline i16 parent_pairs(const parent_t *a, const parent_t *b) {
+  int32_t pa, pb;
   memcpy(&pa, a, 4);
   memcpy(&pb, b, 4);
-  const i16 ab = (((i16){0} + pa) & HALF0) | (((i16){0} + pb) & ~HALF0);
+  return (((i16){0} + pa) & HALF0) | (((i16){0} + pb) & ~HALF0);
+}
+static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]) {
+  const i16 ab = parent_pairs(a, b);
   out[0] = (f16)(ab << 16);
   out[1] = (f16)(ab & (int32_t)0xFFFF0000);
 }
@@ -50,6 +60,31 @@ static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]
 #endif
 
 static inline f16 relu(f16 v) { return (f16)((i16)v & (v > 0.0f)); }
+
+#if DOT_BF16
+#if !PARENTS_BF16 || C2 % 2
+#error "DOT_BF16 needs bfloat16 parents and an even C2"
+#endif
+/* x rounded to bfloat16 (to nearest, ties to even, as the hardware's conversions): its bits */
+static inline uint32_t bf16_bits(float x) {
+  uint32_t b;
+  memcpy(&b, &x, 4);
+  return (b + 0x7FFF + ((b >> 16) & 1)) >> 16;
+}
+static inline uint32_t bf16_pair(float lo, float hi) { return bf16_bits(lo) | bf16_bits(hi) << 16; }
+
+/* relu(a) and relu(b) as lanes of bfloat16 pairs, a's in the low halves: the conversion puts a's 16 lanes in the
+ * low half of the vector and b's in the high half, the permutation interleaves them */
+static const uint16_t INTERLEAVE[32] = {0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23,
+                                        8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31};
+static inline __m512bh relu_pairs(f16 a, f16 b) {
+  const __m512i both = (__m512i)_mm512_cvtne2ps_pbh((__m512)relu(b), (__m512)relu(a));
+  return (__m512bh)_mm512_permutexvar_epi16(_mm512_loadu_si512(INTERLEAVE), both);
+}
+/* acc + x.lo * w.lo + x.hi * w.hi per lane */
+static inline f16 dot(f16 acc, __m512bh x, __m512bh w) { return (f16)_mm512_dpbf16_ps((__m512)acc, x, w); }
+static inline __m512bh broadcast(uint32_t pair) { return (__m512bh)_mm512_set1_epi32((int32_t)pair); }
+#endif
 
 #if REDUCED
 /* 2^d for d <= 0 (logits in base 2), within 3e-6 relative: 2^d = 2^n 2^f with n = round(d) (adding 1.5 * 2^23
@@ -107,6 +142,19 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
 #else
   const float *w_cls = cls_w, *b_cls = cls_b;
 #endif
+#if DOT_BF16
+  /* the weights as bfloat16 pairs of consecutive input channels: up per lane, the others broadcast */
+  i16 up_pairs[C1 / 2 * C2];
+  uint32_t point_pairs[C2 / 2 * C2], cls_pairs[C2 / 2 * K];
+  for (int c = 0; c < C1; c += 2)
+    for (int j = 0; j < C2; ++j)
+      for (int lane = 0; lane < 16; ++lane)
+        up_pairs[c / 2 * C2 + j][lane] = bf16_pair(up_w[c * C2 + j][lane], up_w[(c + 1) * C2 + j][lane]);
+  for (int c = 0; c < C2; c += 2) {
+    for (int d = 0; d < C2; ++d) point_pairs[c / 2 * C2 + d] = bf16_pair(point_w[c * C2 + d], point_w[(c + 1) * C2 + d]);
+    for (int q = 0; q < K; ++q) cls_pairs[c / 2 * K + q] = bf16_pair(w_cls[c * K + q], w_cls[(c + 1) * K + q]);
+  }
+#endif
   int64_t px = start / (y1 * z1), py = (start / z1) % y1, pz = start % z1;
   for (int64_t p = start; p < end;) {
     const int paired = p + 1 < end && pz + 1 < z1;  /* else p alone, in both halves */
@@ -114,6 +162,30 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
     f16 h[C2], g[C2], logits[K];
 #pragma GCC unroll 64
     for (int j = 0; j < C2; ++j) h[j] = up_b[j];
+#if DOT_BF16
+#pragma GCC unroll 64
+    for (int c = 0; c < C1; c += 2) {
+      const __m512bh x = (__m512bh)parent_pairs(xa + c, xb + c);
+#pragma GCC unroll 64
+      for (int j = 0; j < C2; ++j) h[j] = dot(h[j], x, (__m512bh)up_pairs[c / 2 * C2 + j]);
+    }
+#pragma GCC unroll 64
+    for (int d = 0; d < C2; ++d) g[d] = (f16){0} + point_b[d];
+#pragma GCC unroll 64
+    for (int c = 0; c < C2; c += 2) {
+      const __m512bh r = relu_pairs(h[c], h[c + 1]);
+#pragma GCC unroll 64
+      for (int d = 0; d < C2; ++d) g[d] = dot(g[d], r, broadcast(point_pairs[c / 2 * C2 + d]));
+    }
+#pragma GCC unroll 64
+    for (int q = 0; q < K; ++q) logits[q] = (f16){0} + b_cls[q];
+#pragma GCC unroll 64
+    for (int d = 0; d < C2; d += 2) {
+      const __m512bh r = relu_pairs(g[d], g[d + 1]);
+#pragma GCC unroll 64
+      for (int q = 0; q < K; ++q) logits[q] = dot(logits[q], r, broadcast(cls_pairs[d / 2 * K + q]));
+    }
+#else
 #pragma GCC unroll 64
     for (int c = 0; c < C1; c += 2) {
       f16 xc[2];
@@ -139,6 +211,7 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
 #pragma GCC unroll 64
       for (int q = 0; q < K; ++q) logits[q] += r * w_cls[d * K + q];
     }
+#endif
     /* argmax: at each level the later of two neighbours wins only if strictly greater, so the first maximum wins
      * as in torch's argmax */
     f16 val[K];

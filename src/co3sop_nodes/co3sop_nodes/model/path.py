@@ -16,10 +16,10 @@ from __future__ import annotations
 from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import cache
-from pathlib import Path
 
 import torch
 
+from co3sop_nodes import kernels
 from co3sop_nodes.common.errors import Co3sopError
 
 PRECISIONS = ("auto", "float32", "bfloat16", "float16")
@@ -62,11 +62,7 @@ class InferencePath:
 @cache
 def cpu_bfloat16_unit() -> str | None:
     """The CPU's bfloat16 hardware, from its feature flags: "AMX", "AVX-512 BF16", or None (emulated)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return None
-    flags = set(next((line for line in text.splitlines() if line.startswith("flags")), "").split())
+    flags = set(kernels.cpu_flags())
     if "amx_bf16" in flags and "amx_tile" in flags:
         return "AMX"
     return "AVX-512 BF16" if "avx512_bf16" in flags else None
