@@ -32,14 +32,13 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.common.allocation import keep_freed_memory
-from co3sop_nodes.data.bags import BagReader
+from co3sop_nodes.data.bags import read_scans
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.inputs import lidar_occupancy
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
-from co3sop_nodes.messages import xyz_of
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.conv_norm import folded, z_outer
@@ -170,13 +169,7 @@ def frame_table(repeats: int) -> str:
 
 def bag_scans(bag: Path, grid, count: int = 12) -> list[torch.Tensor]:
     """The first `count` LiDAR scans of a bag, voxelised on `grid` as a vehicle node does: (1, 1, X, Y, Z) uint8."""
-    with BagReader(bag) as reader:
-        points = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"]
-        scans = []
-        for conn, stamp, raw in reader.messages(connections=points):
-            scans.append(torch.from_numpy(lidar_occupancy(xyz_of(reader.deserialize(raw, conn, stamp)), grid))[None])
-            if len(scans) == count:
-                break
+    scans = [torch.from_numpy(lidar_occupancy(points, grid))[None] for points in read_scans(bag, count)]
     if not scans:
         raise SystemExit(f"bench_model: error: {bag} holds no PointCloud2 scan")
     return scans

@@ -44,6 +44,10 @@ def assert_bag_matches_folder(bag: Path, root: Path, split: str, scenario: str, 
                 np.testing.assert_array_equal(entry["cameras"][cam.name], cam.rgb)
             compared += 1
     assert compared == sum(len(f) for f in folder.values())
+    first = folder[min(folder)]  # the first frame's scans are the bag's first, each a vehicle's as it reads it
+    scans = bags.read_scans(bag, len(first) + 1)
+    assert len(scans) == min(len(first) + 1, compared)
+    assert all(any(np.array_equal(s, f.points) for f in first) for s in scans[: len(first)])
     return compared
 
 

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from model_checks import MICRO
 
 from co3sop_nodes.inference import pace
+from co3sop_nodes.inference.inputs import lidar_occupancy
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.path import inference_path
@@ -38,6 +40,17 @@ def test_a_frame_is_measured_for_both_modalities(name):
     assert 0 < cost.vehicle_s < 10 and 0 < cost.ego_s < 10 and 0 < cost.recording_s < 10
     inputs = pace.shaped_inputs(model)
     assert set(inputs) == ({"occupancy"} if name == "tiny-lidar" else {"images", "lidar2img"})
+
+
+def test_a_lidar_model_is_measured_on_the_scan_given():
+    """The first layer's work grows with the voxels hit: the vehicle runs on the bag's scan, voxelised as a vehicle
+    node voxelises it."""
+    model = build_model(preset("tiny-lidar", **MICRO)).eval()
+    scan = np.random.default_rng(0).uniform(-30, 30, (5000, 3)) * [1, 1, 0.05]
+    occupancy = pace.shaped_inputs(model, scan=scan)["occupancy"]
+    assert torch.equal(occupancy, torch.from_numpy(lidar_occupancy(scan, model.cfg.grid))[None])
+    assert 0 < occupancy.sum() < 5000
+    assert 0 < pace.frame_cost(model, repeats=1, scan=scan).vehicle_s < 10
 
 
 def test_warm_up_runs_both_halves_on_the_cpu(monkeypatch):

@@ -47,6 +47,7 @@ from co3sop_nodes.messages import (
     tf_msg,
     transform_msg,
     transforms_of,
+    xyz_of,
 )
 from co3sop_nodes.messages.co3sop import TYPES as CO3SOP_TYPES
 from co3sop_nodes.messages.sensors import CAMERA_INFO, IMAGE, LIDAR_POINTS, POINT_CLOUD
@@ -349,6 +350,20 @@ def read_frames(path: Path) -> Iterator[tuple[int, dict[int, dict]]]:
                 _read_part(by_stamp[header_stamp_ns(msg)][cav[0]], cav[1].split("/"), msg)
     for stamp in sorted(by_stamp):
         yield stamp, {cav: dict(v) for cav, v in by_stamp[stamp].items()}
+
+
+def read_scans(path: Path, count: int) -> list[np.ndarray]:
+    """The first `count` LiDAR scans of a bag's CAVs (fewer where it holds fewer), in the bag's order: (N, 3) each, in
+    its sensor's frame, as a vehicle node reads them."""
+    scans = []
+    with open_reader(path) as reader:
+        lidar = [c for c in reader.connections if (topics.split_cav_topic(c.topic) or (0, ""))[1] == "lidar/points"]
+        for conn, stamp, raw in reader.messages(connections=lidar):
+            if len(scans) == count:
+                break
+            with reader.about(conn, stamp):
+                scans.append(xyz_of(reader.deserialize(raw, conn, stamp)))
+    return scans
 
 
 def _read_part(entry: dict, parts: list[str], msg) -> None:

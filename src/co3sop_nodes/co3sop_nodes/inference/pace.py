@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from co3sop_nodes.common.frames import CameraFrame
-from co3sop_nodes.inference.inputs import camera_inputs, to_batch
+from co3sop_nodes.inference.inputs import camera_inputs, sensor_inputs, to_batch
 from co3sop_nodes.inference.outputs import encode_output
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
@@ -41,12 +41,15 @@ class FrameCost:
     recording_s: float = 0.0  # the recorder's pictures of a prediction: its points and its ground truth's
 
 
-def shaped_inputs(model: Co3SOP, seed: int = 0) -> dict:
-    """VehicleHalf inputs of the model's shapes, on its device: random images seen through the OPV2V rig, or ~3 % of
-    voxels hit."""
+def shaped_inputs(model: Co3SOP, seed: int = 0, scan: np.ndarray | None = None) -> dict:
+    """VehicleHalf inputs of the model's shapes, on its device: random images seen through the OPV2V rig; for a
+    LiDAR model the `scan` (N, 3) given, as a vehicle node voxelises it (the first layer's work grows with the
+    voxels hit), else ~3 % of voxels hit."""
     cfg, device = model.cfg, model.path.torch_device
     rng = np.random.default_rng(seed)
     if cfg.modality == "lidar":
+        if scan is not None:
+            return to_batch(sensor_inputs(cfg, np.eye(4), points=scan), device)
         return to_batch({"occupancy": (rng.random((1, *cfg.grid.dims)) < 0.03).astype(np.uint8)}, device)
     w, h = cfg.image_size
     cams = [
@@ -95,16 +98,17 @@ def _median_cpu(fn, repeats: int) -> tuple[float, object]:
 
 
 @torch.inference_mode()
-def frame_cost(model: Co3SOP, repeats: int = 9) -> FrameCost:
+def frame_cost(model: Co3SOP, repeats: int = 9, scan: np.ndarray | None = None) -> FrameCost:
     """CPU seconds per frame of a vehicle and of the ego with 2 neighbours 10 m away, on one thread, as the nodes
-    compute them (the nodes' conversions of messages excepted). Medians of `repeats` calls: on a shared machine
-    single calls vary by 10 % and more, and a median of few lets one slow spell set the demo's rate (under a
-    second at the default)."""
+    compute them (the nodes' conversions of messages excepted); a LiDAR model's vehicle on `scan` where given (a
+    scan of the bag to be played: see shaped_inputs). Medians of `repeats` calls: on a shared machine single calls
+    vary by 10 % and more, and a median of few lets one slow spell set the demo's rate (under a second at the
+    default)."""
     cfg = model.cfg
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        inputs = shaped_inputs(model)
+        inputs = shaped_inputs(model, scan=scan)
         vehicle_s, _ = _median_cpu(
             lambda: encode_output(model.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats
         )

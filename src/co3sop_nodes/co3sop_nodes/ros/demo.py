@@ -16,11 +16,12 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from ament_index_python.packages import get_package_prefix
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
-from co3sop_nodes.data.bags import open_reader
+from co3sop_nodes.data.bags import open_reader, read_scans
 from co3sop_nodes.eval.scoring import message_counts, score_recording
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
@@ -118,10 +119,13 @@ def bag_period(bag: Path, frames: int) -> float:
         return (reader.end_time - reader.start_time) / 1e9 / max(1, frames - 1) if frames > 1 else 0.1
 
 
-def measured_rate(model, vehicles: int, period: float, egos: int = 1, scans: bool = False) -> float:
+def measured_rate(
+    model, vehicles: int, period: float, egos: int = 1, scans: bool = False, scan: np.ndarray | None = None
+) -> float:
     """The playback rate this machine keeps up with for `vehicles` vehicles and `egos` egos (model.pace; with
-    `scans`, each ego also encoding its neighbours' scans), to 2 digits."""
-    cost = pace.frame_cost(model)
+    `scans`, each ego also encoding its neighbours' scans; a LiDAR model's vehicle measured on `scan`), to 2
+    digits."""
+    cost = pace.frame_cost(model, scan=scan)
     n = pace.cores()
     rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n, egos=egos, scans=scans)) / 100
     say(
@@ -201,7 +205,8 @@ def run_demo(opts: DemoOptions) -> int:
     model.use(path)
     if opts.rate is None:
         scans = opts.params.get("send") == "scan"
-        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans)
+        scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None
+        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans, scan)
     channel, profiles = (
         _open_channel(opts, bag, frames, cavs, egos, sensors) if opts.channel_rate is not None else (None, None)
     )
