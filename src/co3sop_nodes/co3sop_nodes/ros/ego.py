@@ -390,10 +390,10 @@ class Ego(ManagedNode):
         with self._worker.lock:  # the worker reads the subscriptions (for the topics still silent)
             self._subs[topic] = sub
 
-    def _discover(self) -> None:
+    def _discover(self, links: bool = True) -> None:
         """Every VoxelFeatures or VoxelScan topic in the graph is a neighbour's, whatever its name or namespace, up
-        to max_topics (to make room, topics without a publisher left are released); then the links, as this ego
-        sees them."""
+        to max_topics (to make room, topics without a publisher left are released); then, with `links` or where a
+        topic was subscribed, the links as this ego sees them."""
         new = {
             name: NEIGHBOUR_TYPES[kind]
             for name, types in self.get_topic_names_and_types()
@@ -408,6 +408,9 @@ class Ego(ManagedNode):
                 continue
             self._subscribe(name, new[name])
             self.get_logger().info(f"neighbour discovered: {name}")
+            links = True
+        if not links:
+            return
         with self._worker.lock:
             subs = dict(self._subs)
         publish_links(self, self._diag, self.status_name, topics.lidar_frame(self.ego_id), subs)
@@ -507,7 +510,9 @@ class Ego(ManagedNode):
         except Co3sopError as exc:  # GridError, CodecError: a bad grid or a corrupt / truncated payload
             return self.drops(topic, "payload", str(exc))
         if topic == self.own_topic:
-            self._discover()  # a neighbour that appeared since the last discovery tick is waited for with this frame
+            # a neighbour that appeared since the last discovery tick is waited for with this frame; the links are
+            # the tick's to report (each report costs more than the look)
+            self._discover(links=False)
             if self.request_maps and self._request.get_subscription_count():  # only vehicles that use them subscribe
                 self._publish_request(stamp, out.confidence, pose)
         record = Received(agent, stamp, out, pose.matrix(), len(raw), wall, 1e3 * (time.perf_counter() - t0))
