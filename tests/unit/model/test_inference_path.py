@@ -75,3 +75,21 @@ def test_float32_is_bit_identical_after_a_round_trip_through_bfloat16():
         torch.equal(x, y) if isinstance(x, torch.Tensor) else np.array_equal(x, y) for x, y in zip(before, after)
     )
     assert all(p.is_contiguous() for p in model.parameters())
+
+
+@torch.no_grad()
+def test_float32_products_of_a_reduced_path_equal_f_linear_to_float_rounding(monkeypatch):
+    """A reduced CPU path's float32 products (the fusion's projections) run by oneDNN where this build has it;
+    float32 and training keep F.linear, bit for bit."""
+    torch.manual_seed(0)
+    x, weight, bias = torch.randn(2, 1000, 32), torch.randn(96, 32), torch.randn(96)
+    want = torch.nn.functional.linear(x, weight, bias)
+    assert path_module.onednn_linear()  # the pinned PyTorch has it: the fast path is the one tested here
+    got = InferencePath(precision="bfloat16").linear(x, weight, bias)
+    assert got.shape == want.shape and got.dtype == torch.float32
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    assert torch.equal(InferencePath().linear(x, weight, bias), want)
+    with torch.enable_grad():  # training: PyTorch's product and its gradient
+        assert torch.equal(InferencePath(precision="bfloat16").linear(x, weight, bias), want)
+    monkeypatch.setattr(path_module, "onednn_linear", lambda: False)  # a build without it: F.linear
+    assert torch.equal(InferencePath(precision="bfloat16").linear(x, weight, bias), want)

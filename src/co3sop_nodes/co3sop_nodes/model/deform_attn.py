@@ -101,9 +101,9 @@ class DeformableAttention3d(nn.Module):
     def _sampled(self, query, reference, values, mask):
         """Inference on the CPU: the compiled sampler (tested equal to sample_3d), which takes the attention's logits
         and takes their masked softmax itself, from channels-last volumes -> (B, Q, C) before the output projection.
-        The projections run in float32 whatever the path's precision, offsets and logits for the A agents present
-        only: their products are small (C inputs), and reduced precision would cost a conversion of each for the
-        kernel, which reads float32."""
+        The projections run in float32 whatever the path's precision (as the path computes float32 products),
+        offsets and logits for the A agents present only: their products are small (C inputs), and reduced
+        precision would cost a conversion of each for the kernel, which reads float32."""
         b, q, c = query.shape
         a = values.shape[1]
         h, p = self.heads, self.points
@@ -111,7 +111,8 @@ class DeformableAttention3d(nn.Module):
             x = query.float()
             offsets = self._present(self.offsets, x, a).view(b, q, h, a, p, 3)  # in voxels
             logits = self._present(self.weights, x, a).view(b, q, h, a, p)
-            v = self.value(values.float().permute(0, 1, 3, 4, 5, 2))  # (B, A, X, Y, Z, C)
+            voxels = values.float().permute(0, 1, 3, 4, 5, 2)  # (B, A, X, Y, Z, C)
+            v = self.path.linear(voxels, self.value.weight, self.value.bias)
         threads = torch.get_num_threads()
         return torch.stack(
             [deform_kernel.sample_3d(v[i], reference[i], offsets[i], logits[i], mask[i], threads) for i in range(b)]
@@ -122,4 +123,4 @@ class DeformableAttention3d(nn.Module):
         (..., H a k), k outputs per slot."""
         c = x.shape[-1]
         rows = linear.weight.view(self.heads, self.slots, -1, c)[:, :a].reshape(-1, c)
-        return F.linear(x, rows, linear.bias.view(self.heads, self.slots, -1)[:, :a].reshape(-1))
+        return self.path.linear(x, rows, linear.bias.view(self.heads, self.slots, -1)[:, :a].reshape(-1))
