@@ -10,6 +10,7 @@ from co3sop_nodes import kernels
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.conv_norm import is_z_outer
 from co3sop_nodes.model.path import InferencePath
 
 
@@ -29,6 +30,9 @@ def test_the_kernel_gives_the_convolutions_values(dims, threads):
     rounded = occupancy_kernel.occupancy_conv_relu(occupancy.bool(), weight, bias, True, threads)
     assert rounded.dtype == torch.bfloat16
     torch.testing.assert_close(rounded.float(), got.bfloat16().float(), rtol=0, atol=0)  # nearest even, as torch
+    for bfloat16, same in ((False, got), (True, rounded)):  # written z-outer: the same values, the next layer's layout
+        z = occupancy_kernel.occupancy_conv_relu(occupancy, weight, bias, bfloat16, threads, z_outer=True)
+        assert is_z_outer(z) and torch.equal(z, same)
 
 
 def test_the_encoder_takes_the_kernel_on_reduced_cpu_paths_only():

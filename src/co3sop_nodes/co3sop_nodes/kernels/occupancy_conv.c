@@ -3,8 +3,9 @@
  * A 3x3x3 convolution of stride 2 and padding 1 from one binary channel (a voxelised scan, about 1 % occupied) to
  * C channels, then ReLU. Each output x-slab starts at the bias; every occupied voxel of the three input x-planes it
  * reads adds its tap's C weights to the (at most 4) outputs of the slab it falls in; the slab is then rectified
- * and written channels-last, in float32 or (OUT_BF16=1) bfloat16 rounded to nearest even. The work follows the
- * occupied voxels, not the grid: oneDNN's convolution reads every voxel of its one-channel input.
+ * and written with channels innermost (the spatial axes in any order: channels-last, or z-outer for the next
+ * layer), in float32 or (OUT_BF16=1) bfloat16 rounded to nearest even. The work follows the occupied voxels, not
+ * the grid: oneDNN's convolution reads every voxel of its one-channel input.
  */
 #include <stdint.h>
 #include <stdlib.h>
@@ -17,9 +18,11 @@ static inline uint16_t to_bf16(float f) {
 }
 
 /* occupancy (X, Y, Z) uint8, nonzero = occupied; w (3, 3, 3, C) taps, bias (C,) -> out (X2, Y2, Z2, C) for output
- * x-slabs [start, end), X2 = ceil(X / 2) and so on; returns -1 if its scratch could not be allocated */
+ * x-slabs [start, end), X2 = ceil(X / 2) and so on, output voxel (x, y, z) at element x sx + y sy + z sz (its C
+ * channels contiguous); returns -1 if its scratch could not be allocated */
 int occupancy_conv(const uint8_t *restrict occupancy, int64_t nx, int64_t ny, int64_t nz, const float *restrict w,
-                   const float *restrict bias, void *restrict out, int64_t start, int64_t end) {
+                   const float *restrict bias, void *restrict out, int64_t sx, int64_t sy, int64_t sz, int64_t start,
+                   int64_t end) {
   const int64_t ny2 = (ny + 1) / 2, nz2 = (nz + 1) / 2, slab = ny2 * nz2 * C;
   float *acc = malloc(slab * sizeof(float));
   if (!acc) return -1;
@@ -46,13 +49,18 @@ int occupancy_conv(const uint8_t *restrict occupancy, int64_t nx, int64_t ny, in
         }
       }
     }
+    for (int64_t oy = 0; oy < ny2; ++oy)
+      for (int64_t oz = 0; oz < nz2; ++oz) {
+        const float *sum = acc + (oy * nz2 + oz) * C;
+        const int64_t at = ox * sx + oy * sy + oz * sz;
 #if OUT_BF16
-    uint16_t *o = (uint16_t *)out + ox * slab;
-    for (int64_t v = 0; v < slab; ++v) o[v] = to_bf16(acc[v] > 0.0f ? acc[v] : 0.0f);
+        uint16_t *o = (uint16_t *)out + at;
+        for (int c = 0; c < C; ++c) o[c] = to_bf16(sum[c] > 0.0f ? sum[c] : 0.0f);
 #else
-    float *o = (float *)out + ox * slab;
-    for (int64_t v = 0; v < slab; ++v) o[v] = acc[v] > 0.0f ? acc[v] : 0.0f;
+        float *o = (float *)out + at;
+        for (int c = 0; c < C; ++c) o[c] = sum[c] > 0.0f ? sum[c] : 0.0f;
 #endif
+      }
   }
   free(acc);
   return 0;

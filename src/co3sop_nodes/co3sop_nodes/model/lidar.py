@@ -64,7 +64,7 @@ class SSCNetEncoder(nn.Module):
     def forward(self, occupancy):  # (B, 1, X, Y, Z) 0/1
         f = self.down[1](self._first(occupancy)) if self._first_compiled(occupancy) else self.down(occupancy.float())
         reduced = self.path.reduced
-        if reduced:  # the dilated 3x3x3 layers run 1.5-2x as fast on z-outer volumes (conv_norm)
+        if reduced:  # the dilated 3x3x3 layers run 1.5-2x as fast on z-outer volumes (conv_norm): no copy if it is one
             f = z_outer(f)
         for layer in self.dilated:
             f = F.relu(f + layer(f))  # z-outer in, z-outer out
@@ -84,9 +84,11 @@ class SSCNetEncoder(nn.Module):
 
     def _first(self, occupancy):
         """The first layer (convolution, batch norm folded into it, ReLU) by the compiled kernel: (B, C/2, X/2, Y/2,
-        Z/2) channels-last, in bfloat16 on a bfloat16 path (float32 for autocast to take from there otherwise)."""
+        Z/2) z-outer (the stride-2 layer after it runs faster on such volumes, and leaves them so for the dilated
+        ones), in bfloat16 on a bfloat16 path (float32 for autocast to take from there otherwise)."""
         conv, norm = self.down[0][0], self.down[0][1]
         scale, shift = folded_norm(norm, conv.bias)  # (C/2,)
         weight = conv.weight * scale.view(-1, 1, 1, 1, 1)  # (C/2, 1, 3, 3, 3)
         bfloat16 = self.path.precision == "bfloat16"
-        return occupancy_kernel.occupancy_conv_relu(occupancy, weight, shift, bfloat16, torch.get_num_threads())
+        threads = torch.get_num_threads()
+        return occupancy_kernel.occupancy_conv_relu(occupancy, weight, shift, bfloat16, threads, z_outer=True)
