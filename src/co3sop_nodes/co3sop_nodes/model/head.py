@@ -89,7 +89,8 @@ class OccupancyHead(nn.Module):
         Per chunk of parent voxels at 1/2: the 8 octants' features (the transposed convolution's 8 kernel
         slices), the pointwise layers, the classifier, then argmax and the label's softmax probability.
         compiled: the compiled kernel (default: as the model's inference path says, where it compiles) or the
-        PyTorch loop. The 1/2 features follow the path's precision; the last stage computes in float32.
+        PyTorch loop. The 1/2 features follow the path's precision; the last stage sums in float32, its products
+        in bfloat16 on a bfloat16 path where the CPU computes them (`octant_kernel.dot_bf16`).
         """
         with self.path.autocast():
             parents = self.parents(x)  # (B, X1, Y1, Z1, C1)
