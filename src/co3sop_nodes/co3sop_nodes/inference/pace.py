@@ -29,8 +29,8 @@ from co3sop_nodes.viz.cloud import occupancy_cloud
 # play at 1 / HEADROOM of the rate the measured work allows: DDS, decoding, the player and the recorder's own work
 # (not measured here), the ego waiting for the vehicles' features of its frame, several processes sharing few cores
 # (the ego's frame takes longer than its CPU), and jitter. Calibrated by bench_graph's sweeps: on 2 cores with the
-# LiDAR model in bfloat16 the measured work allows about 1.9x real time, and the graph fuses every frame of 100 at
-# 1.0 in most runs (BENCHMARKS.md)
+# LiDAR model in bfloat16 the measured work allows about 2x real time; the graph fuses every frame of 100 at 1.0
+# and skips a few at 1.2 (BENCHMARKS.md)
 HEADROOM = 1.8
 
 
