@@ -84,6 +84,20 @@ static inline __m512bh relu_pairs(f16 a, f16 b) {
 /* acc + x.lo * w.lo + x.hi * w.hi per lane */
 static inline f16 dot(f16 acc, __m512bh x, __m512bh w) { return (f16)_mm512_dpbf16_ps((__m512)acc, x, w); }
 static inline __m512bh broadcast(uint32_t pair) { return (__m512bh)_mm512_set1_epi32((int32_t)pair); }
+
+/* a pointwise layer: out[o] = bias[o] + sum over i of relu(in[i]) w[i][o], pairs[i / 2 * n_out + o] holding the
+ * bfloat16 pair w[i][o], w[i + 1][o] (inlined with constant sizes: every vector stays in a register) */
+static inline __attribute__((always_inline)) void pointwise_bf16(const f16 *in, int n_in, const uint32_t *pairs,
+                                                                 const float *bias, int n_out, f16 *out) {
+#pragma GCC unroll 64
+  for (int o = 0; o < n_out; ++o) out[o] = (f16){0} + bias[o];
+#pragma GCC unroll 64
+  for (int i = 0; i < n_in; i += 2) {
+    const __m512bh r = relu_pairs(in[i], in[i + 1]);
+#pragma GCC unroll 64
+    for (int o = 0; o < n_out; ++o) out[o] = dot(out[o], r, broadcast(pairs[i / 2 * n_out + o]));
+  }
+}
 #endif
 
 #if REDUCED
@@ -169,22 +183,8 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
 #pragma GCC unroll 64
       for (int j = 0; j < C2; ++j) h[j] = dot(h[j], x, (__m512bh)up_pairs[c / 2 * C2 + j]);
     }
-#pragma GCC unroll 64
-    for (int d = 0; d < C2; ++d) g[d] = (f16){0} + point_b[d];
-#pragma GCC unroll 64
-    for (int c = 0; c < C2; c += 2) {
-      const __m512bh r = relu_pairs(h[c], h[c + 1]);
-#pragma GCC unroll 64
-      for (int d = 0; d < C2; ++d) g[d] = dot(g[d], r, broadcast(point_pairs[c / 2 * C2 + d]));
-    }
-#pragma GCC unroll 64
-    for (int q = 0; q < K; ++q) logits[q] = (f16){0} + b_cls[q];
-#pragma GCC unroll 64
-    for (int d = 0; d < C2; d += 2) {
-      const __m512bh r = relu_pairs(g[d], g[d + 1]);
-#pragma GCC unroll 64
-      for (int q = 0; q < K; ++q) logits[q] = dot(logits[q], r, broadcast(cls_pairs[d / 2 * K + q]));
-    }
+    pointwise_bf16(h, C2, point_pairs, point_b, C2, g);
+    pointwise_bf16(g, C2, cls_pairs, b_cls, K, logits);
 #else
 #pragma GCC unroll 64
     for (int c = 0; c < C1; c += 2) {
