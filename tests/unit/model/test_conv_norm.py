@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torch import nn
 
+from co3sop_nodes.model import conv_norm
 from co3sop_nodes.model.conv_norm import ConvNorm, folded, is_z_outer, z_outer
 from co3sop_nodes.model.path import InferencePath
 
@@ -58,3 +60,32 @@ def test_a_z_outer_volume_stays_z_outer_through_a_folded_convolution():
     assert is_z_outer(z_outer(x)) and not is_z_outer(x) and is_z_outer(got)
     assert got.shape == want.shape
     assert torch.allclose(got, want, atol=1e-5)  # float32: another summation order
+
+
+@pytest.mark.skipif(not conv_norm.onednn_conv(torch.bfloat16), reason="oneDNN has no bfloat16 convolution here")
+@pytest.mark.parametrize("layout", ["z-outer", "channels-last", "2d"])
+@torch.no_grad()
+def test_the_relu_fused_into_the_convolution_gives_the_same_values(layout, monkeypatch):
+    """On the CPU the folded convolution and its ReLU run as one oneDNN primitive: bit for bit the convolution
+    then the ReLU, in any layout, with per-axis strides and dilations."""
+    torch.manual_seed(2)
+    if layout == "2d":
+        conv, norm, x = nn.Conv2d(8, 16, 3, (2, 1), (1, 2), (1, 2)), nn.BatchNorm2d(16), torch.randn(2, 8, 12, 10)
+    else:
+        conv, norm = nn.Conv3d(8, 16, 3, (2, 1, 1), (1, 0, 2), (1, 1, 2)), nn.BatchNorm3d(16)
+        x = torch.randn(2, 8, 9, 7, 6)
+        x = z_outer(x) if layout == "z-outer" else x.contiguous(memory_format=torch.channels_last_3d)
+    with torch.no_grad():
+        norm.running_mean.normal_(0, 1)
+    block = ConvNorm(conv, norm.eval(), nn.ReLU(inplace=True)).eval()
+    block.path = InferencePath(precision="bfloat16")
+    calls = []
+    fused = torch.ops.mkldnn._convolution_pointwise
+    monkeypatch.setattr(torch.ops.mkldnn, "_convolution_pointwise", lambda *a: calls.append(1) or fused(*a))
+    with block.path.autocast():
+        got = block(x)
+        monkeypatch.setattr(conv_norm, "onednn_conv", lambda dtype: False)
+        want = block(x)
+    assert calls == [1] and got.dtype == want.dtype == torch.bfloat16
+    assert torch.equal(got, want) and (want > 0).any() and (want == 0).any()
+    assert got.stride() == want.stride()  # the same layout out

@@ -7,6 +7,10 @@ on the CPU) besides the norm itself. Float32 and training keep the layers as the
 stays bit for bit what it was; the folded weights are computed at each call (a few thousand values) and never
 stored, so the module's state is the plain layers' and `Co3SOP.use` may switch paths at any time.
 
+On the CPU a folded convolution followed by its ReLU runs as one oneDNN primitive with the ReLU fused
+(`torch.ops.mkldnn._convolution_pointwise`, which PyTorch's own compiler uses for CPU inference): the same values,
+bit for bit (tested), one pass over the output fewer.
+
 A folded 3D convolution keeps its input's memory layout, channels-last or `z_outer` (channels-last with z the
 outermost spatial axis): oneDNN's kernels tile the innermost spatial axis, and a driving grid's z is its
 shortest (6 or 12 voxels against 64 or 128 along y in the head of `tiny-lidar`), so the head's 3x3x3 layers run
@@ -15,6 +19,8 @@ shortest (6 or 12 voxels against 64 or 128 along y in the head of `tiny-lidar`),
 """
 
 from __future__ import annotations
+
+from functools import cache
 
 import torch
 import torch.nn.functional as F
@@ -42,8 +48,9 @@ class ConvNorm(nn.Sequential):
             layer = layers[i]
             norm = layers[i + 1] if i + 1 < len(layers) else None
             if isinstance(layer, _CONVS) and isinstance(norm, nn.modules.batchnorm._BatchNorm):
-                x = folded(layer, norm, x)
-                i += 2
+                relu = i + 2 < len(layers) and isinstance(layers[i + 2], nn.ReLU) and self.path.kernels(x)
+                x = folded(layer, norm, x, relu)
+                i += 3 if relu else 2
             else:
                 x = layer(x)
                 i += 1
@@ -72,25 +79,44 @@ def _zxy(t: tuple[int, int, int]) -> tuple[int, int, int]:
     return t[2], t[0], t[1]
 
 
-def folded(conv: nn.Conv2d | nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, x: torch.Tensor) -> torch.Tensor:
-    """norm(conv(x)) in eval mode as one convolution: weights scaled per output channel, the norm's shift a bias.
-    A z-outer x (B, C, X, Y, Z) gives a z-outer result: the convolution runs on the (B, C, Z, X, Y) views."""
+def folded(
+    conv: nn.Conv2d | nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, x: torch.Tensor, relu: bool = False
+) -> torch.Tensor:
+    """norm(conv(x)) in eval mode as one convolution: weights scaled per output channel, the norm's shift a bias;
+    with `relu`, relu of that (fused into the convolution on the CPU where oneDNN's primitive takes it). A z-outer
+    x (B, C, X, Y, Z) gives a z-outer result: the convolution runs on the (B, C, Z, X, Y) views."""
     scale, shift = folded_norm(norm, conv.bias)  # (Cout,)
     weight = conv.weight * scale.view(-1, *[1] * (conv.weight.dim() - 1))  # keeps the weight's memory format
-    if (
-        isinstance(conv, nn.Conv3d)
-        and conv.padding_mode == "zeros"
-        and not isinstance(conv.padding, str)
-        and is_z_outer(x)
-    ):
-        y = F.conv3d(
-            x.permute(0, 1, 4, 2, 3),
-            weight.permute(0, 1, 4, 2, 3),
-            shift,
-            _zxy(conv.stride),
-            _zxy(conv.padding),
-            _zxy(conv.dilation),
-            conv.groups,
-        )  # (B, Cout, Z', X', Y')
-        return y.permute(0, 1, 3, 4, 2)
-    return conv._conv_forward(x, weight, shift)
+    plain = conv.padding_mode == "zeros" and not isinstance(conv.padding, str)
+    stride, padding, dilation = conv.stride, conv.padding, conv.dilation
+    z = isinstance(conv, nn.Conv3d) and plain and is_z_outer(x)
+    if z:  # (B, C, Z, X, Y) views
+        x, weight = x.permute(0, 1, 4, 2, 3), weight.permute(0, 1, 4, 2, 3)
+        stride, padding, dilation = _zxy(stride), _zxy(padding), _zxy(dilation)
+    # autocast's casts, as the convolution it replaces takes them
+    dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else x.dtype
+    if relu and plain and x.device.type == "cpu" and onednn_conv(dtype):
+        y = torch.ops.mkldnn._convolution_pointwise(
+            x.to(dtype), weight.to(dtype), shift.to(dtype), padding, stride, dilation, conv.groups, "relu", [None], None
+        )
+    else:
+        y = (
+            F.conv3d(x, weight, shift, stride, padding, dilation, conv.groups)
+            if z
+            else conv._conv_forward(x, weight, shift)
+        )
+        y = y.relu_() if relu else y
+    return y.permute(0, 1, 3, 4, 2) if z else y  # (B, Cout, X', Y', Z')
+
+
+@cache
+def onednn_conv(dtype: torch.dtype) -> bool:
+    """Whether this PyTorch build has oneDNN's convolution primitive with fused post-operations, for `dtype` on
+    this CPU (a reduced precision where oneDNN computes it; PyTorch's convolution takes another path elsewhere)."""
+    if not (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")):
+        return False
+    if dtype == torch.bfloat16:
+        return torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    if dtype == torch.float16:
+        return torch.ops.mkldnn._is_mkldnn_fp16_supported()
+    return dtype == torch.float32
