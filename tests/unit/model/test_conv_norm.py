@@ -7,6 +7,7 @@ import torch
 from torch import nn
 
 from co3sop_nodes.model import conv_norm
+from co3sop_nodes.model import path as path_module
 from co3sop_nodes.model.conv_norm import ConvNorm, folded, is_z_outer, z_outer
 from co3sop_nodes.model.path import InferencePath
 
@@ -62,7 +63,7 @@ def test_a_z_outer_volume_stays_z_outer_through_a_folded_convolution():
     assert torch.allclose(got, want, atol=1e-5)  # float32: another summation order
 
 
-@pytest.mark.skipif(not conv_norm.onednn_conv(torch.bfloat16), reason="oneDNN has no bfloat16 convolution here")
+@pytest.mark.skipif(not path_module.onednn(torch.bfloat16), reason="oneDNN has no bfloat16 convolution here")
 @pytest.mark.parametrize("layout", ["z-outer", "channels-last", "2d"])
 @torch.no_grad()
 def test_the_relu_fused_into_the_convolution_gives_the_same_values(layout, monkeypatch):
@@ -84,7 +85,7 @@ def test_the_relu_fused_into_the_convolution_gives_the_same_values(layout, monke
     monkeypatch.setattr(torch.ops.mkldnn, "_convolution_pointwise", lambda *a: calls.append(1) or fused(*a))
     with block.path.autocast():
         got = block(x)
-        monkeypatch.setattr(conv_norm, "onednn_conv", lambda dtype: False)
+        monkeypatch.setattr(conv_norm, "onednn", lambda dtype: False)
         want = block(x)
     assert calls == [1] and got.dtype == want.dtype == torch.bfloat16
     assert torch.equal(got, want) and (want > 0).any() and (want == 0).any()

@@ -84,12 +84,27 @@ def test_float32_products_of_a_reduced_path_equal_f_linear_to_float_rounding(mon
     torch.manual_seed(0)
     x, weight, bias = torch.randn(2, 1000, 32), torch.randn(96, 32), torch.randn(96)
     want = torch.nn.functional.linear(x, weight, bias)
-    assert path_module.onednn_linear()  # the pinned PyTorch has it: the fast path is the one tested here
+    assert path_module.onednn(torch.float32)  # the pinned PyTorch has it: the fast path is the one tested here
     got = InferencePath(precision="bfloat16").linear(x, weight, bias)
     assert got.shape == want.shape and got.dtype == torch.float32
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
     assert torch.equal(InferencePath().linear(x, weight, bias), want)
     with torch.enable_grad():  # training: PyTorch's product and its gradient
         assert torch.equal(InferencePath(precision="bfloat16").linear(x, weight, bias), want)
-    monkeypatch.setattr(path_module, "onednn_linear", lambda: False)  # a build without it: F.linear
+    monkeypatch.setattr(path_module, "onednn", lambda dtype: False)  # a build without it: F.linear
     assert torch.equal(InferencePath(precision="bfloat16").linear(x, weight, bias), want)
+
+
+@pytest.mark.skipif(not path_module.onednn(torch.bfloat16), reason="oneDNN has no bfloat16 product here")
+@torch.no_grad()
+def test_a_bfloat16_product_and_its_relu_equal_autocast_bit_for_bit(monkeypatch):
+    """The head's half-resolution product: oneDNN with the ReLU fused gives autocast's values, bit for bit."""
+    torch.manual_seed(1)
+    x, weight, bias = torch.randn(4096, 32).bfloat16(), torch.randn(128, 32), torch.randn(128)
+    path = InferencePath(precision="bfloat16")
+    with path.autocast():
+        got = path.linear(x, weight, bias, relu=True)
+        monkeypatch.setattr(path_module, "onednn", lambda dtype: False)  # PyTorch's layers under autocast
+        want = path.linear(x, weight, bias, relu=True)
+    assert got.dtype == want.dtype == torch.bfloat16 and torch.equal(got, want)
+    assert (want == 0).any() and (want > 0).any()

@@ -20,13 +20,11 @@ shortest (6 or 12 voxels against 64 or 128 along y in the head of `tiny-lidar`),
 
 from __future__ import annotations
 
-from functools import cache
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from co3sop_nodes.model.path import InferencePath
+from co3sop_nodes.model.path import InferencePath, onednn
 
 _CONVS = (nn.Conv2d, nn.Conv3d)
 
@@ -95,7 +93,7 @@ def folded(
         stride, padding, dilation = _zxy(stride), _zxy(padding), _zxy(dilation)
     # autocast's casts, as the convolution it replaces takes them
     dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else x.dtype
-    if relu and plain and x.device.type == "cpu" and onednn_conv(dtype):
+    if relu and plain and x.device.type == "cpu" and onednn(dtype):
         y = torch.ops.mkldnn._convolution_pointwise(
             x.to(dtype), weight.to(dtype), shift.to(dtype), padding, stride, dilation, conv.groups, "relu", [None], None
         )
@@ -107,16 +105,3 @@ def folded(
         )
         y = y.relu_() if relu else y
     return y.permute(0, 1, 3, 4, 2) if z else y  # (B, Cout, X', Y', Z')
-
-
-@cache
-def onednn_conv(dtype: torch.dtype) -> bool:
-    """Whether this PyTorch build has oneDNN's convolution primitive with fused post-operations, for `dtype` on
-    this CPU (a reduced precision where oneDNN computes it; PyTorch's convolution takes another path elsewhere)."""
-    if not (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")):
-        return False
-    if dtype == torch.bfloat16:
-        return torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    if dtype == torch.float16:
-        return torch.ops.mkldnn._is_mkldnn_fp16_supported()
-    return dtype == torch.float32

@@ -63,7 +63,7 @@ class OccupancyHead(nn.Module):
             # columns (dz, dx, dy, C1): a parent's two octants along y, innermost in the z-outer volume, land in
             # place as one run of 2*C1 values (a cache line at C1 = 16) rather than two runs of C1
             weight = (conv.weight * scale[:, None, None, None]).permute(0, 4, 2, 3, 1).flatten(1)  # (C0, 8*C1)
-            u = torch.addmm(shift.repeat(8), rows, weight).relu_()  # (B*P0, 8*C1)
+            u = self.path.linear(rows, weight.t(), shift.repeat(8), relu=True)  # (B*P0, 8*C1)
             u = u.view(b, z0, x0, y0, 2, 2, 2, c1).permute(0, 1, 4, 2, 5, 3, 6, 7)  # (B, Z0, dz, X0, dx, Y0, dy, C1)
             u = u.reshape(b, 2 * z0, 2 * x0, 2 * y0, c1).permute(0, 4, 2, 3, 1)  # (B, C1, X/2, Y/2, Z/2), z-outer
             f1 = block(u)

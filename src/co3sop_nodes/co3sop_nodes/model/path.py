@@ -52,15 +52,21 @@ class InferencePath:
             return nullcontext()
         return torch.autocast(self.torch_device.type, dtype=_DTYPES[self.precision])
 
-    def linear(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
-        """F.linear of a float32 x (..., Cin) as inference on this path computes it: on a reduced-precision CPU
-        path by oneDNN's primitive (`onednn_linear`), about 2x PyTorch's default float32 product for the fusion's
-        thin products (32 inputs) on an AMD CPU, equal to float rounding; float32 keeps F.linear, bit for bit."""
-        if self.reduced and self.kernels(x) and x.dtype == torch.float32 and onednn_linear():
+    def linear(
+        self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False
+    ) -> torch.Tensor:
+        """F.linear of x (..., Cin), then with `relu` its ReLU, as inference on this path computes it: on a
+        reduced-precision CPU path by oneDNN's primitive (`onednn`), the ReLU fused, weight and bias in x's
+        precision (as autocast gives a reduced-precision x's product them). In float32 that is about 2x PyTorch's
+        default product for the fusion's thin products (32 inputs) on an AMD CPU, equal to float rounding; in
+        bfloat16 the same values as autocast's product, bit for bit (both tested). Float32 keeps F.linear."""
+        if self.reduced and self.kernels(x) and onednn(x.dtype):
             rows = x.reshape(-1, x.shape[-1])
-            out = torch.ops.mkldnn._linear_pointwise(rows, weight, bias, "none", [], "")
+            bias = None if bias is None else bias.to(x.dtype)
+            out = torch.ops.mkldnn._linear_pointwise(rows, weight.to(x.dtype), bias, "relu" if relu else "none", [], "")
             return out.view(*x.shape[:-1], weight.shape[0])
-        return F.linear(x, weight, bias)
+        out = F.linear(x, weight, bias)
+        return out.relu_() if relu else out
 
     def kernels(self, x: torch.Tensor) -> bool:
         """Whether inference on `x` takes a compiled CPU kernel (never while training: they have no gradient)."""
@@ -71,10 +77,19 @@ class InferencePath:
 
 
 @cache
-def onednn_linear() -> bool:
-    """Whether this PyTorch build has oneDNN's linear primitive (torch.ops.mkldnn._linear_pointwise, which
-    PyTorch's own compiler uses for CPU inference)."""
-    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+def onednn(dtype: torch.dtype) -> bool:
+    """Whether this PyTorch build has oneDNN's primitives with fused post-operations (torch.ops.mkldnn's
+    _linear_pointwise and _convolution_pointwise, which PyTorch's own compiler uses for CPU inference) and they
+    compute `dtype` on this CPU (a reduced precision where oneDNN has it; PyTorch's own layers take another path
+    elsewhere)."""
+    ops = ("_linear_pointwise", "_convolution_pointwise")
+    if not (torch.backends.mkldnn.is_available() and all(hasattr(torch.ops.mkldnn, op) for op in ops)):
+        return False
+    if dtype == torch.bfloat16:
+        return torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    if dtype == torch.float16:
+        return torch.ops.mkldnn._is_mkldnn_fp16_supported()
+    return dtype == torch.float32
 
 
 @cache
