@@ -19,7 +19,7 @@ from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
 
 
-@pytest.mark.parametrize("channels_per_head, threads", [(8, 1), (16, 1), (8, 3)])
+@pytest.mark.parametrize("channels_per_head, threads", [(8, 1), (16, 1), (8, 3), (12, 1), (4, 2)])
 def test_the_compiled_sampler_equals_grid_sample(channels_per_head, threads):
     gen = torch.Generator().manual_seed(channels_per_head + threads)
     h, levels, points, q, n = 4, 3, 4, 2000, 3
@@ -49,7 +49,9 @@ def test_the_compiled_sampler_equals_grid_sample(channels_per_head, threads):
 
 
 def test_no_kernel_for_head_widths_that_are_not_vectors():
-    assert not deform_kernel.available(6)
+    """A head's channels are read as 8-lane vectors, or 4-lane ones (`small`'s 12 channels a head)."""
+    assert not deform_kernel.available(6) and not deform_kernel.available(10)
+    assert deform_kernel.available(12) and deform_kernel.available(8)
 
 
 @pytest.mark.parametrize("name", ["tiny", "small", "paper"])
@@ -69,7 +71,7 @@ def test_the_camera_vehicle_half_at_inference_equals_its_training_path(name, mon
     torch.testing.assert_close(fast.confidence, ref.confidence.detach(), rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("dims, heads, agents", [(32, 4, 2), (64, 4, 3)])
+@pytest.mark.parametrize("dims, heads, agents", [(32, 4, 2), (64, 4, 3), (48, 4, 2)])
 def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads, agents, monkeypatch):
     torch.manual_seed(dims + agents)
     att = DeformableAttention3d(dims, heads, 4, slots=6, extent_voxels=(16, 12, 6)).eval()

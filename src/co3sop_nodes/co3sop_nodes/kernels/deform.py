@@ -31,8 +31,8 @@ _ARGS = {
 
 @cache
 def _kernel(channels_per_head: int, name: str = "deform_sample_2d"):
-    if channels_per_head % 8:
-        return None  # the kernels read a head's channels as 8-lane vectors
+    if channels_per_head % 4:
+        return None  # the kernels read a head's channels as 8-lane (or 4-lane) vectors
     lib = kernels.load("deform_sample", CH=channels_per_head)
     if lib is None:
         return None

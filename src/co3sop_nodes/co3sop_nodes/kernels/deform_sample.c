@@ -3,17 +3,25 @@
  * zeros outside, align_corners=False).
  *
  * Values are channels-last, (Hl, Wl, heads * CH) per camera and level, so a head's CH channels at a pixel are
- * CH/8 contiguous 8-lane vectors: each sample is 4 corners x CH/8 vector multiply-adds into registers, with the
+ * CH/W contiguous W-lane vectors: each sample is 4 corners x CH/W vector multiply-adds into registers, with the
  * attention weight folded into the corner weights. The sampling location is computed here as the reference
- * does (projected point + offset in pixels / level size). CH (channels per head, a multiple of 8) is defined
+ * does (projected point + offset in pixels / level size). CH (channels per head, a multiple of 4) is defined
  * on the command line.
  */
 #include <math.h>
 #include <stdint.h>
 
-typedef float f8 __attribute__((vector_size(32)));
-typedef f8 f8u __attribute__((aligned(4)));  /* loads and stores at float alignment */
+/* W = 8 lanes where CH is a multiple of 8, else 4 (CH = 12: `small`'s heads); the sums are the same per channel */
+#if CH % 8 == 0
+typedef float fv __attribute__((vector_size(32)));
 #define NV (CH / 8)
+#elif CH % 4 == 0
+typedef float fv __attribute__((vector_size(16)));
+#define NV (CH / 4)
+#else
+#error "CH must be a multiple of 4"
+#endif
+typedef fv fvu __attribute__((aligned(4)));  /* loads and stores at float alignment */
 
 /* values[camera * levels + l]: (Hl, Wl, heads * CH); shapes: (levels, 2) as Hl, Wl;
  * per pair: its camera, its query and the query's projection uv (x, y in [0, 1]) in that camera;
@@ -28,8 +36,8 @@ void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t
     const int64_t q = query[pair];
     const float u = uv[2 * pair], v = uv[2 * pair + 1];
     for (int64_t h = 0; h < heads; ++h) {
-      f8 acc[NV];
-      for (int j = 0; j < NV; ++j) acc[j] = (f8){0};
+      fv acc[NV];
+      for (int j = 0; j < NV; ++j) acc[j] = (fv){0};
       for (int64_t l = 0; l < levels; ++l) {
         const float *map = values[camera[pair] * levels + l] + h * CH;
         const int64_t rows = shapes[2 * l], cols = shapes[2 * l + 1];
@@ -46,13 +54,13 @@ void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t
           const float cw[4] = {(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay};
           for (int k = 0; k < 4; ++k) {
             if (cx[k] < 0 || cx[k] >= cols || cy[k] < 0 || cy[k] >= rows) continue;
-            const f8u *src = (const f8u *)(map + (cy[k] * cols + cx[k]) * c);
+            const fvu *src = (const fvu *)(map + (cy[k] * cols + cx[k]) * c);
             const float s = w * cw[k];
             for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
           }
         }
       }
-      f8u *dst = (f8u *)(out + pair * c + h * CH);
+      fvu *dst = (fvu *)(out + pair * c + h * CH);
       for (int j = 0; j < NV; ++j) dst[j] = acc[j];
     }
   }
@@ -77,8 +85,8 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
   float weights[MAX_TERMS];
   for (int64_t q = start; q < end; ++q)
     for (int64_t h = 0; h < heads; ++h) {
-      f8 acc[NV];
-      for (int j = 0; j < NV; ++j) acc[j] = (f8){0};
+      fv acc[NV];
+      for (int j = 0; j < NV; ++j) acc[j] = (fv){0};
       /* the reference's (reference + offset / dims) * dims - 0.5 as the query's voxel position plus the offset in
        * voxels: the same location up to float rounding */
       float centre[3];
@@ -112,7 +120,7 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
             const float wx[2] = {w * (1 - ax), w * ax}, wy[2] = {1 - ay, ay}, wz[2] = {1 - az, az};
             for (int k = 0; k < 8; ++k) {
               const float s = wx[k >> 2] * wy[(k >> 1) & 1] * wz[k & 1];
-              const f8u *src = (const f8u *)(base + (k >> 2) * sx + ((k >> 1) & 1) * sy + (k & 1) * c);
+              const fvu *src = (const fvu *)(base + (k >> 2) * sx + ((k >> 1) & 1) * sy + (k & 1) * c);
               for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
             }
             continue;
@@ -121,12 +129,12 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
             const int64_t x = x0 + (k >> 2), y = y0 + ((k >> 1) & 1), z = z0 + (k & 1);
             if (x < 0 || x >= nx || y < 0 || y >= ny || z < 0 || z >= nz) continue;
             const float s = w * ((k >> 2) ? ax : 1 - ax) * (((k >> 1) & 1) ? ay : 1 - ay) * ((k & 1) ? az : 1 - az);
-            const f8u *src = (const f8u *)(map + ((x * ny + y) * nz + z) * c);
+            const fvu *src = (const fvu *)(map + ((x * ny + y) * nz + z) * c);
             for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
           }
         }
       }
-      f8u *dst = (f8u *)(out + q * c + h * CH);
+      fvu *dst = (fvu *)(out + q * c + h * CH);
       for (int j = 0; j < NV; ++j) dst[j] = acc[j];
     }
 }
