@@ -15,8 +15,11 @@ from conftest import executable
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from co3sop_nodes.common import topics
 from co3sop_nodes.data import bags, opv2v
+from co3sop_nodes.inference.inputs import camera_inputs, sensor_inputs
 from co3sop_nodes.messages import RosbagsTypes, occupancy_msg
+from co3sop_nodes.model.config import preset
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
 SCENARIO = "2021_08_24_21_29_28"
@@ -27,8 +30,11 @@ def tool(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 
 def assert_bag_matches_folder(bag: Path, root: Path, split: str, scenario: str, ranges) -> int:
-    """Every array in the bag equals the folder's (read through opv2v); returns the frames compared."""
+    """Every array in the bag equals the folder's (read through opv2v), and a camera model's inputs built from the
+    bag's messages and mounts (as `vehicle` builds them) equal those built from the folder (as training does);
+    returns the frames compared."""
     folder = {ts: frames for ts, frames in opv2v.read_scenario(root, split, scenario, ranges)}
+    mounts, cfg = bags.read_static_transforms(bag), preset("tiny")
     compared = 0
     for (stamp, cavs), (_, frames) in zip(bags.read_frames(bag), sorted(folder.items())):
         assert stamp == frames[0].stamp_ns
@@ -42,6 +48,18 @@ def assert_bag_matches_folder(bag: Path, root: Path, split: str, scenario: str, 
                 np.testing.assert_array_equal(entry["labels"][r], f.labels[r])
             for cam in f.cameras:
                 np.testing.assert_array_equal(entry["cameras"][cam.name], cam.rgb)
+            if f.cameras:
+                lidar = topics.lidar_frame(f.cav_id)
+                cameras = [
+                    (name, rgb, entry["intrinsics"][name], mounts.lookup(lidar, entry["optical_frames"][name]))
+                    for name, rgb in sorted(entry["cameras"].items())
+                ]
+                got = sensor_inputs(cfg, entry["pose"], cameras)
+                images, lidar2img = camera_inputs(
+                    sorted(f.cameras, key=lambda c: c.name), f.world_from_lidar, cfg.image_size
+                )
+                np.testing.assert_array_equal(got["images"], images)
+                np.testing.assert_allclose(got["lidar2img"], lidar2img, rtol=1e-6, atol=1e-4)
             compared += 1
     assert compared == sum(len(f) for f in folder.values())
     first = folder[min(folder)]  # the first frame's scans are the bag's first, each a vehicle's as it reads it

@@ -91,7 +91,6 @@ def sensor_inputs(cfg: ModelConfig, world_from_lidar: np.ndarray, cameras=(), po
     """
     if cfg.modality == "lidar":
         return {"occupancy": lidar_occupancy(points, cfg.grid)}
-    body_from_optical = np.linalg.inv(OPTICAL_FROM_BODY)
     frames = []
     for name, rgb, k, lidar_from_optical in cameras:
         k = np.asarray(k, np.float64)
@@ -99,7 +98,8 @@ def sensor_inputs(cfg: ModelConfig, world_from_lidar: np.ndarray, cameras=(), po
             raise Co3sopError(f"{name}: NaN or infinite intrinsics or mount, or an empty image")
         if not (k[0, 0] > 0 and k[1, 1] > 0 and np.array_equal(k[2], [0.0, 0.0, 1.0])):
             raise Co3sopError(f"{name}: intrinsics are not a pinhole camera's (fx, fy > 0, last row 0 0 1)")
-        frames.append(CameraFrame(name, world_from_lidar @ lidar_from_optical @ body_from_optical, k, rgb))
+        # the camera's body frame (x forward, y left, z up), which camera_inputs takes, from its optical frame
+        frames.append(CameraFrame(name, world_from_lidar @ lidar_from_optical @ OPTICAL_FROM_BODY, k, rgb))
     try:
         images, lidar2img = camera_inputs(frames, world_from_lidar, cfg.image_size)
     except np.linalg.LinAlgError:
