@@ -367,7 +367,7 @@ def recorded_messages(mcap: Path, topic_pattern: str, msg_type) -> list[tuple[st
     [  # the last takes every path the others do (transform coding, a budget) and the int4 and burst ones besides
         pytest.param("int8", 0, 20000, 0, marks=pytest.mark.heavy),
         pytest.param("int8", 8, 20000, 0, marks=pytest.mark.heavy),
-        ("int4", 8, 4000, 16000),
+        ("int4", 8, 2000, 8000),
     ],
     ids=["channels", "rank8", "rank8-int4-burst"],
 )
