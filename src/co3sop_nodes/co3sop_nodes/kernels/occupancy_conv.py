@@ -3,8 +3,9 @@
 The layer convolves the voxelised scan, one binary channel of which about 1 % is occupied, with stride 2: oneDNN
 reads every voxel of it (in bfloat16, after two conversions of the whole grid) and writes its output in a layout
 the next layer converts. The kernel adds each occupied voxel's taps to the outputs it reaches, applies the ReLU and
-writes in the layout the next layer takes (channels-last or z-outer) in the path's precision. Its sums are float32 in another order than the convolution's, so it
-serves reduced-precision paths only, within their tolerance (tested against the float32 layer).
+writes in the layout the next layer takes (channels-last or z-outer) in the path's precision. Its sums are float32
+in another order than the convolution's, so it serves reduced-precision paths only, within their tolerance (tested
+against the float32 layer).
 """
 
 from __future__ import annotations

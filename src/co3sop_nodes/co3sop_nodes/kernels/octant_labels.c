@@ -165,7 +165,8 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
       for (int lane = 0; lane < 16; ++lane)
         up_pairs[c / 2 * C2 + j][lane] = bf16_pair(up_w[c * C2 + j][lane], up_w[(c + 1) * C2 + j][lane]);
   for (int c = 0; c < C2; c += 2) {
-    for (int d = 0; d < C2; ++d) point_pairs[c / 2 * C2 + d] = bf16_pair(point_w[c * C2 + d], point_w[(c + 1) * C2 + d]);
+    for (int d = 0; d < C2; ++d)
+      point_pairs[c / 2 * C2 + d] = bf16_pair(point_w[c * C2 + d], point_w[(c + 1) * C2 + d]);
     for (int q = 0; q < K; ++q) cls_pairs[c / 2 * K + q] = bf16_pair(w_cls[c * K + q], w_cls[(c + 1) * K + q]);
   }
 #endif
