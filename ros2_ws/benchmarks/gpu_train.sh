@@ -20,7 +20,7 @@ timeout 300 ros2_ws/install/co3sop_nodes/lib/co3sop_nodes/generate --real-size -
 pipeline() {
   local name="$1"; shift
   timeout 240 python ros2_ws/benchmarks/bench_train_step.py --pipeline --device cuda --data /tmp/real --splits train \
-    --presets small paper --steps 20 --workers "$workers" "$@" 2>&1 | tee "$logs/pipeline-$name.log"
+    --presets small paper --steps 40 --workers "$workers" "$@" 2>&1 | tee "$logs/pipeline-$name.log"
 }
 pipeline cached --cache /tmp/real-cache
 pipeline decoding
