@@ -462,3 +462,16 @@ def test_generate_shards_are_disjoint_parts_of_one_dataset(tmp_path):
     for bad in ("3/2", "0/2", "half"):
         done = tool("generate", "--out", str(tmp_path / "bad"), *common, "--shard", bad)
         assert done.returncode == 2 and f"--shard {bad!r}" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_generate_gives_the_same_bytes_whatever_its_workers(tmp_path):
+    """Workers beyond the scenarios become each scenario's threads: one scenario on 1 and on 3 workers, same files."""
+    common = ["--splits", "test=1", "--frames", "2", "--cavs", "2", "--image-size", "64x48", "--lidar-steps", "128"]
+    trees = []
+    for workers in ("1", "3"):
+        out = tmp_path / f"workers{workers}"
+        done = tool("generate", "--out", str(out), *common, "--vehicles", "4", "--seed", "9", "--workers", workers)
+        assert done.returncode == 0, done.stderr
+        trees.append({p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()})
+    assert trees[0].keys() == trees[1].keys() and len(trees[0]) > 10
+    assert [k for k in trees[0] if trees[0][k] != trees[1][k]] == []

@@ -37,7 +37,12 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument(
         "--seed", type=int, default=DEFAULTS.seed, help="base seed: the same seed gives the same dataset"
     )
-    parser.add_argument("--workers", type=int, default=DEFAULTS.workers, help="scenarios simulated in parallel")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=DEFAULTS.workers,
+        help="processes simulating scenarios in parallel; with fewer scenarios, each one's threads",
+    )
     parser.add_argument(
         "--shard",
         default=DEFAULTS.shard,

@@ -45,7 +45,6 @@ DEMO_SCENARIO = {
     "seed": DEMO_SEED,
     "image_size": "320x240",
     "lidar_steps": 512,
-    "workers": 1,
 }
 
 
@@ -152,7 +151,7 @@ def ensure_scenario(opts) -> Path:
             f"no demo scenario of {opts.frames} frames yet: generating one (3 CAVs) into {data} and {bags} "
             f"(about {max(1, round(opts.frames / 10))} minute(s))"
         )
-        generate(GenerateOptions(out=data, bags=bags, frames=opts.frames, **DEMO_SCENARIO))
+        generate(GenerateOptions(out=data, bags=bags, frames=opts.frames, workers=pace.cores(), **DEMO_SCENARIO))
     return bag
 
 

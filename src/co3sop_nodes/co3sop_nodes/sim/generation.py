@@ -3,7 +3,8 @@
 Each scenario is a procedural town with 2..7 CAVs (four cameras and a LiDAR each)
 and traffic, written in the OPV2V folder layout with Co3SOP voxel labels for
 the three benchmark ranges, and optionally as a rosbag2 bag. Scenarios run in
-parallel worker processes. A scenario is written in OUT/.partial/<split>/<name>/
+parallel worker processes; where fewer scenarios than workers are left, each
+scenario renders and labels on the rest as threads. A scenario is written in OUT/.partial/<split>/<name>/
 (its own small OPV2V root, outside every split folder, where no OPV2V or
 Co3SOP loader looks) and moved into place when complete; SIGINT or SIGTERM
 stops every worker, and a re-run resumes where it stopped (completed
@@ -66,7 +67,8 @@ def data_protocol(cfg: ScenarioConfig, seed: int) -> dict:
             }
         },
         "scenario": {"cavs": cfg.traffic.cavs, "background_vehicles": cfg.traffic.vehicles},
-        "co3sop_sim": {"seed": seed, "config": dataclasses.asdict(cfg)},
+        # without the threads it ran on, which change no byte of the scenario
+        "co3sop_sim": {"seed": seed, "config": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "workers"}},
     }
 
 
@@ -261,7 +263,6 @@ def generate(opts: GenerateOptions) -> int:
             lidar=dataclasses.replace(ScenarioConfig().lidar, azimuth_steps=opts.lidar_steps),
             extra_images=opts.extras,
             label_margin=(side, top),
-            workers=1,
         )
         if (opts.out / split / name).is_dir():  # folder complete, only the bag is missing: redo both
             shutil.rmtree(opts.out / split / name)
@@ -281,6 +282,9 @@ def generate(opts: GenerateOptions) -> int:
     print(f"generate: {len(jobs)} scenario(s) to simulate, {skipped} already complete", flush=True)
     if not jobs:
         return 0
+    # workers beyond the scenarios become each scenario's camera and voxel-sensor threads (the same data)
+    for job in jobs:
+        job["config"] = dataclasses.replace(job["config"], workers=max(1, opts.workers // len(jobs)))
     opts.out.mkdir(parents=True, exist_ok=True)
     ctx = mp.get_context("spawn")
     previous = signal.signal(signal.SIGTERM, _interrupt)
