@@ -60,7 +60,7 @@ def pipeline(opts, device) -> None:
 
         def delivered() -> float:
             t0 = time.perf_counter()
-            for samples in step_loader(steps, opts.workers):
+            for samples in step_loader(steps, opts.workers, pin=device.type == "cuda"):
                 if isinstance(samples, Exception):
                     raise samples
             return opts.steps / (time.perf_counter() - t0)
@@ -70,7 +70,7 @@ def pipeline(opts, device) -> None:
         trainer = Trainer(build_model(cfg).to(device), "joint", opts.sample_fraction, 1e-3, device)
         rng, waited = np.random.default_rng(0), 0.0
         t0 = time.perf_counter()
-        loaded = iter(step_loader(steps, opts.workers))
+        loaded = iter(step_loader(steps, opts.workers, pin=device.type == "cuda"))
         # the first step (workers starting; on a GPU, its kernels loading) is timed apart from the steady steps
         trainer.step(next(loaded), [rng])
         first = time.perf_counter() - t0

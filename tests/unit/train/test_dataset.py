@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.data import opv2v
@@ -105,3 +106,18 @@ def test_a_sample_that_cannot_be_read_comes_back_as_its_error(root):
     items = list(step_loader(steps, 2))
     assert isinstance(items[0], list)
     assert isinstance(items[3], DatasetError) and "000071_camera1.png" in str(items[3])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CI has none)")
+def test_samples_for_a_cuda_step_come_in_page_locked_memory_with_the_same_values(root):
+    dataset = OccupancyDataset(root, ["test"], CAMERA)
+    steps = StepSamples(dataset, np.arange(2), 0, 2, 1, 0, 1, training_sample(CAMERA, "joint"))
+    for workers in (0, 2):
+        for k, samples in enumerate(step_loader(steps, workers, pin=True)):
+            for got, want in zip(samples, steps[k]):
+                for g, w in zip([got.ego, *got.others], [want.ego, *want.others]):
+                    arrays = [(g.inputs[n], w.inputs[n]) for n in w.inputs]
+                    arrays += [(g.labels, w.labels)] if w.labels is not None else []
+                    for pinned, plain in arrays:
+                        assert torch.from_numpy(pinned).is_pinned() and pinned.dtype == plain.dtype
+                        np.testing.assert_array_equal(pinned, plain)

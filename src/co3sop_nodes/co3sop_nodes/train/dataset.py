@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.common.grid import GridSpec
@@ -39,6 +40,11 @@ class AgentRecord:
     inputs: dict  # numpy VehicleHalf inputs (images + lidar2img, or occupancy)
     labels: np.ndarray | None  # (X, Y, Z) uint8 at the model's range
 
+    def pin_memory(self) -> AgentRecord:
+        """A copy whose inputs and labels lie in page-locked memory (see Sample.pin_memory)."""
+        labels = None if self.labels is None else _pinned(self.labels)
+        return replace(self, inputs={k: _pinned(v) for k, v in self.inputs.items()}, labels=labels)
+
 
 @dataclass
 class Sample:
@@ -46,6 +52,20 @@ class Sample:
     ego: AgentRecord
     others: list[AgentRecord]  # nearest first
     neighbour_from_ego: np.ndarray  # (A, 4, 4)
+
+    def pin_memory(self) -> Sample:
+        """The DataLoader's hook for a custom batch type (`pin_memory=True`, on CUDA): a copy whose arrays that a
+        step sends to the GPU lie in page-locked memory, which the GPU reads directly; the loader's pinning thread
+        makes it while the step before trains."""
+        return replace(self, ego=self.ego.pin_memory(), others=[a.pin_memory() for a in self.others])
+
+
+def _pinned(array: np.ndarray) -> np.ndarray:
+    """`array`'s values in page-locked memory, as a NumPy view that keeps its tensor alive."""
+    dtype = torch.from_numpy(np.empty(0, array.dtype)).dtype
+    out = torch.empty(array.shape, dtype=dtype, pin_memory=True).numpy()
+    out[...] = array
+    return out
 
 
 @dataclass(frozen=True)

@@ -48,8 +48,9 @@ class StepSamples(torch.utils.data.Dataset):
             return exc
 
 
-def step_loader(samples: StepSamples, workers: int) -> torch.utils.data.DataLoader:
-    """Steps in order, read by `workers` processes ahead of the step that trains (0: in this process, in turn)."""
+def step_loader(samples: StepSamples, workers: int, pin: bool = False) -> torch.utils.data.DataLoader:
+    """Steps in order, read by `workers` processes ahead of the step that trains (0: in this process, in turn);
+    with `pin` (for a CUDA step), their arrays handed over in page-locked memory (Sample.pin_memory)."""
     return torch.utils.data.DataLoader(
         samples,
         batch_size=None,
@@ -57,6 +58,7 @@ def step_loader(samples: StepSamples, workers: int) -> torch.utils.data.DataLoad
         num_workers=workers,
         collate_fn=_unchanged,
         prefetch_factor=2 if workers else None,
+        pin_memory=pin,
     )
 
 

@@ -204,7 +204,7 @@ class Trainer:
         cfg = self.model.cfg
         if cfg.head == "occformer":  # mask classification on class-guided points (model/mask_loss.py)
             preds, confidence, labels, _ = self.forward(sample, None, rng)
-            labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
+            labels = torch.from_numpy(labels)[None].to(self.device).long()  # (1, X, Y, Z): a byte a voxel on the bus
             parts = mask_classification_loss(preds, labels, cfg.occformer.points, rng)
             if self.stage not in FROZEN_VEHICLE:
                 parts["confidence"] = confidence_loss(
@@ -216,7 +216,7 @@ class Trainer:
             self.device
         )
         logits, confidence, labels, wire = self.forward(sample, index, rng)
-        labels = torch.from_numpy(labels).long()[None].to(self.device)  # (1, X, Y, Z)
+        labels = torch.from_numpy(labels)[None].to(self.device).long()  # (1, X, Y, Z): a byte a voxel on the bus
         k = self.model.cfg.num_classes
         targets = [
             downsample_labels(labels, 4, k),
@@ -344,7 +344,7 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
     t0 = time.time()
     waited = 0.0  # seconds the step waited for its samples
     with open(log_path, "a", newline="") if world.main else contextlib.nullcontext() as log:
-        loaded = iter(step_loader(steps, opts.workers))
+        loaded = iter(step_loader(steps, opts.workers, pin=device.type == "cuda"))
         for step in range(start, opts.steps):
             lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
             for group in trainer.optimizer.param_groups:
