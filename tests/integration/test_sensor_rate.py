@@ -31,8 +31,6 @@ from co3sop_nodes.common import topics
 
 FRAMES = 40
 PERIOD_NS = 20_000_000  # 50 Hz: faster than one core fuses, or encodes in float32
-# the newest frame only, whatever the lag (catching up on a late frame is the pairing's and framing's unit tests')
-NEWEST = ("-p", "catch_up:=0.0")
 
 
 def stop(*procs) -> None:
@@ -44,16 +42,7 @@ def stop(*procs) -> None:
 
 def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skipped(tmp_path, peer, sup):
     ego = start(
-        tmp_path,
-        "ego",
-        executable("ego"),
-        "--ros-args",
-        "-p",
-        f"ego_id:={EGO}",
-        "-p",
-        "max_wait:=5.0",
-        *NEWEST,
-        *CAMERA,
+        tmp_path, "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={EGO}", "-p", "max_wait:=5.0", *CAMERA
     )
     try:
         wait_ready(sup, "/ego", *ego)
@@ -87,7 +76,7 @@ def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skippe
 def test_a_vehicle_fed_faster_than_it_encodes_encodes_the_newest_complete_frame(tmp_path, peer, sup):
     model = str(Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt"))
     # float32: reduced precision encodes a scan in less than the feed's 20 ms on this project's CPUs
-    args = ("--ros-args", "-p", f"checkpoint:={model}", "-p", "precision:=float32", *NEWEST)
+    args = ("--ros-args", "-p", f"checkpoint:={model}", "-p", "precision:=float32")
     vehicle = start(tmp_path, "lidar", executable("vehicle"), "--id", str(LIDAR_CAV), *args)
     try:
         wait_ready(sup, topics.vehicle_node(LIDAR_CAV), *vehicle)

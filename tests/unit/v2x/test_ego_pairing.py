@@ -10,8 +10,7 @@ from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
 EGO, A, B = 1, 2, 3
 MS = 1_000_000
 S = 1_000_000_000
-# newest-first without catching up (catch_up_ns=0): the tests of catching up set it themselves
-CFG = PairingConfig(tolerance_ns=50 * MS, max_wait_s=2.0, neighbour_timeout_ns=5 * S, max_age_ns=0, catch_up_ns=0)
+CFG = PairingConfig(tolerance_ns=50 * MS, max_wait_s=2.0, neighbour_timeout_ns=5 * S, max_age_ns=0)
 
 
 class Clock:
@@ -230,31 +229,3 @@ def test_an_own_frame_fused_or_waiting_is_known_as_repeated():
     add(p, A, 100 * MS, c)
     assert due(p, c) == [100 * MS]
     assert p.repeated(100 * MS) and p.repeated(90 * MS) and not p.repeated(101 * MS)
-
-
-def test_one_late_frame_is_caught_up_and_a_longer_lag_still_skipped():
-    """With catch_up, own frames within it of the newest ready one are fused oldest first; older ones skipped."""
-    c = Clock()
-    p = Pairing(EGO, replace(CFG, catch_up_ns=150 * MS))
-    p.discovered(A, c.wall)
-    for k in range(2):  # the ego finished late: two own frames ready at once
-        add(p, EGO, k * 100 * MS, c)
-        add(p, A, k * 100 * MS, c)
-    assert due(p, c) == [0, 100 * MS] and p.skipped == 0
-    for k in range(2, 12):  # ten frames while one was fused: latency bounded by catch_up, the rest counted
-        add(p, EGO, k * 100 * MS, c)
-        add(p, A, k * 100 * MS, c)
-    assert due(p, c) == [1000 * MS, 1100 * MS] and p.skipped == 8
-
-
-def test_catching_up_fuses_an_older_frame_while_the_newest_waits_for_its_neighbour():
-    c = Clock()
-    p = Pairing(EGO, replace(CFG, catch_up_ns=150 * MS))
-    p.discovered(A, c.wall)
-    for k in range(3):
-        add(p, EGO, k * 100 * MS, c)
-        if k < 2:
-            add(p, A, k * 100 * MS, c)
-    assert due(p, c) == [0, 100 * MS] and p.skipped == 0  # frame 200 ms still waits for A
-    add(p, A, 200 * MS, c)
-    assert due(p, c) == [200 * MS] and p.skipped == 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly, to_encode
+from co3sop_nodes.v2x.sender_frames import FrameAssembly
 
 PARTS = ("pose", "image:camera0", "info:camera0")
 
@@ -97,13 +97,3 @@ def test_requirement_never_met_is_named():
 def test_unknown_part_is_an_error():
     with pytest.raises(ValueError, match="unknown part"):
         FrameAssembly(PARTS).add("lidar", 1, None, 0)
-
-
-def test_staying_current_encodes_the_newest_frame_and_those_within_catch_up_of_it():
-    ms = 1_000_000
-    ready = [Frame(k * 100 * ms, 0) for k in range(4)]
-    kept, passed = to_encode(ready, 150 * ms)  # one frame behind is caught up, two are not
-    assert [f.stamp for f in kept] == [200 * ms, 300 * ms] and [f.stamp for f in passed] == [0, 100 * ms]
-    kept, passed = to_encode(ready, 0)
-    assert [f.stamp for f in kept] == [300 * ms] and len(passed) == 3
-    assert to_encode([], 150 * ms) == ([], [])

@@ -209,20 +209,10 @@ PARAMS = (
     Param(
         "stay_current",
         bool,
-        "behind its input, fuse the newest ready own frame and skip older ones (but those within catch_up); "
-        "false: fuse every own frame, oldest first (to record every frame of a bag played faster than the ego "
-        "fuses; latency then grows)",
+        "behind its input, fuse the newest ready own frame and skip older ones; false: fuse every own "
+        "frame, oldest first (to record every frame of a bag played faster than the ego fuses; latency then grows)",
         True,
         True,
-    ),
-    Param(
-        "catch_up",
-        float,
-        "s: staying current, own frames up to this much older than the newest ready one are still fused, oldest "
-        "first, so that one late frame is caught up rather than skipped; latency stays below about this plus a frame",
-        PairingConfig.catch_up_ns / 1e9,
-        True,
-        (0.0, 10.0),
     ),
     Param(
         "features_reliability",
@@ -365,7 +355,6 @@ class Ego(ManagedNode):
             neighbour_timeout_ns=int(values.get("neighbour_timeout", cfg.neighbour_timeout_ns / 1e9) * 1e9),
             max_pending=values.get("max_pending", cfg.max_pending),
             stay_current=values.get("stay_current", cfg.stay_current),
-            catch_up_ns=int(values.get("catch_up", cfg.catch_up_ns / 1e9) * 1e9),
             max_age_ns=int(values.get("max_age", cfg.max_age_ns / 1e9) * 1e9),
         )
         for name in (

@@ -82,7 +82,7 @@ from co3sop_nodes.v2x.neighbours import COMM_RANGE
 from co3sop_nodes.v2x.request_map import request_for_neighbour
 from co3sop_nodes.v2x.scan import EncodedScan, ScanCodecConfig, encode_scan
 from co3sop_nodes.v2x.sender_budget import SenderBudgets
-from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly, to_encode
+from co3sop_nodes.v2x.sender_frames import Frame, FrameAssembly
 from co3sop_nodes.v2x.sender_requests import REQUEST_ANSWERS, Request, RequestBook, union_request
 
 SENSOR_DEPTH, STATIC_DEPTH = 10, 100  # messages queued per sensor topic, and for /tf_static's mounts
@@ -140,19 +140,10 @@ PARAMS = (
     Param(
         "stay_current",
         bool,
-        "slower than the sensors, encode the newest complete frame and skip older ones (but those within "
-        "catch_up); false: encode every frame, oldest first (latency then grows)",
+        "slower than the sensors, encode the newest complete frame and skip older ones; false: encode "
+        "every frame, oldest first (latency then grows)",
         True,
         True,
-    ),
-    Param(
-        "catch_up",
-        float,
-        "s: staying current, complete frames up to this much older than the newest are still encoded, oldest "
-        "first, so that one late frame is caught up rather than skipped",
-        0.15,
-        True,
-        (0.0, 10.0),
     ),
     Param("codec.dtype", str, "feature precision on the wire", "float16", True, choices=tuple(FEATURE_DTYPES)),
     Param(
@@ -566,20 +557,20 @@ class Vehicle(ManagedNode):
         with self._worker.lock:
             ready = sorted([*self._ready, *frames], key=lambda f: f.stamp)
             if self.params["stay_current"]:
-                ready, passed = to_encode(ready, int(self.params["catch_up"] * 1e9))
+                ready, passed = ready[-1:], ready[:-1]
                 for frame in passed:
                     self.skips(
                         self.get_namespace(),
                         "behind",
-                        f"frame {frame.stamp} skipped: frame {ready[-1].stamp} is complete "
+                        f"frame {frame.stamp} skipped: frame {ready[0].stamp} is complete "
                         "and this vehicle encodes slower than its sensors send",
                     )
             self._ready = ready
             self._worker.wake()
 
     def _take(self):
-        """On the worker, under its lock: the oldest complete frame waiting (with stay_current, the oldest within
-        catch_up of the newest), as a job."""
+        """On the worker, under its lock: the oldest complete frame waiting (with stay_current, the only one), as a
+        job."""
         if not self._ready:
             return None
         frame = self._ready.pop(0)

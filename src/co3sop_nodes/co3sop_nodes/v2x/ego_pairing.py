@@ -43,9 +43,6 @@ class PairingConfig:
     history: int = 8  # frames kept per agent
     max_pending: int = 3  # own frames waiting at once; one more ends the oldest's wait
     stay_current: bool = True  # the newest ready own frame, older ones skipped; False: every one, oldest first
-    # staying current, own frames up to this much older than the newest ready one are still fused (oldest first):
-    # one late frame costs latency, not a skipped frame
-    catch_up_ns: int = 150_000_000
     max_age_ns: int = (
         500_000_000  # a neighbour's frame this far from the ego's stamp is fused when none within tolerance is
     )
@@ -120,9 +117,8 @@ class Pairing(Generic[K, T]):
         ]
 
     def next_due(self, wall_ns: int, monotonic: float, has_publisher: Callable[[K], bool]) -> int | None:
-        """The stamp of the own frame to fuse now, taken off the queue with every own frame not newer than it
-        (those are skipped, counted in `skipped`); None while every frame still waits. Staying current, that is
-        the oldest own frame within catch_up of the newest ready one."""
+        """The stamp of the newest own frame ready to fuse now, taken off the queue with every own frame not newer
+        than it (those are skipped, counted in `skipped`); None while every frame still waits."""
         live = self.live(wall_ns, has_publisher) if self._pending else []
 
         newest = max((s for s, _ in self._pending), default=None)
@@ -144,11 +140,6 @@ class Pairing(Generic[K, T]):
             )
         if chosen is None:
             return None
-        if self.cfg.stay_current and self.cfg.catch_up_ns:  # frames older than the chosen one are all ready
-            floor = self._pending[chosen][0] - self.cfg.catch_up_ns
-            chosen = min(
-                (i for i, f in enumerate(self._pending) if f[0] >= floor), key=lambda i: (self._pending[i][0], i)
-            )
         stamp = self._pending[chosen][0]
         kept = deque(
             f for i, f in enumerate(self._pending) if i != chosen and (f[0] > stamp or not self.cfg.stay_current)

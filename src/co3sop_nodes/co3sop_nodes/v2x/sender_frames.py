@@ -29,13 +29,6 @@ class Frame:
     parts: dict[str, object] = field(default_factory=dict)
 
 
-def to_encode(ready: list[Frame], catch_up_ns: int) -> tuple[list[Frame], list[Frame]]:
-    """Staying current, of the complete frames waiting (oldest first): those still to encode, oldest first (the
-    newest and those within catch_up_ns of it, so that one late frame is caught up), and those skipped."""
-    floor = ready[-1].stamp - catch_up_ns if ready else 0
-    return [f for f in ready if f.stamp >= floor], [f for f in ready if f.stamp < floor]
-
-
 class FrameAssembly:
     def __init__(
         self,
