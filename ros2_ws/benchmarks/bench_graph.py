@@ -163,7 +163,10 @@ def run_demo(
     succeed (every frame fused and recorded); else a recording is enough (a rate sweep counts what was fused)."""
     out = opts.out / name
     argv = [str(demo), "--out", str(out), "--quiet", "--model", opts.model, "--precision", opts.precision]
-    argv += ["--device", opts.device, *args]
+    argv += ["--device", opts.device]
+    argv += ["--params", *opts.params] if opts.params else []  # before args: a setting's own --params wins
+    argv += ["--ego-params", *opts.ego_params] if opts.ego_params else []
+    argv += args
     argv += ["--bag", str(opts.bag)] if opts.bag else ["--frames", str(opts.frames)]
     print(f"[bench_graph] {name}: running the demo graph", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
@@ -258,6 +261,8 @@ def main() -> int:
         help="time a preset nobody has trained yet: its initial weights (seed 0) instead of --model; latency and "
         "throughput only, its mIoU means nothing",
     )
+    parser.add_argument("--params", nargs="*", default=[], help="the vehicles' parameters, as `demo --params`")
+    parser.add_argument("--ego-params", nargs="*", default=[], help="the ego's parameters, as `demo --ego-params`")
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
     parser.add_argument(
         "--rates", nargs="*", type=float, help="sweep these playback rates (default codec) instead of the settings"
