@@ -46,10 +46,11 @@ from co3sop_nodes.train.trainer import Trainer, sample_order, training_sample
 
 
 def pipeline(opts, device) -> None:
+    gpu = device.type == "cuda"
     rows = [
         "| preset | pipeline, decoding (samples/s) | pipeline, cached (samples/s) | first step (s) "
-        "| training (samples/s) | waiting for data |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| training (samples/s) | waiting for data |" + (" peak GPU memory (GiB) |" if gpu else ""),
+        "|---|---:|---:|---:|---:|---:|" + ("---:|" if gpu else ""),
     ]
     for name in opts.presets:
         torch.manual_seed(0)
@@ -60,7 +61,7 @@ def pipeline(opts, device) -> None:
 
         def delivered() -> float:
             t0 = time.perf_counter()
-            for samples in step_loader(steps, opts.workers, pin=device.type == "cuda"):
+            for samples in step_loader(steps, opts.workers, pin=gpu):
                 if isinstance(samples, Exception):
                     raise samples
             return opts.steps / (time.perf_counter() - t0)
@@ -69,8 +70,10 @@ def pipeline(opts, device) -> None:
         cached = delivered() if opts.cache else None
         trainer = Trainer(build_model(cfg).to(device), "joint", opts.sample_fraction, 1e-3, device)
         rng, waited = np.random.default_rng(0), 0.0
+        if gpu:
+            torch.cuda.reset_peak_memory_stats(device)
         t0 = time.perf_counter()
-        loaded = iter(step_loader(steps, opts.workers, pin=device.type == "cuda"))
+        loaded = iter(step_loader(steps, opts.workers, pin=gpu))
         # the first step (workers starting; on a GPU, its kernels loading) is timed apart from the steady steps
         trainer.step(next(loaded), [rng])
         first = time.perf_counter() - t0
@@ -84,7 +87,7 @@ def pipeline(opts, device) -> None:
         row = (
             f"| {name} | {decoding:.2f} | {f'{cached:.2f}' if cached else '-'} | {first:.2f} "
             f"| {(opts.steps - 1) / total:.2f} | {100 * waited / total:.1f} % |"
-        )
+        ) + (f" {torch.cuda.max_memory_allocated(device) / 2**30:.1f} |" if gpu else "")
         print(row, flush=True)
         rows.append(row)
     print(
