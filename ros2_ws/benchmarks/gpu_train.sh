@@ -5,10 +5,11 @@
 #   ros2_ws/benchmarks/gpu_train.sh BUNDLE.tar.xz TARGET_PYTHON LOGS
 #
 # Unpacks the bundle, runs the GPU test of the training samples in page-locked memory, generates a set at the
-# real dataset's sizes on the machine's cores (the one the CPU figures were measured on), then measures for `small` and the untrained `paper` preset the samples per second the
-# pipeline delivers alone and training takes, and the share of step time spent waiting for data: with half the
-# cores as DataLoader workers, reading the preprocessed-input cache (after a first pass fills it), then decoding
-# every sample. Each step's output goes to LOGS.
+# real dataset's sizes on the machine's cores (the one the CPU figures were measured on), then measures for
+# `small` and the untrained `paper` preset the samples per second the pipeline delivers alone and training takes,
+# the share of step time spent waiting for data and the peak GPU memory: with half the cores as DataLoader
+# workers, reading the preprocessed-input cache (after a first pass fills it), then decoding every sample. Each
+# step's output goes to LOGS.
 set -uo pipefail
 # shellcheck source=ros2_ws/benchmarks/gpu_setup.sh
 . "$(dirname "${BASH_SOURCE[0]}")/gpu_setup.sh" "$@"
