@@ -146,6 +146,13 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
         "cpu_ms_per_frame": {k: float(v) for k, v in cpu.items()},
         "wall_ms_per_frame": {k: float(v) for k, v in wall.items()},
         "ego_ms_two_neighbours": (len(two), float(np.median(two)) if two else float("nan")),
+        # where a run lost frames: the ego's slowest frames, and the fused frames its skips came before
+        "ego_slowest": sorted(((float(d["total_ms"]), i + 1) for i, d in enumerate(ego)), reverse=True)[:3],
+        "ego_skipped_before": [
+            i + 1
+            for i, d in enumerate(ego)
+            if int(d.get("skipped", 0)) > (int(ego[i - 1].get("skipped", 0)) if i else 0)
+        ],
         "vehicle_stage_ms": {
             k: float(np.median([float(d[k]) for v in vehicles.values() for d in v.values()])) for k in VEHICLE_STAGES
         },
@@ -206,6 +213,12 @@ def sweep(demo: Path, opts) -> int:
         print(
             f"{rows[-1]}\n  vehicles' stages p50 (ms): {stages}"
             f"\n  the ego's wall p50 over the {n_two} frames fused with two neighbours (ms): {ego_two:.1f}"
+            f"\n  the ego's slowest frames (#fused: ms): {', '.join(f'#{i} {ms:.0f}' for ms, i in r['ego_slowest'])}"
+            + (
+                f"; own frames skipped before #{', #'.join(map(str, r['ego_skipped_before']))}"
+                if r["ego_skipped_before"]
+                else ""
+            )
             + (f"\n  every process's CPU a frame while the bag played (ms): {processes.group(1)}" if processes else ""),
             flush=True,
         )  # as it comes: a long sweep may be cut
