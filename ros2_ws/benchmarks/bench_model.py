@@ -42,7 +42,7 @@ from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.conv_norm import folded, z_outer
-from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, resolve_device
+from co3sop_nodes.model.path import PRECISIONS, InferencePath, cpu_bfloat16_unit, inference_path, resolve_device
 
 
 def on(device: torch.device):
@@ -207,6 +207,37 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int, b
             )
             print(f"  {name} {precision}: vehicle {1e3 * t_vehicle:.1f} ms, ego {1e3 * t_ego:.1f} ms", flush=True)
     return "\n".join(rows)
+
+
+@torch.no_grad()
+def query_rows_table(bag: Path, frames: int) -> str:
+    """The shipped `tiny-lidar` ego (bfloat16 where the CPU computes it, else float32; one thread) on `frames` of
+    the bag's scans in turn, each frame's count of queries new as in the graph: the fusion's queries padded to
+    InferencePath's default query_rows against none (query_rows 1), alternating frame by frame; mean wall time of
+    the fusion and of the head, and the labels compared."""
+    model, _ = load_model(shipped_checkpoint("tiny-lidar.pt"))
+    precision = inference_path("cpu", "auto").precision
+    paths = {rows: InferencePath("cpu", precision, query_rows=rows) for rows in (1, InferencePath().query_rows)}
+    model.use(paths[1])
+    egos = [model.vehicle(occupancy=s) for s in bag_scans(bag, model.cfg.grid, frames)]
+    predict_frame(model, egos[0], np.eye(4), pace.shaped_neighbours(egos[0]))  # the nodes' warm-up
+    times = {rows: [] for rows in paths}
+    for k, ego in enumerate(egos):
+        others = pace.shaped_neighbours(ego)
+        got = {}
+        for rows in sorted(paths, reverse=bool(k % 2)):
+            model.use(paths[rows])
+            pred = predict_frame(model, ego, np.eye(4), others)
+            times[rows].append((pred.fuse_s, pred.head_s))
+            got[rows] = (pred.labels, pred.confidence)
+        (labels, confidence), (labels_padded, confidence_padded) = got.values()
+        if not (np.array_equal(labels, labels_padded) and np.array_equal(confidence, confidence_padded)):
+            raise SystemExit(f"bench_model: error: padded queries changed frame {k}'s labels")
+    rows = ["| query_rows | fusion ms (mean) | head ms (mean) | ego: fusion + head ms |", "|---:|---:|---:|---:|"]
+    for n, ts in times.items():
+        fuse, head = (1e3 * float(np.mean(t)) for t in zip(*ts))
+        rows.append(f"| {n} | {fuse:.2f} | {head:.2f} | {fuse + head:.2f} |")
+    return f"{precision}, {frames} frames, labels and confidence equal\n\n" + "\n".join(rows)
 
 
 def _flops(fn) -> int:
@@ -424,6 +455,12 @@ def main() -> None:
         "--bag", type=Path, help="in the precision table, LiDAR vehicle halves on this bag's scans (a random one else)"
     )
     parser.add_argument(
+        "--query-rows",
+        type=int,
+        metavar="FRAMES",
+        help="only the fusion's padded queries against none, on this many of --bag's frames",
+    )
+    parser.add_argument(
         "--roofline",
         action="store_true",
         help="only this CPU's measured peak (one thread), each shipped model's FLOPs and GFLOP/s per stage against "
@@ -442,7 +479,15 @@ def main() -> None:
         if opts.precisions
         else []
     )
-    if opts.roofline:
+    if opts.query_rows:
+        if opts.bag is None:
+            parser.error("--query-rows needs --bag (the frames' scans)")
+        torch.set_num_threads(1)
+        parts = [
+            "### The fusion's queries padded to a multiple of query_rows against none (tiny-lidar, one thread)",
+            query_rows_table(opts.bag, opts.query_rows),
+        ]
+    elif opts.roofline:
         torch.set_num_threads(1)
         peaks, peak = peak_table(opts.repeats)
         parts = [

@@ -108,3 +108,26 @@ def test_a_bfloat16_product_and_its_relu_equal_autocast_bit_for_bit(monkeypatch)
         want = path.linear(x, weight, bias, relu=True)
     assert got.dtype == want.dtype == torch.bfloat16 and torch.equal(got, want)
     assert (want == 0).any() and (want > 0).any()
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+@torch.no_grad()
+def test_the_fusions_padded_queries_change_no_value(precision):
+    """On the compiled path the fusion's queries are padded to a multiple of query_rows, so that oneDNN reuses its
+    primitives from frame to frame: every query's result is computed on its own, so the fused volume is the same,
+    bit for bit, as without padding."""
+    torch.manual_seed(0)
+    model = build_model(preset("tiny-lidar")).eval()
+    ego = model.vehicle(**shaped_inputs(model))
+    others = [VehicleOutput(ego.features.roll(3 * i, 2), ego.confidence.roll(3 * i, 2)) for i in (1, 2)]
+    poses = torch.eye(4).repeat(1, 2, 1, 1)
+    poses[0, :, 0, 3] = torch.tensor([4.0, -4.0])  # metres: the neighbours' volumes shifted against the ego's
+    fused = {}
+    for rows in (1, 512, 20_000):
+        model.use(InferencePath("cpu", precision, query_rows=rows))
+        fused[rows] = model.ego.fuse(ego, others, poses)
+    queries = int(model.ego.align(ego, others, poses)[2].any(1).sum())
+    assert queries % 512 and queries < 20_000  # both paddings pad
+    assert torch.equal(fused[1], fused[512]) and torch.equal(fused[1], fused[20_000])
+    with pytest.raises(Co3sopError, match="query_rows 0: at least 1"):
+        InferencePath(query_rows=0)

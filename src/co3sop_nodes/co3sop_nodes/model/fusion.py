@@ -58,8 +58,12 @@ class VoxelFusion(nn.Module):
         out = flat.contiguous() if self.path.reduced else flat.clone()
         for i in range(b):
             idx = torch.arange(flat.shape[1], device=ego.device) if dense else selected[i].nonzero()[:, 0]
-            if not len(idx):
+            n, rows = len(idx), self.path.query_rows
+            if not n:
                 continue
+            if not dense and self.path.kernels(ego) and n % rows:
+                # repeats of the last query, whose results are dropped: each query's is computed on its own
+                idx = torch.cat([idx, idx[-1:].expand(rows - n % rows)])
             # the queries from the copy: on a reduced path whole channels-last rows, where the ego's layout has a
             # voxel's channels V apart
             q, m = out[i, idx][None], per_voxel[i, idx][None]  # (1, Q, C), (1, Q, A)
@@ -68,5 +72,7 @@ class VoxelFusion(nn.Module):
             if dense:  # the selected voxels' results only
                 keep = selected[i]
                 idx, q = idx[keep], q[:, keep]
+            else:
+                idx, q = idx[:n], q[:, :n]
             out[i].index_copy_(0, idx, q[0].to(out.dtype))
         return out.transpose(1, 2).reshape(ego.shape)  # a view: channels-last in memory on a reduced path

@@ -33,10 +33,15 @@ class InferencePath:
     device: str = "cpu"  # a torch device: cpu, cuda, cuda:N
     precision: str = "float32"  # float32, bfloat16 or float16
     compiled: bool = True  # the compiled CPU kernels where they compile (tested equal to the reference paths)
+    # with the compiled kernels, the fusion's queries padded to a multiple of this many: oneDNN builds its
+    # primitives per row count, and a frame's count of queries is new nearly every frame (1: no padding)
+    query_rows: int = 512
 
     def __post_init__(self):
         if self.precision not in _DTYPES:
             raise Co3sopError(f"precision {self.precision!r}: one of {', '.join(_DTYPES)}")
+        if self.query_rows < 1:
+            raise Co3sopError(f"query_rows {self.query_rows}: at least 1")
 
     @property
     def torch_device(self) -> torch.device:
