@@ -132,6 +132,7 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
     # the frames it fused with two neighbours, the goal's case (a scene's neighbours may drive out of comm_range)
     wall = {"ego": np.median([float(d["total_ms"]) for d in ego])}
     two = [float(d["total_ms"]) for d in ego if d["neighbours_used"] == "2"]
+    skipped = [int(d.get("skipped", 0)) for d in ego]  # the ego's count so far, at each fused frame
     wall.update(
         {
             f"vehicle {a}": np.median([sum(float(d[k]) for k in VEHICLE_STAGES) for d in v.values()])
@@ -148,17 +149,13 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
         "ego_ms_two_neighbours": (len(two), float(np.median(two)) if two else float("nan")),
         # where a run lost frames: the ego's slowest frames, and the fused frames its skips came before
         "ego_slowest": sorted(((float(d["total_ms"]), i + 1) for i, d in enumerate(ego)), reverse=True)[:3],
-        "ego_skipped_before": [
-            i + 1
-            for i, d in enumerate(ego)
-            if int(d.get("skipped", 0)) > (int(ego[i - 1].get("skipped", 0)) if i else 0)
-        ],
+        "ego_skipped_before": [i + 1 for i, (was, now) in enumerate(zip([0, *skipped], skipped)) if now > was],
         "vehicle_stage_ms": {
             k: float(np.median([float(d[k]) for v in vehicles.values() for d in v.values()])) for k in VEHICLE_STAGES
         },
         "ego_stage_ms": stages,
         "frames": len(ego),
-        "skipped_ego": int(ego[-1].get("skipped", 0)),
+        "skipped_ego": skipped[-1],
         "skipped_encoder": int(own[-1].get("skipped", 0)),
     }
 

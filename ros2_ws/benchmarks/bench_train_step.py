@@ -61,7 +61,7 @@ def pipeline(opts, device) -> None:
 
         def delivered() -> float:
             t0 = time.perf_counter()
-            for samples in step_loader(steps, opts.workers, pin=gpu):
+            for samples in step_loader(steps, opts.workers, device):
                 if isinstance(samples, Exception):
                     raise samples
             return opts.steps / (time.perf_counter() - t0)
@@ -73,7 +73,7 @@ def pipeline(opts, device) -> None:
         if gpu:
             torch.cuda.reset_peak_memory_stats(device)
         t0 = time.perf_counter()
-        loaded = iter(step_loader(steps, opts.workers, pin=gpu))
+        loaded = iter(step_loader(steps, opts.workers, device))
         # the first step (workers starting; on a GPU, its kernels loading) is timed apart from the steady steps
         trainer.step(next(loaded), [rng])
         first = time.perf_counter() - t0

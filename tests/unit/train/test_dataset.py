@@ -113,7 +113,7 @@ def test_samples_for_a_cuda_step_come_in_page_locked_memory_with_the_same_values
     dataset = OccupancyDataset(root, ["test"], CAMERA)
     steps = StepSamples(dataset, np.arange(2), 0, 2, 1, 0, 1, training_sample(CAMERA, "joint"))
     for workers in (0, 2):
-        for k, samples in enumerate(step_loader(steps, workers, pin=True)):
+        for k, samples in enumerate(step_loader(steps, workers, torch.device("cuda"))):
             for got, want in zip(samples, steps[k]):
                 for g, w in zip([got.ego, *got.others], [want.ego, *want.others]):
                     arrays = [(g.inputs[n], w.inputs[n]) for n in w.inputs]

@@ -4,11 +4,11 @@ Each scenario is a procedural town with 2..7 CAVs (four cameras and a LiDAR each
 and traffic, written in the OPV2V folder layout with Co3SOP voxel labels for
 the three benchmark ranges, and optionally as a rosbag2 bag. Scenarios run in
 parallel worker processes; where fewer scenarios than workers are left, each
-scenario renders and labels on the rest as threads. A scenario is written in OUT/.partial/<split>/<name>/
-(its own small OPV2V root, outside every split folder, where no OPV2V or
-Co3SOP loader looks) and moved into place when complete; SIGINT or SIGTERM
-stops every worker, and a re-run resumes where it stopped (completed
-scenarios are skipped, unfinished ones redone).
+scenario renders and labels on the rest as threads. A scenario is written in
+OUT/.partial/<split>/<name>/ (its own small OPV2V root, outside every split
+folder, where no OPV2V or Co3SOP loader looks) and moved into place when
+complete; SIGINT or SIGTERM stops every worker, and a re-run resumes where it
+stopped (completed scenarios are skipped, unfinished ones redone).
 """
 
 from __future__ import annotations

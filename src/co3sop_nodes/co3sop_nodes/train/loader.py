@@ -48,9 +48,11 @@ class StepSamples(torch.utils.data.Dataset):
             return exc
 
 
-def step_loader(samples: StepSamples, workers: int, pin: bool = False) -> torch.utils.data.DataLoader:
-    """Steps in order, read by `workers` processes ahead of the step that trains (0: in this process, in turn);
-    with `pin` (for a CUDA step), their arrays handed over in page-locked memory (Sample.pin_memory)."""
+def step_loader(
+    samples: StepSamples, workers: int, device: torch.device = torch.device("cpu")
+) -> torch.utils.data.DataLoader:
+    """Steps in order, read by `workers` processes ahead of the step that trains on `device` (0: in this process,
+    in turn); for a CUDA step their arrays are handed over in page-locked memory (Sample.pin_memory)."""
     return torch.utils.data.DataLoader(
         samples,
         batch_size=None,
@@ -58,7 +60,7 @@ def step_loader(samples: StepSamples, workers: int, pin: bool = False) -> torch.
         num_workers=workers,
         collate_fn=_unchanged,
         prefetch_factor=2 if workers else None,
-        pin_memory=pin,
+        pin_memory=device.type == "cuda",
     )
 
 

@@ -344,7 +344,7 @@ def _train(opts, command: str, world: distributed.World, device: torch.device) -
     t0 = time.time()
     waited = 0.0  # seconds the step waited for its samples
     with open(log_path, "a", newline="") if world.main else contextlib.nullcontext() as log:
-        loaded = iter(step_loader(steps, opts.workers, pin=device.type == "cuda"))
+        loaded = iter(step_loader(steps, opts.workers, device))
         for step in range(start, opts.steps):
             lr = learning_rate(opts.lr, opts.schedule, step, opts.steps)
             for group in trainer.optimizer.param_groups:
