@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from timing import timed
 from torch.utils.flop_counter import FlopCounterMode
 
+from co3sop_nodes import kernels
 from co3sop_nodes.cli.device import add_device_argument
 from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.data.bags import read_scans
@@ -436,6 +437,12 @@ def masked_table(name: str, repeats: int, device: torch.device) -> str:
     return "\n".join(rows)
 
 
+def vector_unit() -> str:
+    """The CPU's widest vectors, which the compiled kernels are built for."""
+    flags = kernels.cpu_flags()
+    return "AVX-512" if "avx512f" in flags else "AVX2, no AVX-512" if "avx2" in flags else "no AVX2"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="tiny")
@@ -459,6 +466,9 @@ def main() -> None:
         type=int,
         metavar="FRAMES",
         help="only the fusion's padded queries against none, on this many of --bag's frames",
+    )
+    parser.add_argument(
+        "--head", action="store_true", help="only the head to labels: dense reference, PyTorch loop, compiled kernel"
     )
     parser.add_argument(
         "--roofline",
@@ -486,6 +496,12 @@ def main() -> None:
         parts = [
             "### The fusion's queries padded to a multiple of query_rows against none (tiny-lidar, one thread)",
             query_rows_table(opts.bag, opts.query_rows),
+        ]
+    elif opts.head:
+        parts = [
+            f"### Head to labels: dense reference vs its exact fast paths (`{opts.preset}`, {opts.threads} threads, "
+            f"median of {opts.repeats}; {vector_unit()})",
+            head_table(opts.preset, opts.repeats, device),
         ]
     elif opts.roofline:
         torch.set_num_threads(1)

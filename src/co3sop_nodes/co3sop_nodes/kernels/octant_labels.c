@@ -2,8 +2,9 @@
  *
  * One 16-lane vector per channel holds two parents' 8 octants each (their fine voxels), so every layer is a
  * short sequence of vector multiply-adds kept in registers, fused with the argmax and the label's softmax
- * probability. 16 lanes fill an AVX-512 register (two AVX2 ones elsewhere, as fast as 8 lanes were). Compiled
- * per head shape: C1 (channels at 1/2), C2 (at full resolution) and K (classes) are defined on the command line.
+ * probability. 16 lanes fill an AVX-512 register; without AVX-512 the compiler splits them over two AVX2 ones
+ * (comparisons: `gt`). Compiled per head shape: C1 (channels at 1/2), C2 (at full resolution) and K (classes) are
+ * defined on the command line.
  * GCC/Clang vector extensions, no intrinsics: any target compiles it. What bounds it is chains of dependent
  * operations more than their count: the argmax is a tree of pairwise maxima and the softmax's sum is four sums.
  * Sums run in the reference's order per voxel (over input channels), so logits match it to float rounding; with
@@ -36,6 +37,26 @@ typedef float parent_t;
 
 static inline f16 select(i16 m, f16 a, f16 b) { return (f16)(((i16)a & m) | ((i16)b & ~m)); }
 
+/* a > b per lane (-1 where true). GCC splits a 16-lane vector's arithmetic over narrower registers but compares
+ * lane by lane in scalar code, so without AVX-512 the comparison is made in register-wide parts */
+#if defined(__AVX512F__)
+static inline i16 gt(f16 a, f16 b) { return a > b; }
+#else
+#if defined(__AVX__)
+#define PART 8
+#else
+#define PART 4
+#endif
+typedef float fpart __attribute__((vector_size(4 * PART)));
+typedef int32_t ipart __attribute__((vector_size(4 * PART)));
+static inline i16 gt(f16 a, f16 b) {
+  union { f16 v; fpart p[16 / PART]; } ua = {a}, ub = {b};
+  union { i16 v; ipart p[16 / PART]; } out;
+  for (int k = 0; k < 16 / PART; ++k) out.p[k] = ua.p[k] > ub.p[k];
+  return out.v;
+}
+#endif
+
 /* the lanes of parent p (half 0; p + 1: half 1), lane = 4 (2 dx + dy) + 2 half + dz as in write_pair */
 static const i16 HALF0 = {-1, -1, 0, 0, -1, -1, 0, 0, -1, -1, 0, 0, -1, -1, 0, 0};
 
@@ -59,7 +80,7 @@ static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]
 }
 #endif
 
-static inline f16 relu(f16 v) { return (f16)((i16)v & (v > 0.0f)); }
+static inline f16 relu(f16 v) { return (f16)((i16)v & gt(v, (f16){0})); }
 
 #if DOT_BF16
 #if !PARENTS_BF16 || C2 % 2
@@ -105,7 +126,7 @@ static inline __attribute__((always_inline)) void pointwise_bf16(const f16 *in, 
  * rounds d and leaves n in the sum's low mantissa bits, which a shift by 23 moves into the exponent), |f| <= 1/2,
  * 2^f by its degree-4 minimax polynomial; below 2^-126 it is clamped (negligible in the sum) */
 static inline f16 exp_nonpositive(f16 d) {
-  const f16 x = select(d > -126.0f, d, (f16){0} - 126.0f);
+  const f16 x = select(gt(d, (f16){0} - 126.0f), d, (f16){0} - 126.0f);
   const f16 shifted = x + 12582912.0f;
   const f16 f = x - (shifted - 12582912.0f);
   const f16 p = 0.99999928f + f * (0.69312191f + f * (0.24024744f + f * (0.05591722f + f * 0.00956987f)));
@@ -116,9 +137,9 @@ static inline f16 exp_nonpositive(f16 d) {
  * i = floor, 2^f by its Taylor series to degree 6; below 2^-126 it is clamped (negligible in the sum) */
 static inline f16 exp_nonpositive(f16 d) {
   f16 x = d * 1.44269504f;
-  x = select(x > -126.0f, x, (f16){0} - 126.0f);
+  x = select(gt(x, (f16){0} - 126.0f), x, (f16){0} - 126.0f);
   i16 t = __builtin_convertvector(x, i16);            /* toward zero */
-  i16 i = t + (__builtin_convertvector(t, f16) > x);  /* floor: a true comparison is -1 */
+  i16 i = t + gt(__builtin_convertvector(t, f16), x);  /* floor: a true comparison is -1 */
   f16 f = (x - __builtin_convertvector(i, f16)) * 0.69314718f;
   f16 p = 1.0f + f * (1.0f + f * (0.5f + f * (1.0f / 6 + f * (1.0f / 24 + f * (1.0f / 120 + f * (1.0f / 720))))));
   return p * (f16)((i + 127) << 23);
@@ -223,7 +244,7 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
     for (int width = 1; width < K; width *= 2)
 #pragma GCC unroll 64
       for (int q = 0; q + width < K; q += 2 * width) {
-        const i16 later = val[q + width] > val[q];
+        const i16 later = gt(val[q + width], val[q]);
         val[q] = select(later, val[q + width], val[q]);
         idx[q] = (later & idx[q + width]) | (~later & idx[q]);
       }
