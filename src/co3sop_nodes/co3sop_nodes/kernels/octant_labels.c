@@ -35,6 +35,17 @@ typedef float parent_t;
 #error "C1 must be even: parents' channels are read in pairs"
 #endif
 
+/* loops over channels and classes unrolled in full while a layer's vectors fit in registers (twice as fast);
+ * a wider head's spill anyway, and unrolling it in full takes the compiler minutes and runs slower */
+#if C2 <= 16
+#define UNROLL 64
+#else
+#define UNROLL 16
+#endif
+#define PRAGMA(x) _Pragma(#x)
+#define UNROLL_BY(n) PRAGMA(GCC unroll n)
+#define UNROLLED UNROLL_BY(UNROLL)
+
 static inline f16 select(i16 m, f16 a, f16 b) { return (f16)(((i16)a & m) | ((i16)b & ~m)); }
 
 /* a > b per lane (-1 where true). GCC splits a 16-lane vector's arithmetic over narrower registers but compares
@@ -110,12 +121,12 @@ static inline __m512bh broadcast(uint32_t pair) { return (__m512bh)_mm512_set1_e
  * bfloat16 pair w[i][o], w[i + 1][o] (inlined with constant sizes: every vector stays in a register) */
 static inline __attribute__((always_inline)) void pointwise_bf16(const f16 *in, int n_in, const uint32_t *pairs,
                                                                  const float *bias, int n_out, f16 *out) {
-#pragma GCC unroll 64
+UNROLLED
   for (int o = 0; o < n_out; ++o) out[o] = (f16){0} + bias[o];
-#pragma GCC unroll 64
+UNROLLED
   for (int i = 0; i < n_in; i += 2) {
     const __m512bh r = relu_pairs(in[i], in[i + 1]);
-#pragma GCC unroll 64
+UNROLLED
     for (int o = 0; o < n_out; ++o) out[o] = dot(out[o], r, broadcast(pairs[i / 2 * n_out + o]));
   }
 }
@@ -196,41 +207,41 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
     const int paired = p + 1 < end && pz + 1 < z1;  /* else p alone, in both halves */
     const parent_t *xa = parents + px * sx + py * sy + pz * sz, *xb = paired ? xa + sz : xa;
     f16 h[C2], g[C2], logits[K];
-#pragma GCC unroll 64
+UNROLLED
     for (int j = 0; j < C2; ++j) h[j] = up_b[j];
 #if DOT_BF16
-#pragma GCC unroll 64
+UNROLLED
     for (int c = 0; c < C1; c += 2) {
       const __m512bh x = (__m512bh)parent_pairs(xa + c, xb + c);
-#pragma GCC unroll 64
+UNROLLED
       for (int j = 0; j < C2; ++j) h[j] = dot(h[j], x, (__m512bh)up_pairs[c / 2 * C2 + j]);
     }
     pointwise_bf16(h, C2, point_pairs, point_b, C2, g);
     pointwise_bf16(g, C2, cls_pairs, b_cls, K, logits);
 #else
-#pragma GCC unroll 64
+UNROLLED
     for (int c = 0; c < C1; c += 2) {
       f16 xc[2];
       parent_lanes(xa + c, xb + c, xc);
 #pragma GCC unroll 2
       for (int k = 0; k < 2; ++k)
-#pragma GCC unroll 64
+UNROLLED
         for (int j = 0; j < C2; ++j) h[j] += xc[k] * up_w[(c + k) * C2 + j];
     }
-#pragma GCC unroll 64
+UNROLLED
     for (int d = 0; d < C2; ++d) g[d] = (f16){0} + point_b[d];
-#pragma GCC unroll 64
+UNROLLED
     for (int c = 0; c < C2; ++c) {
       const f16 r = relu(h[c]);
-#pragma GCC unroll 64
+UNROLLED
       for (int d = 0; d < C2; ++d) g[d] += r * point_w[c * C2 + d];
     }
-#pragma GCC unroll 64
+UNROLLED
     for (int q = 0; q < K; ++q) logits[q] = (f16){0} + b_cls[q];
-#pragma GCC unroll 64
+UNROLLED
     for (int d = 0; d < C2; ++d) {
       const f16 r = relu(g[d]);
-#pragma GCC unroll 64
+UNROLLED
       for (int q = 0; q < K; ++q) logits[q] += r * w_cls[d * K + q];
     }
 #endif
@@ -238,18 +249,18 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
      * as in torch's argmax */
     f16 val[K];
     i16 idx[K];
-#pragma GCC unroll 64
+UNROLLED
     for (int q = 0; q < K; ++q) val[q] = logits[q], idx[q] = (i16){0} + q;
 #pragma GCC unroll 8
     for (int width = 1; width < K; width *= 2)
-#pragma GCC unroll 64
+UNROLLED
       for (int q = 0; q + width < K; q += 2 * width) {
         const i16 later = gt(val[q + width], val[q]);
         val[q] = select(later, val[q + width], val[q]);
         idx[q] = (later & idx[q + width]) | (~later & idx[q]);
       }
     f16 part[4] = {{0}, {0}, {0}, {0}};
-#pragma GCC unroll 64
+UNROLLED
     for (int q = 0; q < K; ++q) part[q % 4] += exp_nonpositive(logits[q] - val[0]);
     const f16 conf = 255.0f / ((part[0] + part[1]) + (part[2] + part[3])) + 0.5f;  /* the sum >= 1: in [0.5, 255.5] */
     const b16 label8 = __builtin_convertvector(idx[0], b16);
