@@ -150,6 +150,14 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
         # where a run lost frames: the ego's slowest frames, and the fused frames its skips came before
         "ego_slowest": sorted(((float(d["total_ms"]), i + 1) for i, d in enumerate(ego)), reverse=True)[:3],
         "ego_skipped_before": [i + 1 for i, (was, now) in enumerate(zip([0, *skipped], skipped)) if now > was],
+        # what a node's first frames cost beyond its later ones (first-use costs its warm-up did not take)
+        "first_cpu_ms": {
+            "ego": [float(d["cpu_ms"]) for d in ego[:3]],
+            **{
+                f"vehicle {a}": [float(d["cpu_ms"]) for _, d in sorted(v.items())[:3]]
+                for a, v in sorted(vehicles.items())
+            },
+        },
         "vehicle_stage_ms": {
             k: float(np.median([float(d[k]) for v in vehicles.values() for d in v.values()])) for k in VEHICLE_STAGES
         },
@@ -216,6 +224,8 @@ def sweep(demo: Path, opts) -> int:
                 if r["ego_skipped_before"]
                 else ""
             )
+            + "\n  CPU of the first 3 frames (ms): "
+            + "; ".join(f"{k} {', '.join(f'{c:.0f}' for c in v)}" for k, v in r["first_cpu_ms"].items())
             + (f"\n  every process's CPU a frame while the bag played (ms): {processes.group(1)}" if processes else ""),
             flush=True,
         )  # as it comes: a long sweep may be cut

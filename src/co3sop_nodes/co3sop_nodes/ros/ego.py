@@ -294,7 +294,7 @@ class Ego(ManagedNode):
         p.on_change(self._apply)
         self.rng = np.random.default_rng(p["seed"])
         torch.set_num_threads(p["threads"])
-        warmed = warm_up(self.model, ego=True)
+        warmed = self._worker.call(lambda: warm_up(self.model, ego=True))  # on the thread that fuses
         # messages wait in DDS only until the executor takes them (fusing runs on its own thread)
         self._qos = features_qos(p["features_reliability"], p["queue_depth"])
         # names relative to the node's namespace: `__ns` and remapping apply
@@ -338,7 +338,7 @@ class Ego(ManagedNode):
         self.model = None
 
     def destroy_node(self) -> None:
-        self._worker.stop()
+        self._worker.close()
         super().destroy_node()
 
     def _apply(self, values: dict) -> None:

@@ -321,7 +321,8 @@ class Vehicle(ManagedNode):
         self._apply({name: p[name] for name in (*CODEC_FIELDS, *ANSWERING)})
         p.on_change(self._apply)
         torch.set_num_threads(p["threads"])
-        # a scan-only sender runs no model (its egos do)
+        # a scan-only sender runs no model (its egos do). On this thread, not the encoder's: there the first frame
+        # gained little and the later ones lost 15 % in the graph (BENCHMARKS.md, "Warming up on the thread that fuses")
         warmed = warm_up(self.model, ego=False) if self.send != "scan" or p["local_features"] else 0.0
         self.cameras = p["cameras"]
         # names relative to the node's namespace (/cav_<id> by default): `__ns` and remapping apply
@@ -477,7 +478,7 @@ class Vehicle(ManagedNode):
         self.model = None
 
     def destroy_node(self) -> None:
-        self._worker.stop()
+        self._worker.close()
         super().destroy_node()
 
     def _on_static(self, msg: TFMessage) -> None:
