@@ -10,19 +10,10 @@ import pytest
 from co3sop_nodes.ros.worker import Worker
 
 
-class Log:
-    def __init__(self):
-        self.errors: list[str] = []
-
-    def error(self, text: str) -> None:
-        self.errors.append(text)
-
-
-def test_calls_and_jobs_run_on_the_one_thread_and_only_jobs_wait_for_start():
+def test_calls_and_jobs_run_on_the_one_thread_and_only_jobs_wait_for_start(logger):
     ran: list[str] = []
     pending = [lambda: ran.append(threading.current_thread().name)]
-    log = Log()
-    worker = Worker("w", lambda: pending.pop() if pending else None, log, poll_s=None)
+    worker = Worker("w", lambda: pending.pop() if pending else None, logger, poll_s=None)
     assert worker.call(lambda: threading.current_thread().name) == "w"  # before start: calls run, jobs wait
     assert ran == [] and pending
     worker.start()
@@ -32,16 +23,16 @@ def test_calls_and_jobs_run_on_the_one_thread_and_only_jobs_wait_for_start():
     assert ran == ["w"]  # the frame ran on the thread the call ran on
     with pytest.raises(ZeroDivisionError):  # a call's error reaches its caller, the thread goes on
         worker.call(lambda: 1 / 0)
-    assert worker.call(lambda: 7) == 7 and log.errors == []
+    assert worker.call(lambda: 7) == 7 and logger.errors == []
     worker.close()
     with pytest.raises(RuntimeError, match="closed"):
         worker.call(lambda: 0)
 
 
-def test_stop_waits_for_the_job_in_progress_and_no_job_starts_after_it():
+def test_stop_waits_for_the_job_in_progress_and_no_job_starts_after_it(logger):
     started, release, finished = threading.Event(), threading.Event(), threading.Event()
     jobs = [lambda: (started.set(), release.wait(5), finished.set())]
-    worker = Worker("w", lambda: jobs.pop() if jobs else None, Log(), poll_s=0.01)
+    worker = Worker("w", lambda: jobs.pop() if jobs else None, logger, poll_s=0.01)
     worker.start()
     assert started.wait(5)
     stopper = threading.Thread(target=worker.stop)
@@ -57,13 +48,12 @@ def test_stop_waits_for_the_job_in_progress_and_no_job_starts_after_it():
     worker.close()
 
 
-def test_a_failing_job_is_logged_and_the_worker_goes_on():
+def test_a_failing_job_is_logged_and_the_worker_goes_on(logger):
     jobs = [lambda: None, lambda: 1 / 0]
-    log = Log()
-    worker = Worker("w", lambda: jobs.pop() if jobs else None, log, poll_s=0.01)
+    worker = Worker("w", lambda: jobs.pop() if jobs else None, logger, poll_s=0.01)
     worker.start()
     deadline = time.monotonic() + 5
     while jobs and time.monotonic() < deadline:
         time.sleep(0.01)
     worker.close()
-    assert not jobs and len(log.errors) == 1 and "division by zero" in log.errors[0]
+    assert not jobs and len(logger.errors) == 1 and "division by zero" in logger.errors[0]
