@@ -35,8 +35,8 @@ typedef float parent_t;
 #error "C1 must be even: parents' channels are read in pairs"
 #endif
 
-/* loops over channels and classes unrolled in full while a layer's vectors fit in registers (twice as fast);
- * a wider head's spill anyway, and unrolling it in full takes the compiler minutes and runs slower */
+/* loops over channels and classes unrolled in full while a layer's vectors fit in registers; a wider head's
+ * spill anyway, and unrolling it in full takes the compiler minutes (BENCHMARKS.md) */
 #if C2 <= 16
 #define UNROLL 64
 #else

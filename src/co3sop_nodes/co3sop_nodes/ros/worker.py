@@ -10,8 +10,8 @@ kernels release the GIL while they compute).
 The thread lives as long as the node, so the node can warm up on it
 (`call`): glibc gives each thread its own memory arena, and the ego's first
 frames on a thread other than its warm-up's page-fault their tensors anew,
-at up to 1.7 times the CPU of its later frames, when the graph is busiest
-(BENCHMARKS.md, "Warming up on the thread that fuses").
+when the graph is busiest (BENCHMARKS.md, "Warming up on the thread that
+fuses").
 """
 
 from __future__ import annotations
