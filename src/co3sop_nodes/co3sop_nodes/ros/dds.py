@@ -15,6 +15,7 @@ import rclpy
 from ament_index_python.packages import get_package_share_directory
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -292,21 +293,28 @@ def configure_environment() -> None:
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", fastdds_profile_path())
 
 
-def spin_node(make_node: Callable[[], Node], args: list[str] | None = None, prog: str = "") -> int:
+def spin_node(
+    make_node: Callable[[], Node], args: list[str] | None = None, prog: str = "", events: bool = False
+) -> int:
     """The Jazzy node idiom: init, spin until Ctrl-C or shutdown, always clean up.
 
     `make_node` may raise SystemExit (e.g. a node that finished its job); its
     code is returned. Bad input (Co3sopError) or a file problem (OSError)
     prints `<prog>: error: <message>` and returns 2, never a traceback.
+    `events`: rclpy's EventsExecutor, for nodes that take many messages a
+    frame and whose callbacks never raise by design (it logs a raising
+    callback as fatal, with its stack); it takes a message for about a third
+    of the CPU of the single-threaded executor, which rebuilds its wait set
+    every time (BENCHMARKS.md, "The executor that takes the messages").
     """
     try:
-        return _spin(make_node, args)
+        return _spin(make_node, args, events)
     except (Co3sopError, OSError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
 
 
-def _spin(make_node: Callable[[], Node], args: list[str] | None) -> int:
+def _spin(make_node: Callable[[], Node], args: list[str] | None, events: bool = False) -> int:
     configure_environment()
     keep_freed_memory()  # a node repeats its frame's allocations: serve them from memory it already has
     rclpy.init(args=args)
@@ -314,7 +322,13 @@ def _spin(make_node: Callable[[], Node], args: list[str] | None) -> int:
     code = 0
     try:
         node = make_node()
-        rclpy.spin(node)
+        if events:
+            executor = EventsExecutor(context=node.context)
+            executor.add_node(node)
+            while node.context.ok():  # its spin() outlives a shutdown by a signal (rclpy 7.1): step, then check
+                executor.spin_once(timeout_sec=0.2)
+        else:
+            rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except SystemExit as done:

@@ -133,7 +133,7 @@ def main(args: list[str] | None = None) -> int:
         return recorder
 
     try:
-        return spin_node(make, argv, "recorder")
+        return spin_node(make, argv, "recorder", events=True)
     finally:
         if recorder is not None:
             recorder.close()
