@@ -19,11 +19,8 @@ HERE = Path(__file__).resolve().parent
 
 @pytest.fixture(scope="session", autouse=True)
 def ros_domain():
-    """One ROS_DOMAIN_ID per test process, so parallel runs never see each other: the workers of one run
-    (pytest-xdist's gw0, gw1, ...) take consecutive ids after their controller's."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER")
-    session = os.getppid() if worker else os.getpid()
-    os.environ["ROS_DOMAIN_ID"] = str(1 + (session + int(worker[2:] if worker else 0)) % 100)
+    """One ROS_DOMAIN_ID per test session, so parallel runs never see each other."""
+    os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     yield os.environ["ROS_DOMAIN_ID"]
 

@@ -301,11 +301,12 @@ def spin_node(
     `make_node` may raise SystemExit (e.g. a node that finished its job); its
     code is returned. Bad input (Co3sopError) or a file problem (OSError)
     prints `<prog>: error: <message>` and returns 2, never a traceback.
-    `events`: rclpy's EventsExecutor, for nodes that take many messages a
-    frame and whose callbacks never raise by design (it logs a raising
-    callback as fatal, with its stack); it takes a message for about a third
-    of the CPU of the single-threaded executor, which rebuilds its wait set
-    every time (BENCHMARKS.md, "The executor that takes the messages").
+    `events`: rclpy's EventsExecutor, which takes a message for about a
+    third of the CPU of the single-threaded executor (that one rebuilds its
+    wait set every time), for a node that takes many messages a frame and
+    whose callbacks never raise by design (it logs a raising callback as
+    fatal, with its stack); the ego failed its tests on it (BENCHMARKS.md,
+    "The executor that takes the messages").
     """
     try:
         return _spin(make_node, args, events)
