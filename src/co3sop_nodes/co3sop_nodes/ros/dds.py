@@ -305,8 +305,8 @@ def spin_node(
     third of the CPU of the single-threaded executor (that one rebuilds its
     wait set every time), for a node that takes many messages a frame and
     whose callbacks never raise by design (it logs a raising callback as
-    fatal, with its stack); the ego failed its tests on it (BENCHMARKS.md,
-    "The executor that takes the messages").
+    fatal, with its stack) (BENCHMARKS.md, "The executor that takes the
+    messages").
     """
     try:
         return _spin(make_node, args, events)
