@@ -301,12 +301,12 @@ def spin_node(
     `make_node` may raise SystemExit (e.g. a node that finished its job); its
     code is returned. Bad input (Co3sopError) or a file problem (OSError)
     prints `<prog>: error: <message>` and returns 2, never a traceback.
-    `events`: rclpy's EventsExecutor, which takes a message for about a
-    third of the CPU of the single-threaded executor (that one rebuilds its
-    wait set every time), for a node that takes many messages a frame and
-    whose callbacks never raise by design (it logs a raising callback as
-    fatal, with its stack) (BENCHMARKS.md, "The executor that takes the
-    messages").
+    `events`: rclpy's EventsExecutor, which takes each message as an event
+    where the single-threaded executor rebuilds its wait set (the recorder:
+    30 % less CPU a frame; BENCHMARKS.md, "The executor that takes the
+    messages"), for a node that takes many messages a frame and whose
+    callbacks never raise by design (it logs a raising callback as fatal,
+    with its stack).
     """
     try:
         return _spin(make_node, args, events)
