@@ -22,6 +22,7 @@ from rclpy.serialization import deserialize_message
 
 from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.common.errors import Co3sopError, exception_line
+from co3sop_nodes.v2x.sender_requests import MAPS_PER_EGO
 
 PACKAGE = "co3sop_nodes"
 
@@ -49,11 +50,12 @@ OCCUPANCY_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
-# Request maps: only the newest matters (a vehicle uses the latest of each ego), small, reliable; latched, so a
-# vehicle that joins (or matches late) gets each ego's latest request at once instead of a frame later
+# Request maps: small, reliable, as many held as a vehicle keeps of each ego (a vehicle behind the ego answers each
+# frame with the map made for it, which a depth of one overwrites with the next whenever its executor is late);
+# latched, so a vehicle that joins (or matches late) gets each ego's latest requests at once instead of a frame later
 REQUEST_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
-    depth=1,
+    depth=MAPS_PER_EGO,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )

@@ -34,6 +34,8 @@ import numpy as np
 REQUEST_ANSWERS = ("each", "union")
 # a request map is the one made for a frame when their stamps are this close (sensors of one tick, half a 10 Hz frame)
 SAME_FRAME_NS = 50_000_000
+# maps kept of each ego: a vehicle a frame or two behind the ego still answers each frame with the map made for it
+MAPS_PER_EGO = 3
 
 
 def union_request(needs: list[np.ndarray]) -> np.ndarray:
@@ -63,7 +65,7 @@ def _distance(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class RequestBook:
-    def __init__(self, comm_range: float, timeout_ns: int, max_egos: int, capacity: int = 64, depth: int = 3):
+    def __init__(self, comm_range: float, timeout_ns: int, max_egos: int, capacity: int = 64, depth: int = MAPS_PER_EGO):
         self.comm_range, self.timeout_ns, self.max_egos, self.capacity = comm_range, timeout_ns, max_egos, capacity
         self.depth = depth
         # ego -> its last `depth` requests, oldest first; egos in the order their newest came
