@@ -65,7 +65,9 @@ def _distance(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class RequestBook:
-    def __init__(self, comm_range: float, timeout_ns: int, max_egos: int, capacity: int = 64, depth: int = MAPS_PER_EGO):
+    def __init__(
+        self, comm_range: float, timeout_ns: int, max_egos: int, capacity: int = 64, depth: int = MAPS_PER_EGO
+    ):
         self.comm_range, self.timeout_ns, self.max_egos, self.capacity = comm_range, timeout_ns, max_egos, capacity
         self.depth = depth
         # ego -> its last `depth` requests, oldest first; egos in the order their newest came
