@@ -13,7 +13,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from conftest import executable
+from executables import executable
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.eval.scoring import message_counts

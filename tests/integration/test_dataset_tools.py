@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import executable
+from executables import executable
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 

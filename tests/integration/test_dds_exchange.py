@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import rclpy
-from conftest import HERE, finish
+from executables import HERE, finish
 from rclpy.duration import Duration
 
 from co3sop_msgs.msg import RequestMap

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 from ament_index_python.packages import get_package_share_directory
-from conftest import executable
+from executables import executable
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2

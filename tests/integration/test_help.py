@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 from ament_index_python.packages import get_package_prefix
-from conftest import executable
+from executables import executable
 
 from co3sop_nodes.ros import ego, vehicle
 from co3sop_nodes.ros.lifecycle import AUTOSTART

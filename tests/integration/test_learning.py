@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import executable
+from executables import executable
 from model_checks import MICRO, assert_labels_equal, reference
 
 from co3sop_nodes.data import synthetic

@@ -7,7 +7,7 @@ import signal
 
 import pytest
 import rclpy
-from conftest import executable
+from executables import executable
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from test_node_faults import EGO, start, wait_for

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import rclpy
 from ament_index_python.packages import get_package_prefix
-from conftest import executable, finish
+from executables import executable, finish
 
 from co3sop_msgs.msg import VoxelScan
 from co3sop_nodes.common.geometry import Pose

@@ -6,7 +6,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from conftest import executable, finish
+from executables import executable, finish
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "opv2v"
 

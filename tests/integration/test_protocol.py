@@ -7,7 +7,7 @@ import os
 import subprocess
 from pathlib import Path
 
-from conftest import executable
+from executables import executable
 
 ROOT = Path(__file__).resolve().parents[2]
 PRESETS = {  # preset: (evidence the protocol must leave, evidence it must not)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import rclpy
 from ament_index_python.packages import get_package_share_directory
-from conftest import executable
+from executables import executable
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 from test_node_faults import (

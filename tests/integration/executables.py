@@ -1,0 +1,57 @@
+"""The package's installed executables, found exactly as `ros2 run` finds them, and the processes a test starts.
+Test modules import these from here, not from conftest.py: under `colcon test` the unit tests' conftest.py is
+imported first, and a bare `import conftest` would find that one."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from ament_index_python.packages import get_package_prefix
+
+HERE = Path(__file__).resolve().parent
+
+
+def executable(name: str) -> str:
+    """Path of a co3sop_nodes executable, found exactly as ros2run finds it."""
+    path = Path(get_package_prefix("co3sop_nodes"), "lib", "co3sop_nodes", name)
+    assert path.is_file() and os.access(path, os.X_OK), f"{path} is not an installed executable"
+    return str(path)
+
+
+class Processes:
+    """Started processes; whatever is still running at teardown is interrupted, then killed."""
+
+    def __init__(self):
+        self._procs: list[subprocess.Popen] = []
+
+    def start(self, *argv: str) -> subprocess.Popen:
+        proc = subprocess.Popen(
+            list(argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ)
+        )
+        self._procs.append(proc)
+        return proc
+
+    def peer(self, *args: str) -> subprocess.Popen:
+        """A test peer script from tests/integration/peers, run by this interpreter."""
+        return self.start(sys.executable, str(HERE / "peers" / args[0]), *args[1:])
+
+    def close(self) -> None:
+        for proc in self._procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for proc in self._procs:
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def finish(proc: subprocess.Popen, timeout: float = 120) -> tuple[int, str]:
+    """Waits for a process; returns (exit code, its combined output)."""
+    out, _ = proc.communicate(timeout=timeout)
+    return proc.returncode, out
