@@ -27,7 +27,9 @@ fi
 . "$ROOT/ros2_ws/env.sh"
 cd "$ROOT"
 set +e
-python -m pytest -c src/co3sop_nodes/setup.cfg --rootdir tests --durations=30 tests "$@"
+# Two worker processes (pytest-xdist): most tests wait on processes they started, so one core alone idles half
+# the time. Each test goes to whichever worker is free.
+python -m pytest -c src/co3sop_nodes/setup.cfg --rootdir tests --durations=30 -n 2 --dist worksteal tests "$@"
 code=$?
 set -e
 if [ "$code" -eq 5 ]; then
