@@ -7,8 +7,12 @@ import time
 
 from co3sop_nodes.ros.demo import Process
 
-# 0.3 s of CPU, then idle until stopped
-BURN = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass\ntime.sleep(60)\n"
+# 0.3 s of CPU, then idle until stopped; it takes SIGINT as a node does (rclpy installs its own handler), also when
+# the suite runs in the background, whose children inherit SIGINT ignored
+BURN = (
+    "import signal, time\nsignal.signal(signal.SIGINT, signal.default_int_handler)\n"
+    "t = time.process_time()\nwhile time.process_time() - t < 0.3: pass\ntime.sleep(60)\n"
+)
 
 
 def test_cpu_seconds_counts_what_a_running_child_used_and_none_once_it_ended():
