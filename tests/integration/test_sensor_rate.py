@@ -41,19 +41,9 @@ def stop(*procs) -> None:
 
 
 def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skipped(tmp_path, peer, sup):
-    ego = start(
-        tmp_path,
-        "ego",
-        executable("ego"),
-        "--ros-args",
-        "-p",
-        f"ego_id:={EGO}",
-        "-p",
-        "max_wait:=5.0",
-        "-p",  # DDS holds the whole feed: a starved executor must not lose frames, uncounted, to the queue's depth
-        f"queue_depth:={FRAMES}",
-        *CAMERA,
-    )
+    # DDS holds the whole feed: a starved executor must not lose frames, uncounted, to the queue's depth
+    params = ("-p", f"ego_id:={EGO}", "-p", "max_wait:=5.0", "-p", f"queue_depth:={FRAMES}")
+    ego = start(tmp_path, "ego", executable("ego"), "--ros-args", *params, *CAMERA)
     try:
         wait_ready(sup, "/ego", *ego)
         pubs = {
