@@ -317,7 +317,7 @@ def spin_node(
         return 2
 
 
-def _spin(make_node: Callable[[], Node], args: list[str] | None, events: bool = False) -> int:
+def _spin(make_node: Callable[[], Node], args: list[str] | None, events: bool) -> int:
     configure_environment()
     keep_freed_memory()  # a node repeats its frame's allocations: serve them from memory it already has
     rclpy.init(args=args)
