@@ -720,7 +720,8 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
     try:
         for name, (proc, log) in procs.items():
             wait_ready(sup, NODES[name], proc, log)
-        assert [i.qos_profile.reliability for i in peer.get_publishers_info_by_topic(features)] == [
+        sup.wait_published(NODES["lidar"], features)  # ready, and seen in the graph: the view may lag
+        assert [i.qos_profile.reliability for i in sup.node.get_publishers_info_by_topic(features)] == [
             ReliabilityPolicy.BEST_EFFORT
         ]
         sup.wait_subscribed("/ego", features)
