@@ -33,6 +33,21 @@ def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
     assert pace.sustainable_rate(drawn, 3, 0.1, 64) == pytest.approx(0.1 / (0.1 * h))
 
 
+@pytest.mark.parametrize(
+    ("measured", "sustained"),
+    [
+        # the demo's measured costs (vehicle, ego, pictures) on two CPUs, and the highest rate at which their graph
+        # fused every frame of 100 in bench_graph's runs (BENCHMARKS.md)
+        (pace.FrameCost(0.016, 0.047, 0.004), 1.0),  # AVX-512 BF16, family 26: 1.0 in most runs
+        (pace.FrameCost(0.026, 0.076, 0.005), 0.67),  # AVX-512 BF16, family 25: 0.67 in two of three, 0.8 in none
+    ],
+)
+def test_the_rate_stays_within_what_the_measured_graphs_sustained(measured, sustained):
+    rate = pace.sustainable_rate(measured, 3, 0.1, 2)
+    assert rate <= sustained
+    assert rate > 0.85 * sustained  # not so cautious that a machine plays far below what it keeps up with
+
+
 @pytest.mark.parametrize("name", ["tiny", "tiny-lidar"])
 def test_a_frame_is_measured_for_both_modalities(name):
     model = build_model(preset(name, **MICRO)).eval()

@@ -26,12 +26,17 @@ from co3sop_nodes.sim import rig
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, encode_labels
 from co3sop_nodes.viz.cloud import occupancy_cloud
 
-# play at 1 / HEADROOM of the rate the measured work allows: DDS, decoding, the player and the recorder's own work
-# (not measured here), the ego waiting for the vehicles' features of its frame, several processes sharing few cores
-# (the ego's frame takes longer than its CPU), and jitter. Calibrated by bench_graph's sweeps: on 2 cores with the
-# LiDAR model in bfloat16 the measured work allows about 2x real time; the graph fuses every frame of 100 at 1.0
-# and skips a few at 1.2 (BENCHMARKS.md)
-HEADROOM = 1.8
+# The graph's CPU a frame over the work measured here: DDS, the nodes' message conversions, the player and the
+# recorder writing. bench_graph measured 1.55 on an AVX-512 BF16 CPU at 1.0 and 1.29-1.54 on one with half its
+# bfloat16 throughput (the higher in a slow spell): a ratio, as the overheads scale with the machine
+# (BENCHMARKS.md, "The demo's rate on a CPU with half the bfloat16 throughput").
+OVERHEAD = 1.55
+# The share of the cores the graph may keep busy on average and still fuse every frame: its processes wake together
+# at each frame and start up together, and a slow spell of a shared machine costs a frame. On 2 cores every frame of
+# 100 was fused in most runs at 61-75 %; at 84-93 % frames were skipped (same section).
+UTILISATION = 0.75
+# play at 1 / HEADROOM of the rate the measured work allows
+HEADROOM = OVERHEAD / UTILISATION
 
 
 @dataclass(frozen=True)
