@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from co3sop_nodes.model.backbone import DeformConv2d, deform_conv2d, deform_conv2d_reference
 from co3sop_nodes.model.config import AttentionConfig
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d, sample_3d
-from co3sop_nodes.model.fusion import VoxelFusion
+from co3sop_nodes.model.fusion import VoxelFusion, channels_last_rows
 from co3sop_nodes.model.positional import sine_encoding_3d
 
 # ---------------------------------------------------------------- references
@@ -239,6 +239,17 @@ def test_fusion_selected_voxel_equals_layers_on_that_voxel_alone(b):
                 torch.testing.assert_close(out[n, :, i, j, k], q[0, 0], atol=1e-5, rtol=1e-5)
                 checked += 1
     assert checked > 3 * b
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("b", [1, 2])
+def test_channels_last_rows_copy_each_voxels_channels_together(b, dtype):
+    volume = torch.randn(b, 8, 4, 3, 2).to(dtype)
+    rows = channels_last_rows(volume)
+    assert rows.is_contiguous() and rows.dtype == dtype
+    assert torch.equal(rows, volume.flatten(2).transpose(1, 2))
+    volume = volume.contiguous(memory_format=torch.channels_last_3d)  # whatever the source's layout
+    assert torch.equal(channels_last_rows(volume), rows)
 
 
 def test_fusion_reference_points_are_voxel_centres():

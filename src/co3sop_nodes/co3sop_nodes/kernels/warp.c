@@ -10,15 +10,14 @@
 
 #define MAX_FEATURES 256
 
-/* Output voxels [start, end): their features' first cf channels into dst, the last channel (the confidence) into
- * last and the in-bounds weight into filled. Inlined with cf a constant where the caller's is one (the presets' 32,
- * 48 and 128), so that a voxel's accumulators live in registers. */
-static inline __attribute__((always_inline)) void warp_voxels(const float *restrict src, int64_t nx, int64_t ny,
-                                                               int64_t nz, const int64_t cf,
+/* Output voxels [start, end): their cf feature channels into dst, the confidence into last and the in-bounds
+ * weight into filled. Inlined with cf a constant where the caller's is one (the presets' 32, 48 and 128), so that a
+ * voxel's accumulators live in registers. */
+static inline __attribute__((always_inline)) void warp_voxels(const float *restrict src, const float *restrict conf_src,
+                                                               int64_t nx, int64_t ny, int64_t nz, const int64_t cf,
                                                                const float *restrict theta, const float *restrict base,
                                                                float *restrict dst, float *restrict last,
                                                                float *restrict filled, int64_t start, int64_t end) {
-  const int64_t c = cf + 1;
   for (int64_t v = start; v < end; ++v) {
     const int64_t i = v / (ny * nz), j = v / nz % ny, l = v % nz;
     const float bx = base[i], by = base[nx + j], bz = base[nx + ny + l];
@@ -38,9 +37,10 @@ static inline __attribute__((always_inline)) void warp_voxels(const float *restr
         if (ci < 0 || ci >= nx || cj < 0 || cj >= ny || cl < 0 || cl >= nz) continue;
         const float w =
             ((corner >> 2) ? ax : 1 - ax) * (((corner >> 1) & 1) ? ay : 1 - ay) * ((corner & 1) ? az : 1 - az);
-        const float *in = src + ((ci * ny + cj) * nz + cl) * c;
+        const int64_t at = (ci * ny + cj) * nz + cl;
+        const float *in = src + at * cf;
         for (int64_t k = 0; k < cf; ++k) acc[k] += w * in[k];
-        conf += w * in[cf];
+        conf += w * conf_src[at];
         sum += w;
       }
     }
@@ -50,20 +50,19 @@ static inline __attribute__((always_inline)) void warp_voxels(const float *restr
   }
 }
 
-/* src: (X, Y, Z, C) the features then the confidence; theta: (3, 4) affine_grid's matrix, rows and columns in
- * grid_sample's (w, h, d) = (z, y, x) order; base: affine_grid's voxel centres in [-1, 1] along x, then y, then z
- * (X + Y + Z values) -> dst (V, C - 1) the first C - 1 channels, last (V,) the last one,
- * filled (V,); C - 1 at most MAX_FEATURES */
-void warp_trilinear(const float *restrict src, int64_t nx, int64_t ny, int64_t nz, int64_t c,
-                    const float *restrict theta, const float *restrict base, float *restrict dst,
+/* src: (X, Y, Z, C) the features, channels-last, and conf_src (X, Y, Z) the confidence; theta: (3, 4) affine_grid's
+ * matrix, rows and columns in grid_sample's (w, h, d) = (z, y, x) order; base: affine_grid's voxel centres in
+ * [-1, 1] along x, then y, then z (X + Y + Z values) -> dst (V, C) the features, last (V,) the confidence,
+ * filled (V,); C at most MAX_FEATURES */
+void warp_trilinear(const float *restrict src, const float *restrict conf_src, int64_t nx, int64_t ny, int64_t nz,
+                    int64_t c, const float *restrict theta, const float *restrict base, float *restrict dst,
                     float *restrict last, float *restrict filled, int64_t start, int64_t end) {
-  const int64_t cf = c - 1;
-  if (cf == 32)
-    warp_voxels(src, nx, ny, nz, 32, theta, base, dst, last, filled, start, end);
-  else if (cf == 48)
-    warp_voxels(src, nx, ny, nz, 48, theta, base, dst, last, filled, start, end);
-  else if (cf == 128)
-    warp_voxels(src, nx, ny, nz, 128, theta, base, dst, last, filled, start, end);
+  if (c == 32)
+    warp_voxels(src, conf_src, nx, ny, nz, 32, theta, base, dst, last, filled, start, end);
+  else if (c == 48)
+    warp_voxels(src, conf_src, nx, ny, nz, 48, theta, base, dst, last, filled, start, end);
+  else if (c == 128)
+    warp_voxels(src, conf_src, nx, ny, nz, 128, theta, base, dst, last, filled, start, end);
   else
-    warp_voxels(src, nx, ny, nz, cf, theta, base, dst, last, filled, start, end);
+    warp_voxels(src, conf_src, nx, ny, nz, c, theta, base, dst, last, filled, start, end);
 }

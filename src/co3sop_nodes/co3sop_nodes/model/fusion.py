@@ -24,6 +24,17 @@ def hybrid_mask(ego_conf, warped_conf, warp_mask):
     return warp_mask & (warped_conf > ego_conf)
 
 
+def channels_last_rows(volume: torch.Tensor) -> torch.Tensor:
+    """(B, C, X, Y, Z) -> a contiguous (B, V, C) copy, each voxel's channels together: one 2D transposition per
+    sample, which PyTorch copies in cache-sized tiles (the same copy of the 3D view went element by element, about
+    3x slower for a (32, 24576) volume here)."""
+    b, c = volume.shape[:2]
+    out = volume.new_empty(b, volume[0].numel() // c, c)
+    for i in range(b):
+        out[i].copy_(volume[i].reshape(c, -1).t())
+    return out
+
+
 class FusionLayer(nn.Module):
     def __init__(self, dims: int, att: AttentionConfig, slots: int, extent_voxels):
         super().__init__()
@@ -55,7 +66,7 @@ class VoxelFusion(nn.Module):
         selected = per_voxel.any(-1)  # (B, V)
         # float32 keeps the ego's layout; a reduced path writes whole voxels into a channels-last copy, which its
         # channels-last convolutions take as it is (in the ego's layout each voxel's channels lie V apart)
-        out = flat.contiguous() if self.path.reduced else flat.clone()
+        out = channels_last_rows(ego) if self.path.reduced else flat.clone()
         for i in range(b):
             idx = torch.arange(flat.shape[1], device=ego.device) if dense else selected[i].nonzero()[:, 0]
             n, rows = len(idx), self.path.query_rows
@@ -65,10 +76,11 @@ class VoxelFusion(nn.Module):
                 # repeats of the last query, whose results are dropped: each query's is computed on its own
                 idx = torch.cat([idx, idx[-1:].expand(rows - n % rows)])
             # the queries from the copy: on a reduced path whole channels-last rows, where the ego's layout has a
-            # voxel's channels V apart
-            q, m = out[i, idx][None], per_voxel[i, idx][None]  # (1, Q, C), (1, Q, A)
+            # voxel's channels V apart; index_select gathers rows several times faster than indexing with a tensor
+            q, m = out[i].index_select(0, idx)[None], per_voxel[i, idx][None]  # (1, Q, C), (1, Q, A)
+            pos, reference = self.pos.index_select(0, idx)[None], self.reference.index_select(0, idx)[None]
             for layer in self.layers:
-                q = layer(q, self.pos[idx][None], self.reference[idx][None], values[i : i + 1], m)
+                q = layer(q, pos, reference, values[i : i + 1], m)
             if dense:  # the selected voxels' results only
                 keep = selected[i]
                 idx, q = idx[keep], q[:, keep]
