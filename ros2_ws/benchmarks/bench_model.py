@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import resource
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -297,6 +298,43 @@ def peak_table(repeats: int) -> tuple[str, dict[str, float]]:
 
 
 @torch.no_grad()
+def int8_table(repeats: int, peak: dict[str, float]) -> str:
+    """What this CPU's int8 unit (VNNI where it has one) computes on one thread, against the bfloat16 peak: the
+    1024^3 matrix product (torch._int_mm, int32 sums) and the head's 3x3x3 convolution (PyTorch's x86 quantized
+    engine, which calls oneDNN; channels-last uint8 activations, per-channel int8 weights, requantized to uint8).
+    No inference path computes in int8: this is the distance an int8 path could go at these models' operations."""
+    rows = ["| kernel | int8 GOP/s | int8 / bfloat16 peak |", "|---|---:|---:|"]
+    gen = torch.Generator().manual_seed(0)
+    a, b = (torch.randint(-128, 128, (1024, 1024), generator=gen, dtype=torch.int8) for _ in range(2))
+    x = torch.rand(1, 32, 128, 128, 12, generator=gen)  # (B, C, X, Y, Z), non-negative as after a ReLU
+    w = torch.randn(32, 32, 3, 3, 3, generator=gen)
+    previous = torch.backends.quantized.engine
+    torch.backends.quantized.engine = "x86"
+    try:
+        with warnings.catch_warnings():  # PyTorch marks its quantized tensors deprecated; they still run here
+            warnings.simplefilter("ignore", UserWarning)
+            qx = torch.quantize_per_tensor(x, 1 / 255, 0, torch.quint8).contiguous(memory_format=torch.channels_last_3d)
+            scales = w.abs().amax(dim=(1, 2, 3, 4)) / 127
+            qw = torch.quantize_per_channel(w, scales, torch.zeros(32, dtype=torch.long), 0, torch.qint8)
+            conv = torch.ao.nn.quantized.Conv3d(32, 32, 3, padding=1)
+            conv.set_weight_bias(qw, None)
+            conv.scale, conv.zero_point = 0.1, 0
+            kernels = {
+                "matrix product 1024^3": (lambda: torch._int_mm(a, b), 2 * 1024**3),
+                "conv3d 3x3x3, 32->32, 128x128x12": (lambda: conv(qx), 2 * 32 * 32 * 27 * 128 * 128 * 12),
+            }
+            for name, (call, ops) in kernels.items():
+                call()
+                t, _ = timed(call, repeats)
+                rate = ops / t / 1e9
+                rows.append(f"| {name} | {rate:.0f} | {rate / peak['bfloat16']:.2f}x |")
+                print(f"  int8 {name}: {rate:.0f} GOP/s", flush=True)
+    finally:
+        torch.backends.quantized.engine = previous
+    return "\n".join(rows)
+
+
+@torch.no_grad()
 def layout_table(repeats: int) -> str:
     """`tiny-lidar`'s 3x3x3 convolutions at 51.2 m (the head's 32 -> 32 channels at 1/4 and 16 -> 16 at 1/2, the LiDAR
     vehicle half's dilated 32 -> 32 at 1/4) in bfloat16 on one thread, on channels-last volumes against z-outer ones
@@ -474,7 +512,7 @@ def main() -> None:
         "--roofline",
         action="store_true",
         help="only this CPU's measured peak (one thread), each shipped model's FLOPs and GFLOP/s per stage against "
-        "it, and the 3x3x3 convolutions by memory layout",
+        "it, what its int8 unit computes, and the 3x3x3 convolutions by memory layout",
     )
     opts = parser.parse_args()
     keep_freed_memory()  # as every node and command-line tool allocates
@@ -512,6 +550,8 @@ def main() -> None:
             peaks,
             "### Each stage against it (51.2 m, one thread, compiled kernels)",
             roofline_table(opts.repeats, peak),
+            f"### This CPU's int8 unit on one thread (median of {opts.repeats}; no inference path computes in int8)",
+            int8_table(opts.repeats, peak),
             "### The 3x3x3 convolutions by memory layout (bfloat16, one thread, alternating calls)",
             layout_table(opts.repeats),
         ]
