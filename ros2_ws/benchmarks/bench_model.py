@@ -313,15 +313,24 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
     try:
         with warnings.catch_warnings():  # PyTorch marks its quantized tensors deprecated; they still run here
             warnings.simplefilter("ignore", UserWarning)
-            qx = torch.quantize_per_tensor(x, 1 / 255, 0, torch.quint8).contiguous(memory_format=torch.channels_last_3d)
-            scales = w.abs().amax(dim=(1, 2, 3, 4)) / 127
-            qw = torch.quantize_per_channel(w, scales, torch.zeros(32, dtype=torch.long), 0, torch.qint8)
-            conv = torch.ao.nn.quantized.Conv3d(32, 32, 3, padding=1)
-            conv.set_weight_bias(qw, None)
-            conv.scale, conv.zero_point = 0.1, 0
+
+            def conv(z_last: bool):
+                # z_last False: the convolution of the (z, x, y) views, as on the reduced path's z-outer volumes
+                tx, tw = (x, w) if z_last else (t.permute(0, 1, 4, 2, 3).contiguous() for t in (x, w))
+                qx = torch.quantize_per_tensor(tx, 1 / 255, 0, torch.quint8)
+                qx = qx.contiguous(memory_format=torch.channels_last_3d)
+                scales = tw.abs().amax(dim=(1, 2, 3, 4)) / 127
+                qw = torch.quantize_per_channel(tw, scales, torch.zeros(32, dtype=torch.long), 0, torch.qint8)
+                layer = torch.ao.nn.quantized.Conv3d(32, 32, 3, padding=1)
+                layer.set_weight_bias(qw, None)
+                layer.scale, layer.zero_point = 0.1, 0
+                return lambda: layer(qx)
+
+            conv_ops = 2 * 32 * 32 * 27 * 128 * 128 * 12
             kernels = {
                 "matrix product 1024^3": (lambda: torch._int_mm(a, b), 2 * 1024**3),
-                "conv3d 3x3x3, 32->32, 128x128x12": (lambda: conv(qx), 2 * 32 * 32 * 27 * 128 * 128 * 12),
+                "conv3d 3x3x3, 32->32, 128x128x12": (conv(True), conv_ops),
+                "conv3d 3x3x3, 32->32, 128x128x12, z-outer": (conv(False), conv_ops),
             }
             for name, (call, ops) in kernels.items():
                 call()
