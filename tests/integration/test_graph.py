@@ -33,6 +33,7 @@ from co3sop_nodes.model.co3sop import build_model, with_wire
 from co3sop_nodes.model.config import WireConfig, preset
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import OCCUPANCY_QOS
+from co3sop_nodes.ros.recorder import DEFAULT_TOPICS
 from co3sop_nodes.ros.supervisor import Supervisor
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_features, decode_request
 from co3sop_nodes.v2x.request_map import request_for_neighbour
@@ -191,7 +192,12 @@ def run_graph(
         )
     graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
     graph.wait_discovered(cavs[1:])
-    graph.supervisor.wait_subscribed("/recorder", topics.EGO_OCCUPANCY)
+    # every topic of the nodes' that the recorder records, taken before the first frame: the recorder subscribes as
+    # it discovers a publisher, and a topic it takes late has lost its first messages (volatile)
+    patterns = [re.compile(f"^{t}$") for t in (recorded or DEFAULT_TOPICS)]
+    for topic in (topics.EGO_OCCUPANCY, topics.DIAGNOSTICS, *map(topics.voxel_features, cavs)):
+        if any(p.match(topic) for p in patterns):
+            graph.supervisor.wait_subscribed("/recorder", topic)
     played = ["/tf_static"] + [
         f"/cav_{c}/{s}"
         for c in cavs
