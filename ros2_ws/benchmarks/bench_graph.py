@@ -40,13 +40,17 @@ import numpy as np
 import torch
 from ament_index_python.packages import get_package_prefix
 
+from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.data.bags import read_scans
 from co3sop_nodes.eval.codec_settings import BUDGET_FEATURE_SETTINGS, RANK_FEATURE_SETTINGS, STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.eval.evaluate import plot_codecs
 from co3sop_nodes.eval.scoring import read_recording
-from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, export_model
+from co3sop_nodes.inference import pace
+from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, export_model, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 
@@ -196,7 +200,7 @@ def sweep(demo: Path, opts) -> int:
         "CPU per frame p50 (ms): ego; vehicles |",
         "|---:|---:|---:|---:|---:|---:|---|---|",
     ]
-    kept_up = []
+    kept_up, used = [], []  # used: (rate, frames fused, the graph's CPU a frame in ms) where the demo measured it
     for rate in opts.rates:
         done, out = run_demo(demo, opts, f"rate-{rate:g}", ["--rate", f"{rate:g}"], complete=False)
         frames = int(re.search(r": (\d+) frames;", done.stdout).group(1))
@@ -215,6 +219,8 @@ def sweep(demo: Path, opts) -> int:
         stages = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in r["vehicle_stage_ms"].items())
         n_two, ego_two = r["ego_ms_two_neighbours"]
         processes = re.search(r"CPU a frame while the bag played \(ms\): ([^\n]*)", done.stdout)
+        if processes:
+            used.append((rate, r["frames"], sum(map(int, re.findall(r" (\d+)(?=,| \(|$)", processes.group(1))))))
         print(
             f"{rows[-1]}\n  vehicles' stages p50 (ms): {stages}"
             f"\n  the ego's wall p50 over the {n_two} frames fused with two neighbours (ms): {ego_two:.1f}"
@@ -230,12 +236,41 @@ def sweep(demo: Path, opts) -> int:
             flush=True,
         )  # as it comes: a long sweep may be cut
     print("\n".join(rows))
+    if used:
+        print(f"\n{against_pace(opts, done.stdout, frames, used)}")
     print(
         f"\nHighest rate with every frame fused and recorded: {max(kept_up):g}"
         if kept_up
         else "\nNo rate kept up with every frame."
     )
     return 0
+
+
+def against_pace(opts, demo_output: str, frames: int, used: list[tuple[float, int, int]]) -> str:
+    """The graph's CPU a frame at each rate against what `demo` measures before it chooses a rate (model.pace, here,
+    after the runs: the same model, device and precision, a LiDAR vehicle on the bag's first scan) and against the
+    cores: the two numbers model.pace's headroom is made of (OVERHEAD, UTILISATION)."""
+    bag = Path(re.search(r"bag (\S+): \d+ frames", demo_output).group(1))
+    vehicles = len(re.search(r"vehicles \[([^\]]*)\]", demo_output).group(1).split(","))
+    keep_freed_memory()  # as the demo measures
+    model, _ = load_graph_model(resolve_checkpoint(opts.model, "--model"))
+    model.use(inference_path(opts.device, opts.precision, what="--"))
+    scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None
+    cost = pace.frame_cost(model, scan=scan)
+    work_ms = 1e3 * pace.graph_work(cost, vehicles)[0]
+    cores = pace.cores()
+    rows = [
+        f"The work model.pace measures: vehicle {1e3 * cost.vehicle_s:.1f} ms, ego {1e3 * cost.ego_s:.1f} ms, the "
+        f"recorder's pictures {1e3 * cost.recording_s:.1f} ms; {work_ms:.0f} ms a frame for {vehicles} vehicles and "
+        f"the ego (headroom {pace.HEADROOM:.2f} = OVERHEAD {pace.OVERHEAD} / UTILISATION {pace.UTILISATION})\n",
+        f"| rate | frames fused / {frames} | the graph's CPU a frame (ms) | over the work measured | "
+        f"share of the {cores} cores |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for rate, fused, cpu_ms in used:
+        share = cpu_ms / (1e3 * 0.1 / rate * cores)
+        rows.append(f"| {rate:g} | {fused} | {cpu_ms} | {cpu_ms / work_ms:.2f} | {100 * share:.0f} % |")
+    return "\n".join(rows)
 
 
 def paths(demo: Path, opts) -> int:

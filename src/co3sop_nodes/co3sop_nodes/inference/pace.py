@@ -137,6 +137,14 @@ def cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+def graph_work(cost: FrameCost, vehicles: int, egos: int = 1, scans: bool = False) -> tuple[float, float]:
+    """The CPU seconds a frame of the graph takes in the work measured here (every vehicle's half, every ego's frame
+    and the recorder's pictures of it), and one ego's. With `scans` the vehicles send their scans and each ego runs
+    the vehicle half once per neighbour too."""
+    ego_s = cost.ego_s + (vehicles - 1) * cost.vehicle_s if scans else cost.ego_s
+    return vehicles * cost.vehicle_s + egos * (ego_s + cost.recording_s), ego_s
+
+
 def sustainable_rate(
     cost: FrameCost,
     vehicles: int,
@@ -146,11 +154,9 @@ def sustainable_rate(
     egos: int = 1,
     scans: bool = False,
 ) -> float:
-    """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores (the recorder's
-    pictures of each ego's prediction included), and an ego (one process, every frame in turn) each bound the wall
-    time per frame; with headroom, at most real time. With
-    `scans` the vehicles send their scans and each ego runs the vehicle half once per neighbour too."""
-    ego_s = cost.ego_s + (vehicles - 1) * cost.vehicle_s if scans else cost.ego_s
-    cpu = vehicles * cost.vehicle_s + egos * (ego_s + cost.recording_s)
+    """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores (graph_work),
+    and an ego (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real
+    time."""
+    cpu, ego_s = graph_work(cost, vehicles, egos, scans)
     wall = max(cpu / max(1, n_cores), ego_s, cost.vehicle_s) * headroom
     return float(min(1.0, period_s / wall))
