@@ -314,9 +314,9 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
         with warnings.catch_warnings():  # PyTorch marks its quantized tensors deprecated; they still run here
             warnings.simplefilter("ignore", UserWarning)
 
-            def conv(z_last: bool):
-                # z_last False: the convolution of the (z, x, y) views, as on the reduced path's z-outer volumes
-                tx, tw = (x, w) if z_last else (t.permute(0, 1, 4, 2, 3).contiguous() for t in (x, w))
+            def conv(z_outer_views: bool):
+                # z_outer_views: the convolution of the (z, x, y) views, as on the reduced path's z-outer volumes
+                tx, tw = (t.permute(0, 1, 4, 2, 3).contiguous() for t in (x, w)) if z_outer_views else (x, w)
                 qx = torch.quantize_per_tensor(tx, 1 / 255, 0, torch.quint8)
                 qx = qx.contiguous(memory_format=torch.channels_last_3d)
                 scales = tw.abs().amax(dim=(1, 2, 3, 4)) / 127
@@ -329,8 +329,8 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
             conv_ops = 2 * 32 * 32 * 27 * 128 * 128 * 12
             kernels = {
                 "matrix product 1024^3": (lambda: torch._int_mm(a, b), 2 * 1024**3),
-                "conv3d 3x3x3, 32->32, 128x128x12": (conv(True), conv_ops),
-                "conv3d 3x3x3, 32->32, 128x128x12, z-outer": (conv(False), conv_ops),
+                "conv3d 3x3x3, 32->32, 128x128x12": (conv(False), conv_ops),
+                "conv3d 3x3x3, 32->32, 128x128x12, z-outer": (conv(True), conv_ops),
             }
             for name, (call, ops) in kernels.items():
                 call()

@@ -52,7 +52,6 @@ def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skippe
         wait_subscribed(peer, list(pubs.values()))
         sup.wait_subscribed("/ego", topics.voxel_features(OTHER))
         msgs = [(features(a, T0 + k * PERIOD_NS), a) for k in range(FRAMES) for a in (OTHER, EGO)]
-        start_wall = time.time_ns()
         for k in range(FRAMES):  # neighbour first: each own frame can pair as soon as it comes
             for msg, agent in msgs[2 * k : 2 * k + 2]:
                 pubs[agent].publish(msg)
@@ -65,12 +64,11 @@ def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skippe
     fused, skipped = len(reports), int(reports[-1]["skipped"])
     assert fused + skipped == FRAMES and skipped > 0, (fused, skipped)
     assert all(r["neighbours_used"] == "1" for r in reports)  # every fused frame still paired
-    # bounded: the last frame is fused within a few frames' compute of the feed's end, not after the backlog (the
-    # feed comes several times faster than the ego fuses, so fusing every frame would leave most of the 40 to fuse
-    # after it ends); beside a loaded core the executor takes the queued messages late, each decoded as it comes
+    # bounded: the last frame is fused within a few frames' compute of the ego receiving it, not after the backlog
+    # (timed from its receipt, not the feed's end: beside a loaded core the executor takes queued messages late)
     fuse_s = max(float(r["total_ms"]) for r in reports) / 1e3
-    feed_end = start_wall + FRAMES * PERIOD_NS
-    assert (int(reports[-1]["published_wall_ns"]) - feed_end) / 1e9 < FRAMES / 4 * fuse_s + 1.0
+    received = dict(x.split(":") for x in reports[-1]["received_wall_ns"].split(","))[str(EGO)]
+    assert (int(reports[-1]["published_wall_ns"]) - int(received)) / 1e9 < 3 * fuse_s + 1.0
     log = ego[1].read_text()
     assert "dropped (behind)" in log and log.count("dropped (behind)") < skipped  # logged once per burst
 
