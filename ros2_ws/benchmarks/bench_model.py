@@ -194,6 +194,9 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int, b
         scans = bag_scans(bag, model.cfg.grid) if bag is not None and model.cfg.modality == "lidar" else None
         for precision in ["float32", *(p for p in precisions if p != "float32")]:
             model.use(InferencePath(str(device), precision))
+            if model.path.precision != precision:  # int8 for a model without int8 layers: its other precision
+                print(f"  {name} {precision}: none here, the model runs {model.path.describe()}", flush=True)
+                continue
             inputs = pace.shaped_inputs(model)
             if scans is not None:
                 turn = itertools.cycle([s.to(device) for s in scans])

@@ -37,6 +37,7 @@ setup(
             f"generate = {PACKAGE}.cli.generate:entry",
             f"convert = {PACKAGE}.cli.convert:entry",
             f"info = {PACKAGE}.cli.info:entry",
+            f"calibrate = {PACKAGE}.cli.calibrate:entry",
             f"voxelize = {PACKAGE}.cli.voxelize:entry",
             f"train = {PACKAGE}.cli.train:entry",
             f"evaluate = {PACKAGE}.cli.evaluate:entry",

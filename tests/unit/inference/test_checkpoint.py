@@ -92,12 +92,18 @@ def test_every_shipped_checkpoint_is_installed_small_and_loads(name):
     path = shipped_checkpoint(f"{name}.pt")
     assert path.stat().st_size <= 5 * 2**20
     model, data = load_model(path)
-    stages = [h["stage"] for h in data["meta"]["history"]]
+    history = data["meta"]["history"]
+    training = [h for h in history if h["stage"] != "int8 calibration"]
+    stages = [h["stage"] for h in training]
     # the two stages in order (then a wire code's, where it has one), each possibly resumed or extended
     assert model.cfg.name == name and stages[0] == "ego" and "fusion" in stages
     assert stages == sorted(stages, key=["ego", "fusion", "wire"].index)
     assert ("wire" in stages) == (model.cfg.wire is not None)
-    assert all("--seed" in h["command"] for h in data["meta"]["history"])
+    assert all("--seed" in h["command"] for h in training)
+    # a model with int8 layers ships calibrated, after its training and never on the reported split
+    calibrations = history[len(training) :]
+    assert all(h["stage"] == "int8 calibration" and "test" not in h["splits"] for h in calibrations)
+    assert bool(calibrations) == bool(model.int8_activations()) == ("int8" in data)
 
 
 @pytest.mark.parametrize("name", SHIPPED)

@@ -24,15 +24,21 @@ def test_the_kernel_gives_the_convolutions_values(dims, threads):
     torch.manual_seed(0)
     weight, bias = torch.randn(16, 1, 3, 3, 3), torch.randn(16)
     want = F.relu(F.conv3d(occupancy.float(), weight, bias, stride=2, padding=1))  # (2, 16, X/2, Y/2, Z/2)
-    got = occupancy_kernel.occupancy_conv_relu(occupancy, weight, bias, False, threads)
+    got = occupancy_kernel.occupancy_conv_relu(occupancy, weight, bias, torch.float32, threads)
     assert got.shape == want.shape and got.is_contiguous(memory_format=torch.channels_last_3d)
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)  # float32 sums of up to 27 taps, another order
-    rounded = occupancy_kernel.occupancy_conv_relu(occupancy.bool(), weight, bias, True, threads)
+    rounded = occupancy_kernel.occupancy_conv_relu(occupancy.bool(), weight, bias, torch.bfloat16, threads)
     assert rounded.dtype == torch.bfloat16
     torch.testing.assert_close(rounded.float(), got.bfloat16().float(), rtol=0, atol=0)  # nearest even, as torch
-    for bfloat16, same in ((False, got), (True, rounded)):  # written z-outer: the same values, the next layer's layout
-        z = occupancy_kernel.occupancy_conv_relu(occupancy, weight, bias, bfloat16, threads, z_outer=True)
+    for dtype, same in ((torch.float32, got), (torch.bfloat16, rounded)):  # z-outer: the next layer's layout
+        z = occupancy_kernel.occupancy_conv_relu(occupancy, weight, bias, dtype, threads, z_outer=True)
         assert is_z_outer(z) and torch.equal(z, same)
+    scale = float(want.max()) / 300  # some values clipped at 255
+    quantized = occupancy_kernel.occupancy_conv_relu(occupancy, weight, bias, torch.uint8, threads, True, scale)
+    assert quantized.dtype == torch.uint8 and is_z_outer(quantized)
+    expected = torch.clamp(torch.round(got / scale), 0, 255)  # rounded half to even, as the kernel
+    assert (quantized.float() - expected).abs().max() <= 1  # got's float32 rounding, at a half step
+    assert (quantized.float() == expected).float().mean() > 0.999
 
 
 def test_the_encoder_takes_the_kernel_on_reduced_cpu_paths_only():

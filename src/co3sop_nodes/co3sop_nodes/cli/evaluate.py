@@ -8,6 +8,7 @@
     ros2 run co3sop_nodes evaluate ... --ablation inputs          # real vs blank vs shuffled sensors (input controls)
     ros2 run co3sop_nodes evaluate ... --ablation distance        # off vs on by the nearest collaborator's distance
     ros2 run co3sop_nodes evaluate ... --precision bfloat16 --ablation precision   # against float32, labels compared
+    ros2 run co3sop_nodes evaluate ... --precision int8 --ablation precision       # a calibrated LiDAR model's int8
     ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown

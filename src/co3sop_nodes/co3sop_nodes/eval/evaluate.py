@@ -519,7 +519,7 @@ def _precision(opts, cfg, stem, title, measure, boot) -> None:
     fast = opts.inference
     if not fast.reduced:
         raise Co3sopError(
-            "--ablation precision compares --precision bfloat16 or float16 with float32: name one of them"
+            "--ablation precision compares --precision bfloat16, float16 or int8 with float32: name one of them"
         )
     reference = replace(fast, precision="float32")
     labels: dict[str, dict] = {}
@@ -566,6 +566,8 @@ def evaluate_models(opts) -> int:
             "history", []
         )  # the train commands behind the weights, in the JSON
         model.use(opts.inference)
+        if opts.inference.int8 and not model.path.int8:
+            raise Co3sopError(f"--precision int8: {path}: {model.int8_missing()}")
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg, cache=opts.cache)
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"

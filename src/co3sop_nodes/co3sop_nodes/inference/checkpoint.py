@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import pickle
 from pathlib import Path
@@ -123,7 +124,35 @@ def load_model(path: Path) -> tuple[Co3SOP, dict]:
         model.load_state_dict(state)
     except RuntimeError as exc:  # missing, unexpected or mis-shaped weights
         raise Co3sopError(f"{path}: its weights do not fit its config ({exception_line(exc)})") from None
+    if "int8" in data:
+        ranges = _int8_ranges(path, data["int8"])
+        try:
+            model.calibrate(ranges)
+        except Co3sopError as exc:
+            raise Co3sopError(f"{path}: its int8 calibration does not fit its model ({exc})") from None
     return model.eval(), data
+
+
+def _int8_ranges(path: Path, entry) -> dict[str, float]:
+    """A checkpoint's int8 calibration entry ({"ranges": {activation: range}, ...}) as finite floats."""
+    ranges = entry.get("ranges") if isinstance(entry, dict) else None
+    try:
+        ranges = {str(k): float(v) for k, v in ranges.items()}
+    except (AttributeError, TypeError, ValueError):
+        raise Co3sopError(f"{path}: its int8 calibration holds no ranges by activation name") from None
+    if not all(math.isfinite(v) for v in ranges.values()):
+        raise Co3sopError(f"{path}: its int8 calibration holds a range that is not a finite number")
+    return ranges
+
+
+def save_calibrated(source: Path, out: Path, ranges: dict[str, float], made: dict) -> None:
+    """`source`'s checkpoint with the int8 calibration `ranges` (replacing any it had), `made` (the command, data
+    and splits) added to its history, written atomically to `out` (which may be `source`)."""
+    data = read_checkpoint(source)
+    data["int8"] = {"ranges": dict(ranges), **made}
+    meta = data.setdefault("meta", {})
+    meta["history"] = [*meta.get("history", []), {"stage": "int8 calibration", **made}]
+    _atomic_save(data, out)
 
 
 def load_graph_model(path: Path) -> tuple[Co3SOP, dict]:

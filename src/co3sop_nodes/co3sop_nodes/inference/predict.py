@@ -15,7 +15,7 @@ import torch
 
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
-from co3sop_nodes.kernels import half_float, visible_voxels
+from co3sop_nodes.kernels import half_float, quantized_add, visible_voxels
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
 from co3sop_nodes.kernels.warp import compiled_available
@@ -78,16 +78,17 @@ def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
     call it before they say they are ready. The kernels that compiled, by name."""
     cfg = model.cfg
     c1, c2, _ = cfg.head_channels
-    precision = model.path.precision
+    precision = model.path.floats
     kernels = (
         {"head": lambda: octant_kernel.available(c1, c2, cfg.num_classes, precision)} if cfg.head == "conv" else {}
     )
     if cfg.modality == "camera":
         kernels["image sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.image_attention.heads)
     elif cfg.lidar.kind == "sscnet" and model.path.reduced:
-        kernels["scan's first layer"] = lambda: occupancy_kernel.available(
-            cfg.lidar.channels // 2, precision == "bfloat16"
-        )
+        encoder = model.vehicle.encoder
+        kernels["scan's first layer"] = lambda: occupancy_kernel.available(cfg.lidar.channels // 2, encoder.first_dtype)
+        if model.path.int8:
+            kernels["int8 residual sum"] = lambda: quantized_add.available(cfg.lidar.channels)
     if cfg.fusion:
         kernels["warp"] = compiled_available
         kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)

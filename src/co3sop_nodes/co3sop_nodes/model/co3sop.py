@@ -203,7 +203,9 @@ class Co3SOP(nn.Module):
     def use(self, path: InferencePath) -> Co3SOP:
         """Run inference on `path` from now on: the weights moved to its device, every module that chooses
         between a compiled kernel and its reference, or autocasts, told so. In reduced precision the
-        convolutions' weights go channels-last (oneDNN's and cuDNN's fast layouts)."""
+        convolutions' weights go channels-last (oneDNN's and cuDNN's fast layouts). On an int8 path the int8
+        layers are made from the weights as they are now; a model with none (no calibration, or a machine without
+        the int8 kernels) takes the path of the rest's precision (`InferencePath.floats`) instead."""
         self.to(path.torch_device)
         layout = {4: torch.channels_last, 5: torch.channels_last_3d} if path.reduced else {}
         for module in self.modules():
@@ -212,6 +214,44 @@ class Co3SOP(nn.Module):
             if isinstance(module, (nn.Conv2d, nn.Conv3d, nn.ConvTranspose3d)):
                 fmt = layout.get(module.weight.dim(), torch.contiguous_format)
                 module.weight.data = module.weight.data.contiguous(memory_format=fmt)
+        if path.int8:
+            encoder = self.int8_encoder
+            if encoder is None or not encoder.quantize(self.cfg.grid.dims[2]):
+                return self.use(replace(path, precision=path.floats))
+        return self
+
+    @property
+    def int8_encoder(self) -> SSCNetEncoder | None:
+        """The module an int8 path computes in int8 (the SSCNet-style LiDAR vehicle half), or None."""
+        encoder = getattr(self.vehicle, "encoder", None)
+        return encoder if isinstance(encoder, SSCNetEncoder) else None
+
+    def int8_missing(self) -> str:
+        """Why an int8 path computes nothing of this model in int8 (after `use` of one left it on another path)."""
+        encoder = self.int8_encoder
+        if encoder is None:
+            return f"{self.cfg.name}'s vehicle half is not an SSCNet-style LiDAR one, the one with int8 layers"
+        if not encoder.calibrated:
+            return f"{self.cfg.name} has no int8 calibration: make one with `calibrate`"
+        return "this machine has no oneDNN quantized convolution or no C compiler for the int8 kernels"
+
+    def int8_activations(self) -> list[str]:
+        """The names of the activations an int8 path quantizes, which a calibration gives ranges of (none for a
+        model without int8 layers)."""
+        encoder = self.int8_encoder
+        return [] if encoder is None else [f"vehicle.encoder.{name}" for name in encoder.ACTIVATIONS]
+
+    def calibrate(self, ranges: dict[str, float]) -> Co3SOP:
+        """Take an int8 calibration: the range of each of `int8_activations` by name (positive); the int8 layers are
+        made at the next `use` of an int8 path."""
+        names = self.int8_activations()
+        if not names:
+            raise Co3sopError(f"{self.cfg.name}: has no int8 layers to calibrate")
+        if sorted(ranges) != sorted(names) or not all(float(ranges[n]) > 0 for n in names):
+            raise Co3sopError(
+                f"{self.cfg.name}: an int8 calibration gives a positive range of each of {', '.join(names)}"
+            )
+        self.int8_encoder.int8_ranges.copy_(torch.tensor([float(ranges[n]) for n in names]))
         return self
 
     def forward(

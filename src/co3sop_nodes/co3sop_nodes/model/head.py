@@ -96,7 +96,7 @@ class OccupancyHead(nn.Module):
             parents = self.parents(x)  # (B, X1, Y1, Z1, C1)
         b, x1, y1, z1 = parents.shape[:4]
         c1, c2 = self.up2.in_channels, self.up2.out_channels
-        precision = self.path.precision
+        precision = self.path.floats
         if compiled is None:
             compiled = self.path.kernels(x) and octant_kernel.available(
                 c1, c2, self.classify[2].out_channels, precision

@@ -6,7 +6,8 @@ ego fuses either modality.
 - LMSCNet style: height slices as channels of a 2D UNet-like encoder over the
   bird's-eye view, folded back into (C, Z/4) at 1/4 resolution.
 - SSCNet style: 3D convolutions, two stride-2 reductions, then dilated 3D
-  residual blocks for a large receptive field.
+  residual blocks for a large receptive field; on an int8 path, with a
+  calibration, every 3D layer after the first computes in int8 (quantized.py).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
+from co3sop_nodes.model import quantized
 from co3sop_nodes.model.conv_norm import ConvNorm, folded_norm, z_outer
 from co3sop_nodes.model.path import InferencePath
 
@@ -47,6 +49,9 @@ class LMSCNetEncoder(nn.Module):
 
 
 class SSCNetEncoder(nn.Module):
+    # the activations an int8 path quantizes, each after a ReLU: the output of each 3x3x3 layer and each residual sum
+    ACTIVATIONS = ("down.0", "down.1", "dilated.0", "sum.0", "dilated.1", "sum.1", "dilated.2", "sum.2")
+
     def __init__(self, dims: int, channels: int):
         super().__init__()
         c = channels
@@ -60,8 +65,62 @@ class SSCNetEncoder(nn.Module):
         self.dilated = nn.ModuleList([conv(c, c, 1, 2), conv(c, c, 1, 2), conv(c, c, 1, 3)])
         self.out = nn.Conv3d(c, dims, 1)
         self.path = InferencePath()  # set by Co3SOP.use
+        # each ACTIVATIONS' calibrated range (0: none), loaded from a checkpoint's int8 entry (`Co3SOP.calibrate`)
+        self.register_buffer("int8_ranges", torch.zeros(len(self.ACTIVATIONS)), persistent=False)
+        self._int8: list[quantized.Int8ConvReLU] | None = None  # made by `quantize`
+        self._offsets: list[torch.Tensor] = []  # the int8 layers' background corrections (`quantize`)
+
+    @property
+    def calibrated(self) -> bool:
+        return bool((self.int8_ranges > 0).all())
+
+    def quantize(self, height: int) -> bool:
+        """Make the int8 layers from the weights and ranges as they are now, for scans `height` voxels high (or none,
+        where the model has no calibration or the machine cannot run them); whether there are some."""
+        c = self.down[0][0].out_channels
+        self._int8 = None
+        if self.calibrated and quantized.available(2 * c) and occupancy_kernel.available(c, torch.uint8):
+            s = (self.int8_ranges / 255).tolist()
+            layers = [self.down[1], *self.dilated]
+            ins = [s[0], s[1], s[3], s[5]]  # each layer's input: the first layer's, down.1's, then the sums
+            outs = [s[1], s[2], s[4], s[6]]
+            self._int8 = [quantized.Int8ConvReLU(m[0], m[1], a, b) for m, a, b in zip(layers, ins, outs)]
+            self._offsets = self._background_offsets(height)
+        return self._int8 is not None
+
+    @torch.no_grad()
+    def _background_offsets(self, height: int) -> list[torch.Tensor]:
+        """The int8 path's background corrections (quantized.py), each (C, Z/4): one per residual sum, then the
+        output's; measured on an empty grid `height` voxels high and wide enough that its centre is out of reach of
+        its sides, the float32 layers against the int8 ones, each correction measured with those before it in place."""
+        empty = torch.zeros(1, 1, 128, 128, height, dtype=torch.uint8)
+        exact = [quantized.centre(a) for a in self.activations(empty)]  # float32, in ACTIVATIONS' order
+        offsets = []
+        for i in range(len(self.dilated)):
+            f, y = self._int8_layers(empty, offsets, until=i)  # sum i's terms: its value before rounding wanted
+            before = quantized.centre(f.dequantize(torch.float32)) + quantized.centre(y.dequantize(torch.float32))
+            offsets.append(exact[3 + 2 * i] - before)
+        f = self._int8_layers(empty, offsets)
+        return [*offsets, exact[-1] - quantized.centre(f.dequantize(torch.float32))]
+
+    def _int8_layers(self, occupancy, offsets: list[torch.Tensor], until: int | None = None):
+        """The int8 layers on occupancy, with the residual sums' background `offsets`: the last sum, an Int8Volume;
+        with `until`, the input of dilated layer `until` and that layer's output instead."""
+        s = (self.int8_ranges / 255).tolist()
+        first = self._first(occupancy, s[0])  # (B, C/2, X/2, Y/2, Z/2) z-outer uint8
+        f = self._int8[0](quantized.Int8Volume(first.permute(0, 1, 4, 2, 3), s[0]))  # (B, C, Z/4, X/4, Y/4) views
+        for i, layer in enumerate(self._int8[1:]):
+            y = layer(f)
+            if i == until:
+                return f, y
+            f = quantized.add(f, y, s[3 + 2 * i], offsets[i])
+        return f
 
     def forward(self, occupancy):  # (B, 1, X, Y, Z) 0/1
+        if self.path.int8 and self._int8 is not None and self._first_compiled(occupancy):
+            if occupancy.shape[-1] != 4 * self._offsets[-1].shape[-1]:
+                raise ValueError(f"int8 layers made for scans {4 * self._offsets[-1].shape[-1]} voxels high")
+            return self._forward_int8(occupancy)
         f = self.down[1](self._first(occupancy)) if self._first_compiled(occupancy) else self.down(occupancy.float())
         reduced = self.path.reduced
         if reduced:  # the dilated 3x3x3 layers run 1.5-2x as fast on z-outer volumes (conv_norm): no copy if it is one
@@ -72,6 +131,24 @@ class SSCNetEncoder(nn.Module):
             f = f.contiguous(memory_format=torch.channels_last_3d)
         return self.out(f)  # (B, C, X/4, Y/4, Z/4)
 
+    def _forward_int8(self, occupancy):
+        """forward on the int8 layers: (B, C, X/4, Y/4, Z/4) in the path's float precision (the 1x1 output layer's)."""
+        f = self._int8_layers(occupancy, self._offsets)
+        dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else torch.float32
+        f = f.dequantize(dtype, self._offsets[-1]).contiguous(memory_format=torch.channels_last_3d)
+        return self.out(f)  # (B, C, X/4, Y/4, Z/4)
+
+    @torch.no_grad()
+    def activations(self, occupancy) -> list[torch.Tensor]:
+        """The float32 forward's ACTIVATIONS for occupancy (B, 1, X, Y, Z), as the int8 path quantizes them: what a
+        calibration measures."""
+        out = [self.down[0](occupancy.float())]
+        out.append(self.down[1](out[-1]))
+        for layer in self.dilated:
+            out.append(layer(out[-1]))
+            out.append(F.relu(out[-2] + out[-1]))
+        return out
+
     def _first_compiled(self, occupancy) -> bool:
         """Whether the first layer runs as the compiled kernel: on a reduced-precision CPU path, for a scan as the
         nodes voxelise it (uint8 or bool)."""
@@ -79,16 +156,23 @@ class SSCNetEncoder(nn.Module):
             self.path.reduced
             and self.path.kernels(occupancy)
             and occupancy.dtype in (torch.uint8, torch.bool)
-            and occupancy_kernel.available(self.down[0][0].out_channels, self.path.precision == "bfloat16")
+            and occupancy_kernel.available(self.down[0][0].out_channels, self.first_dtype)
         )
 
-    def _first(self, occupancy):
+    @property
+    def first_dtype(self) -> torch.dtype:
+        """What the compiled first layer writes: uint8 for the int8 layers, bfloat16 on a bfloat16 path (float32 for
+        autocast to take from there otherwise)."""
+        if self.path.int8 and self._int8 is not None:
+            return torch.uint8
+        return torch.bfloat16 if self.path.floats == "bfloat16" else torch.float32
+
+    def _first(self, occupancy, scale: float = 1.0):
         """The first layer (convolution, batch norm folded into it, ReLU) by the compiled kernel: (B, C/2, X/2, Y/2,
         Z/2) z-outer (the stride-2 layer after it runs faster on such volumes, and leaves them so for the dilated
-        ones), in bfloat16 on a bfloat16 path (float32 for autocast to take from there otherwise)."""
+        ones), in `first_dtype` (uint8: quantized with `scale`)."""
         conv, norm = self.down[0][0], self.down[0][1]
-        scale, shift = folded_norm(norm, conv.bias)  # (C/2,)
-        weight = conv.weight * scale.view(-1, 1, 1, 1, 1)  # (C/2, 1, 3, 3, 3)
-        bfloat16 = self.path.precision == "bfloat16"
+        factor, shift = folded_norm(norm, conv.bias)  # (C/2,)
+        weight = conv.weight * factor.view(-1, 1, 1, 1, 1)  # (C/2, 1, 3, 3, 3)
         threads = torch.get_num_threads()
-        return occupancy_kernel.occupancy_conv_relu(occupancy, weight, shift, bfloat16, threads, z_outer=True)
+        return occupancy_kernel.occupancy_conv_relu(occupancy, weight, shift, self.first_dtype, threads, True, scale)

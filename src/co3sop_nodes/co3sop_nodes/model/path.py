@@ -9,6 +9,11 @@ the compiled kernels (which read float32) in float32. On the CPU it pays only wh
 bfloat16 (AMX tiles or AVX-512 BF16; oneDNN then wants channels-last 3D volumes); elsewhere it is
 emulated and slower than float32, so `auto` keeps float32 there. On CUDA, `auto` takes bfloat16 where
 the GPU has it, else float16.
+
+`int8` (the CPU only) computes a model's calibrated layers in int8 (`model/quantized.py`: the LiDAR vehicle
+half's 3D convolutions after its first, with activation ranges measured by `calibrate` and shipped in the
+checkpoint) and the rest as `auto` would on this CPU (bfloat16 where the CPU computes it, else float32). A model
+without a calibration runs that rest only (`Co3SOP.use`).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import torch.nn.functional as F
 from co3sop_nodes import kernels
 from co3sop_nodes.common.errors import Co3sopError
 
-PRECISIONS = ("auto", "float32", "bfloat16", "float16")
+PRECISIONS = ("auto", "float32", "bfloat16", "float16", "int8")
 DEVICES = ("auto", "cpu", "cuda")
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 
@@ -31,15 +36,17 @@ _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torc
 @dataclass(frozen=True)
 class InferencePath:
     device: str = "cpu"  # a torch device: cpu, cuda, cuda:N
-    precision: str = "float32"  # float32, bfloat16 or float16
+    precision: str = "float32"  # float32, bfloat16, float16 or int8 (calibrated layers; the rest in `floats`)
     compiled: bool = True  # the compiled CPU kernels where they compile (tested equal to the reference paths)
     # with the compiled kernels, the fusion's queries padded to a multiple of this many: oneDNN builds its
     # primitives per row count, and a frame's count of queries is new nearly every frame (1: no padding)
     query_rows: int = 512
 
     def __post_init__(self):
-        if self.precision not in _DTYPES:
-            raise Co3sopError(f"precision {self.precision!r}: one of {', '.join(_DTYPES)}")
+        if self.precision not in PRECISIONS[1:]:
+            raise Co3sopError(f"precision {self.precision!r}: one of {', '.join(PRECISIONS[1:])}")
+        if self.int8 and self.torch_device.type != "cpu":
+            raise Co3sopError(f"precision int8 on {self.device}: int8 layers run on the CPU only")
         if self.query_rows < 1:
             raise Co3sopError(f"query_rows {self.query_rows}: at least 1")
 
@@ -51,11 +58,23 @@ class InferencePath:
     def reduced(self) -> bool:
         return self.precision != "float32"
 
+    @property
+    def int8(self) -> bool:
+        return self.precision == "int8"
+
+    @property
+    def floats(self) -> str:
+        """The precision of what is not int8: the precision itself, or for int8 bfloat16 where the CPU computes it
+        (else float32)."""
+        if self.int8:
+            return "bfloat16" if cpu_bfloat16_unit() else "float32"
+        return self.precision
+
     def autocast(self):
-        """The context a forward pass runs in: nothing for float32, autocast to the precision otherwise."""
-        if not self.reduced:
+        """The context a forward pass runs in: nothing in float32, autocast to `floats` otherwise."""
+        if self.floats == "float32":
             return nullcontext()
-        return torch.autocast(self.torch_device.type, dtype=_DTYPES[self.precision])
+        return torch.autocast(self.torch_device.type, dtype=_DTYPES[self.floats])
 
     def linear(
         self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False
@@ -78,7 +97,8 @@ class InferencePath:
         return self.compiled and x.device.type == "cpu" and not torch.is_grad_enabled()
 
     def describe(self) -> str:
-        return f"{self.device}, {self.precision}" + ("" if self.compiled else ", reference paths")
+        precision = f"int8 + {self.floats}" if self.int8 else self.precision
+        return f"{self.device}, {precision}" + ("" if self.compiled else ", reference paths")
 
 
 @cache
@@ -106,6 +126,18 @@ def cpu_bfloat16_unit() -> str | None:
     return "AVX-512 BF16" if "avx512_bf16" in flags else None
 
 
+@cache
+def cpu_int8_unit() -> str | None:
+    """The CPU's int8 dot-product hardware, from its feature flags: "AMX", "AVX-512 VNNI", "AVX-VNNI", or None
+    (PyTorch's quantized engine then multiplies in 16-bit steps)."""
+    flags = set(kernels.cpu_flags())
+    if "amx_int8" in flags and "amx_tile" in flags:
+        return "AMX"
+    if "avx512_vnni" in flags:
+        return "AVX-512 VNNI"
+    return "AVX-VNNI" if "avx_vnni" in flags else None
+
+
 def resolve_device(name: str, what: str = "device") -> torch.device:
     """The torch device `name` names (auto: the first CUDA GPU if torch sees one, else cpu), checked against
     what this torch build can use; `what` names the option or parameter in errors."""
@@ -131,8 +163,9 @@ def inference_path(
     device: str = "auto", precision: str = "auto", compiled: bool = True, what: str = ""
 ) -> InferencePath:
     """The path for `device` (auto | cpu | cuda | cuda:N) and `precision` (auto | float32 | bfloat16 |
-    float16) on this machine, `auto` resolved to what it has; a device it lacks is refused. `what`: how the
-    caller spells its options in errors ("--" for a command line, "parameter " for a node)."""
+    float16 | int8) on this machine, `auto` resolved to what it has; a device it lacks is refused, and int8 off the
+    CPU. `what`: how the caller spells its options in errors ("--" for a command line, "parameter " for a
+    node)."""
     dev = resolve_device(device, f"{what}device")
     if precision not in PRECISIONS:
         raise Co3sopError(f"{what}precision {precision!r}: one of {', '.join(PRECISIONS)}")
@@ -141,4 +174,6 @@ def inference_path(
             precision = "bfloat16" if torch.cuda.is_bf16_supported() else "float16"
         else:
             precision = "bfloat16" if cpu_bfloat16_unit() else "float32"
+    if precision == "int8" and dev.type != "cpu":
+        raise Co3sopError(f"{what}precision int8 with {what}device {dev}: int8 layers run on the CPU only")
     return InferencePath(str(dev), precision, compiled)

@@ -200,8 +200,9 @@ def run_demo(opts: DemoOptions) -> int:
     mcap = opts.out / "demo.mcap"
     egos = cavs if opts.egos == "all" else [ego]
     say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego{'s' if len(egos) > 1 else ''} {egos}; recording to {mcap}")
-    say(f"model {checkpoint} ({sensors}); inference on {path.describe()}")
     model.use(path)
+    missing = f" ({model.int8_missing()})" if path.int8 and not model.path.int8 else ""
+    say(f"model {checkpoint} ({sensors}); inference on {model.path.describe()}{missing}")
     if opts.rate is None:
         scans = opts.params.get("send") == "scan"
         scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None

@@ -186,7 +186,8 @@ PARAMS = (
         "precision",
         str,
         "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
-        "float16 on other GPUs, else float32), float32, bfloat16, float16",
+        "float16 on other GPUs, else float32), float32, bfloat16, float16, int8 (the CPU: a calibrated LiDAR "
+        "vehicle half's 3D layers in int8, the rest as auto)",
         "auto",
         choices=PRECISIONS,
     ),
@@ -287,6 +288,8 @@ class Ego(ManagedNode):
         self.reference_paths = p["reference_paths"]
         path = inference_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter ")
         self.model = model.use(path)
+        if path.int8 and not self.model.path.int8 and self.model.cfg.modality == "lidar":  # it may encode scans
+            self.get_logger().warning(f"parameter precision=int8: {self.model.int8_missing()}")
         self.cfg = self.model.cfg
         self.kernels = compile_kernels(self.model, points=True)  # before 'active': no frame waits for a compiler
         self.pairing: Pairing[str, Received] = Pairing(self.own_topic)

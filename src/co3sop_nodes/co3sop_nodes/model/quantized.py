@@ -1,0 +1,99 @@
+"""Int8 layers for CPU inference: 3x3x3 convolutions of uint8 activations by oneDNN's quantized primitive
+(`torch.ops.onednn.qconv_pointwise`, the one PyTorch's own compiler lowers quantized models to), on VNNI or AMX
+where the CPU has them.
+
+Activations are uint8 with zero point 0 on a per-tensor scale (a calibrated range / 255: `calibration.py`), every
+one after a ReLU, so uint8's clamp at 0 is that ReLU; weights int8 per output channel (max |w| / 127), batch norm
+folded in first (conv_norm.folded_norm). Volumes are z-outer (conv_norm.z_outer) and convolved as their (B, C, Z,
+X, Y) views, channels-last: the layout oneDNN tiles best for a driving grid, whose z is its shortest axis.
+
+Most of a driving grid is empty: far from any occupied voxel every activation is one profile along z (the
+background: a vector per z-layer, the grid's floor and top padded), and 8-bit rounding errs on it the same way
+everywhere, a bias over the whole volume that moved labels more than the rounding noise elsewhere did. So each
+residual sum adds an offset per z-layer and channel that gives the float32 sum's background (before its own
+rounding), and the dequantized output another that gives it exactly (`background_offsets`, from an empty grid).
+
+The packed weights are made when a model is put on an int8 path (`Co3SOP.use`) from the weights it has then.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from co3sop_nodes.kernels import quantized_add as add_kernel
+from co3sop_nodes.model.conv_norm import folded_norm
+
+_ZERO = torch.zeros(1, dtype=torch.long)
+
+
+@dataclass(frozen=True)
+class Int8Volume:
+    """A quantized activation: values (B, C, Z, X, Y) uint8, channels-last in memory (a z-outer volume's view);
+    value = values * scale."""
+
+    values: torch.Tensor
+    scale: float
+
+    def dequantize(self, dtype: torch.dtype, offset: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, C, X, Y, Z) in `dtype`, z-outer in memory, plus `offset` (C, Z) where given."""
+        out = self.values.permute(0, 1, 3, 4, 2).to(dtype).mul_(self.scale)
+        return out if offset is None else out.add_(offset.to(dtype)[:, None, None, :])
+
+
+def available(channels: int) -> bool:
+    """Whether this PyTorch build has oneDNN's quantized convolution and the residual sum's kernel compiles for
+    `channels`."""
+    ops = ("qconv_prepack", "qconv_pointwise")
+    return (
+        torch.backends.mkldnn.is_available()
+        and all(hasattr(torch.ops.onednn, op) for op in ops)
+        and add_kernel.available(channels)
+    )
+
+
+def _zxy(t: tuple[int, ...]) -> list[int]:
+    return [t[2], t[0], t[1]]
+
+
+class Int8ConvReLU:
+    """relu(norm(conv(x))) of a Conv3d and its eval-mode batch norm on Int8Volumes, the output quantized with
+    `scale` (its calibrated range / 255). Not an nn.Module: its state is derived from the layers it was made of."""
+
+    def __init__(self, conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, in_scale: float, scale: float):
+        shift, self.bias = folded_norm(norm, conv.bias)
+        weight = (conv.weight * shift.view(-1, 1, 1, 1, 1)).detach().float()  # (Cout, Cin, kx, ky, kz)
+        weight = weight.permute(0, 1, 4, 2, 3).contiguous()  # (Cout, Cin, kz, kx, ky): the (z, x, y) views'
+        self.w_scale = weight.abs().amax(dim=(1, 2, 3, 4)).clamp_min(1e-12) / 127  # (Cout,)
+        q = torch.round(weight / self.w_scale.view(-1, 1, 1, 1, 1)).clamp_(-127, 127).to(torch.int8)
+        self.stride, self.padding, self.dilation = _zxy(conv.stride), _zxy(conv.padding), _zxy(conv.dilation)
+        self.groups, self.in_scale, self.scale = conv.groups, in_scale, scale
+        self.bias = self.bias.detach().float()
+        self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()
+        self.packed = torch.ops.onednn.qconv_prepack(
+            q, self.w_scale, in_scale, 0, self.stride, self.padding, self.dilation, self.groups, None
+        )
+
+    def __call__(self, x: Int8Volume) -> Int8Volume:
+        if x.scale != self.in_scale:
+            raise ValueError(f"Int8ConvReLU: input scale {x.scale}, made for {self.in_scale}")
+        y = torch.ops.onednn.qconv_pointwise(
+            x.values, x.scale, 0, self.packed, self.w_scale, self.w_zero, self.bias,
+            self.stride, self.padding, self.dilation, self.groups, self.scale, 0, None, "none", [], "",
+        )  # fmt: skip
+        return Int8Volume(y, self.scale)
+
+
+def add(a: Int8Volume, b: Int8Volume, scale: float, offset: torch.Tensor) -> Int8Volume:
+    """a + b + offset (C, Z), quantized with `scale`: relu of it too, its terms being non-negative but for the
+    background offset, which the clamp at 0 bounds."""
+    threads = torch.get_num_threads()
+    values = add_kernel.quantized_add(a.values, a.scale, b.values, b.scale, scale, offset / scale, threads)
+    return Int8Volume(values, scale)
+
+
+def centre(x: torch.Tensor) -> torch.Tensor:
+    """A float volume (1, C, X, Y, Z)'s values (C, Z) at the centre of x and y."""
+    return x[0, :, x.shape[2] // 2, x.shape[3] // 2, :].float()

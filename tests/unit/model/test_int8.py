@@ -1,0 +1,144 @@
+"""The int8 path: the SSCNet-style encoder's 3D layers after its first in int8 once calibrated, within 8-bit's
+rounding of float32; calibration ranges that minimise the quantization error, shipped in checkpoints; a model
+without them, or a device other than the CPU, never silently on an int8 path it cannot take."""
+
+import numpy as np
+import pytest
+import torch
+
+from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.inference.calibration import ActivationHistogram, calibrate
+from co3sop_nodes.inference.checkpoint import export_model, load_model, save_calibrated
+from co3sop_nodes.kernels import quantized_add
+from co3sop_nodes.model import path as path_module
+from co3sop_nodes.model import quantized
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.path import InferencePath, inference_path
+
+GRID = ((-12.8, -12.8, -3.0), 0.4, (64, 64, 24))
+needs_int8 = pytest.mark.skipif(not quantized.available(32), reason="no oneDNN quantized convolution or C compiler")
+
+
+def scans(count: int, seed: int, dims=GRID[2]) -> list[torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    return [(torch.rand(1, 1, *dims, generator=gen) < 0.08).to(torch.uint8) for _ in range(count)]
+
+
+def lidar_model(seed: int = 0):
+    torch.manual_seed(seed)
+    model = build_model(preset("tiny-lidar", custom_grid=GRID)).eval()
+    enc = model.vehicle.encoder
+    for layer in (*enc.down, *enc.dilated):  # norms that are not the identity
+        layer[1].running_mean.normal_(0, 0.1)
+        layer[1].running_var.uniform_(0.5, 2.0)
+    return model
+
+
+def test_the_histograms_range_minimises_the_squared_quantization_error():
+    gen = torch.Generator().manual_seed(0)
+    values = torch.cat([torch.rand(1_000_000, generator=gen) * 2, torch.full((2,), 50.0)])
+
+    def error(c):
+        q = torch.clamp(torch.round(values / (c / 255)), 0, 255) * (c / 255)
+        return float(((q - values) ** 2).sum())
+
+    histogram, with_zeros = ActivationHistogram(), ActivationHistogram()
+    for part in values.split(30_000):  # the span grows as larger values come
+        histogram.add(part)
+        with_zeros.add(torch.cat([part, torch.zeros(50_000)]))  # exact zeros quantize exactly: no weight
+    clip = histogram.best_range()
+    best = min(np.linspace(0.5, 50, 500), key=error)
+    assert 2 < clip < 49 and 2 < best < 49  # the two outliers are clipped, and the values below given finer steps
+    assert error(clip) <= 1.02 * error(best)
+    assert with_zeros.best_range() == clip
+    assert ActivationHistogram().best_range() == 0.0
+
+
+@needs_int8
+def test_the_residual_sum_is_requantized_as_pytorch_rounds():
+    gen = torch.Generator().manual_seed(0)
+    a, b = (torch.randint(0, 256, (1, 32, 6, 64, 64), dtype=torch.uint8, generator=gen) for _ in range(2))
+    a, b = (t.contiguous(memory_format=torch.channels_last_3d) for t in (a, b))
+    offset = torch.randn(32, 6, generator=gen) * 3  # (C, Z) in steps
+    got = quantized_add.quantized_add(a, 0.05, b, 0.03, 0.07, offset, threads=3)
+    want = torch.clamp(
+        torch.round((a.float() * 0.05 + b.float() * 0.03) / 0.07 + offset[None, :, :, None, None]), 0, 255
+    )
+    assert got.is_contiguous(memory_format=torch.channels_last_3d)
+    assert (got.float() - want).abs().max() <= 1 and (got.float() == want).float().mean() > 0.999
+    with pytest.raises(ValueError, match="channels-last volumes of one shape"):
+        quantized_add.quantized_add(a, 1.0, b[:, :16], 1.0, 1.0, offset, threads=1)
+    with pytest.raises(ValueError, match=r"a \(32, 6\) offset"):
+        quantized_add.quantized_add(a, 1.0, b, 1.0, 1.0, offset[:, :5], threads=1)
+
+
+@needs_int8
+@torch.inference_mode()
+def test_a_calibrated_encoder_computes_in_int8_near_float32(monkeypatch):
+    model = lidar_model()
+    calibration, held_out = scans(6, seed=1), scans(3, seed=2)
+    want = [model.vehicle(occupancy=s).features for s in held_out]  # float32 reference
+    model.use(InferencePath(precision="int8"))
+    assert model.path.precision != "int8"  # not calibrated: the rest's precision, said by describe()
+    ranges = calibrate(model, calibration)
+    assert sorted(ranges) == sorted(model.int8_activations()) and all(r > 0 for r in ranges.values())
+    model.calibrate(ranges).use(InferencePath(precision="int8"))
+    assert model.path.int8 and model.path.describe().startswith("cpu, int8 + ")
+    calls, original = [], quantized.Int8ConvReLU.__call__
+    monkeypatch.setattr(quantized.Int8ConvReLU, "__call__", lambda self, x: calls.append(1) or original(self, x))
+    got = [model.vehicle(occupancy=s).features for s in held_out]
+    assert len(calls) == 4 * len(held_out)  # down.1 and the three dilated layers, each scan
+    for g, w in zip(got, want):
+        assert g.dtype == torch.float32 and g.shape == w.shape and g.is_contiguous()
+        relative = float((g - w).abs().mean() / w.abs().mean())
+        assert relative < 0.12  # 8-bit steps through four layers (5-7 % measured on bag scans)
+    model.use(InferencePath())
+    assert all(torch.equal(model.vehicle(occupancy=s).features, w) for s, w in zip(held_out, want))  # float32
+
+
+@needs_int8
+def test_the_calibration_travels_in_the_checkpoint(tmp_path):
+    model = lidar_model()
+    source, out = tmp_path / "model.pt", tmp_path / "calibrated.pt"
+    export_model(source, model, {"history": [{"stage": "ego"}]})
+    ranges = calibrate(model, scans(3, seed=1))
+    save_calibrated(source, out, ranges, {"command": "calibrate ...", "splits": ["validate"]})
+    loaded, data = load_model(out)
+    assert loaded.vehicle.encoder.calibrated and not load_model(source)[0].vehicle.encoder.calibrated
+    assert [h["stage"] for h in data["meta"]["history"]] == ["ego", "int8 calibration"]
+    torch.testing.assert_close(loaded.vehicle.encoder.int8_ranges, torch.tensor(list(ranges.values())))
+    assert loaded.use(InferencePath(precision="int8")).path.int8
+
+    data["int8"] = {"ranges": {**ranges, "vehicle.encoder.sum.2": float("nan")}}
+    torch.save(data, tmp_path / "nan.pt")
+    with pytest.raises(Co3sopError, match="nan.pt: its int8 calibration holds a range that is not a finite number"):
+        load_model(tmp_path / "nan.pt")
+    data["int8"] = {"ranges": {"vehicle.encoder.down.0": 1.0}}
+    torch.save(data, tmp_path / "short.pt")
+    with pytest.raises(Co3sopError, match="short.pt: its int8 calibration does not fit its model"):
+        load_model(tmp_path / "short.pt")
+    data["int8"] = "ranges"
+    torch.save(data, tmp_path / "odd.pt")
+    with pytest.raises(Co3sopError, match="odd.pt: its int8 calibration holds no ranges"):
+        load_model(tmp_path / "odd.pt")
+
+
+def test_a_camera_model_has_no_int8_layers():
+    model = build_model(preset("tiny")).eval()
+    assert model.int8_activations() == []
+    assert model.use(InferencePath(precision="int8")).path.precision == InferencePath(precision="int8").floats
+    with pytest.raises(Co3sopError, match="has no int8 layers"):
+        model.calibrate({})
+
+
+def test_int8_runs_on_the_cpu_only(monkeypatch):
+    monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: None)
+    assert InferencePath(precision="int8").floats == "float32"
+    monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: "AMX")
+    assert InferencePath(precision="int8").floats == "bfloat16"
+    with pytest.raises(Co3sopError, match="precision int8 on cuda: int8 layers run on the CPU only"):
+        InferencePath("cuda", "int8")
+    if torch.cuda.is_available():
+        with pytest.raises(Co3sopError, match="--precision int8 with --device cuda"):
+            inference_path("cuda", "int8", what="--")
