@@ -126,18 +126,6 @@ def cpu_bfloat16_unit() -> str | None:
     return "AVX-512 BF16" if "avx512_bf16" in flags else None
 
 
-@cache
-def cpu_int8_unit() -> str | None:
-    """The CPU's int8 dot-product hardware, from its feature flags: "AMX", "AVX-512 VNNI", "AVX-VNNI", or None
-    (PyTorch's quantized engine then multiplies in 16-bit steps)."""
-    flags = set(kernels.cpu_flags())
-    if "amx_int8" in flags and "amx_tile" in flags:
-        return "AMX"
-    if "avx512_vnni" in flags:
-        return "AVX-512 VNNI"
-    return "AVX-VNNI" if "avx_vnni" in flags else None
-
-
 def resolve_device(name: str, what: str = "device") -> torch.device:
     """The torch device `name` names (auto: the first CUDA GPU if torch sees one, else cpu), checked against
     what this torch build can use; `what` names the option or parameter in errors."""
