@@ -21,6 +21,7 @@ from co3sop_nodes.eval.metrics import Confusion
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.inputs import to_batch
 from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.model import quantized
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
@@ -526,3 +527,26 @@ def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_spli
         for name in one:
             torch.testing.assert_close(two[name], one[name], rtol=1e-4, atol=1e-5, msg=name)
     assert len((tmp_path / "two" / "log.csv").read_text().splitlines()) == 4  # header + 3 steps
+
+
+def test_calibrate_writes_a_checkpoint_that_runs_int8_and_refuses_what_it_should(small_split, tmp_path):
+    """`calibrate` measures a LiDAR model's ranges on a split and writes them with the command into a checkpoint that
+    takes the int8 path; the test split, a camera model and a missing dataset are refused by name, no traceback."""
+    data, out = str(small_split / "data"), tmp_path / "calibrated.pt"
+    done = tool("calibrate", "--model", "tiny-lidar", "--data", data, "--splits", "train", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "vehicle.encoder.sum.2:" in done.stdout and f"wrote {out}" in done.stdout
+    model, checkpoint = load_model(out)
+    assert checkpoint["meta"]["history"][-1]["command"].startswith("calibrate --model tiny-lidar")
+    assert checkpoint["int8"]["splits"] == ["train"]
+    if quantized.available(model.cfg.lidar.channels):
+        assert model.use(InferencePath("cpu", "int8")).path.int8
+    refused = {
+        "--splits test": ["--model", "tiny-lidar", "--data", data, "--splits", "test"],
+        "tiny has no int8 layers": ["--model", "tiny", "--data", data],
+        "no OPV2V split folders": ["--model", "tiny-lidar", "--data", str(tmp_path)],
+    }
+    for message, args in refused.items():
+        done = tool("calibrate", *args, "--out", str(tmp_path / "refused.pt"))
+        assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "refused.pt").exists()

@@ -5,7 +5,7 @@ measured: below it, uint8 steps of range / 255 (a uniform rounding error of step
 distance to the clip. Exact zeros (half of a ReLU's outputs) quantize exactly and count for nothing. The values
 are binned in a histogram that doubles its span when a value exceeds it, so any number of scans takes the same
 memory. Calibrate on `train` or `validate`, never on `test`; the checkpoint then carries the ranges
-(`checkpoint.calibrated`) and names the data in its history.
+(`checkpoint.save_calibrated`) and names the data in its history.
 """
 
 from __future__ import annotations

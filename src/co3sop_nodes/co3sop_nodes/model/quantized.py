@@ -2,7 +2,7 @@
 (`torch.ops.onednn.qconv_pointwise`, the one PyTorch's own compiler lowers quantized models to), on VNNI or AMX
 where the CPU has them.
 
-Activations are uint8 with zero point 0 on a per-tensor scale (a calibrated range / 255: `calibration.py`), every
+Activations are uint8 with zero point 0 on a per-tensor scale (a calibrated range / 255: `inference/calibration.py`), every
 one after a ReLU, so uint8's clamp at 0 is that ReLU; weights int8 per output channel (max |w| / 127), batch norm
 folded in first (conv_norm.folded_norm). Volumes are z-outer (conv_norm.z_outer) and convolved as their (B, C, Z,
 X, Y) views, channels-last: the layout oneDNN tiles best for a driving grid, whose z is its shortest axis.
@@ -11,7 +11,8 @@ Most of a driving grid is empty: far from any occupied voxel every activation is
 background: a vector per z-layer, the grid's floor and top padded), and 8-bit rounding errs on it the same way
 everywhere, a bias over the whole volume that moved labels more than the rounding noise elsewhere did. So each
 residual sum adds an offset per z-layer and channel that gives the float32 sum's background (before its own
-rounding), and the dequantized output another that gives it exactly (`background_offsets`, from an empty grid).
+rounding), and the dequantized output another that gives it exactly (measured on an empty grid when the int8 layers
+are made: `lidar.SSCNetEncoder.quantize`).
 
 The packed weights are made when a model is put on an int8 path (`Co3SOP.use`) from the weights it has then.
 """
@@ -63,14 +64,14 @@ class Int8ConvReLU:
     `scale` (its calibrated range / 255). Not an nn.Module: its state is derived from the layers it was made of."""
 
     def __init__(self, conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, in_scale: float, scale: float):
-        shift, self.bias = folded_norm(norm, conv.bias)
-        weight = (conv.weight * shift.view(-1, 1, 1, 1, 1)).detach().float()  # (Cout, Cin, kx, ky, kz)
+        factor, bias = folded_norm(norm, conv.bias)  # (Cout,) each
+        weight = (conv.weight * factor.view(-1, 1, 1, 1, 1)).detach().float()  # (Cout, Cin, kx, ky, kz)
         weight = weight.permute(0, 1, 4, 2, 3).contiguous()  # (Cout, Cin, kz, kx, ky): the (z, x, y) views'
         self.w_scale = weight.abs().amax(dim=(1, 2, 3, 4)).clamp_min(1e-12) / 127  # (Cout,)
         q = torch.round(weight / self.w_scale.view(-1, 1, 1, 1, 1)).clamp_(-127, 127).to(torch.int8)
         self.stride, self.padding, self.dilation = _zxy(conv.stride), _zxy(conv.padding), _zxy(conv.dilation)
         self.groups, self.in_scale, self.scale = conv.groups, in_scale, scale
-        self.bias = self.bias.detach().float()
+        self.bias = bias.detach().float()
         self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()
         self.packed = torch.ops.onednn.qconv_prepack(
             q, self.w_scale, in_scale, 0, self.stride, self.padding, self.dilation, self.groups, None
