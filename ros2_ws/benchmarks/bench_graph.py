@@ -172,6 +172,9 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
     }
 
 
+ROOT = Path(__file__).resolve().parents[2]  # the repository
+
+
 def run_demo(
     demo: Path, opts, name: str, args: list[str], complete: bool = True
 ) -> tuple[subprocess.CompletedProcess, Path]:
@@ -183,7 +186,9 @@ def run_demo(
     argv += ["--params", *opts.params] if opts.params else []  # before args: a setting's own --params wins
     argv += ["--ego-params", *opts.ego_params] if opts.ego_params else []
     argv += args
-    argv += ["--bag", str(opts.bag)] if opts.bag else ["--frames", str(opts.frames)]
+    # without --bag, the demo's scenario where `run_demo.sh` keeps it, from whatever folder this runs in
+    argv += ["--bag", str(opts.bag)] if opts.bag else ["--frames", str(opts.frames), "--data", str(ROOT / "data/demo")]
+    argv += [] if opts.bag else ["--bags", str(ROOT / "bags/demo")]
     print(f"[bench_graph] {name}: running the demo graph", flush=True)
     done = subprocess.run(argv, capture_output=True, text=True)
     if not (out / "demo.mcap").exists() or (complete and done.returncode != 0):
