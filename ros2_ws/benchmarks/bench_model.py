@@ -551,7 +551,8 @@ def main() -> None:
             peaks,
             "### Each stage against it (51.2 m, one thread, compiled kernels)",
             roofline_table(opts.repeats, peak),
-            f"### This CPU's int8 unit on one thread (median of {opts.repeats}; the convolution by the int8 path's layer)",
+            f"### This CPU's int8 unit on one thread (median of {opts.repeats}; the convolution by the int8 path's "
+            "layer)",
             int8_table(opts.repeats, peak),
             "### The 3x3x3 convolutions by memory layout (bfloat16, one thread, alternating calls)",
             layout_table(opts.repeats),

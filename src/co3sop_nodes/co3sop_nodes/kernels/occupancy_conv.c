@@ -5,8 +5,8 @@
  * reads adds its tap's C weights to the (at most 4) outputs of the slab it falls in; the slab is then rectified
  * and written with channels innermost (the spatial axes in any order: channels-last, or z-outer for the next
  * layer), as OUT says: 0 float32, 1 bfloat16 rounded to nearest even, 2 uint8 quantized (value / scale rounded to
- * nearest even and clamped to 255, as PyTorch quantizes with zero point 0, the quotient within an ulp). The work follows the occupied voxels,
- * not the grid: oneDNN's convolution reads every voxel of its one-channel input.
+ * nearest even and clamped to 255, as PyTorch quantizes with zero point 0, the quotient within an ulp). The work
+ * follows the occupied voxels, not the grid: oneDNN's convolution reads every voxel of its one-channel input.
  */
 #include <stdint.h>
 #include <stdlib.h>

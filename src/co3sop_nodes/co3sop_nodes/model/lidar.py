@@ -69,6 +69,7 @@ class SSCNetEncoder(nn.Module):
         self.register_buffer("int8_ranges", torch.zeros(len(self.ACTIVATIONS)), persistent=False)
         self._int8: list[quantized.Int8ConvReLU] | None = None  # made by `quantize`
         self._offsets: list[torch.Tensor] = []  # the int8 layers' background corrections (`quantize`)
+        self._scales: list[float] = []  # each ACTIVATIONS' quantization step on the int8 path (`quantize`)
 
     @property
     def calibrated(self) -> bool:
@@ -80,7 +81,7 @@ class SSCNetEncoder(nn.Module):
         c = self.down[0][0].out_channels
         self._int8 = None
         if self.calibrated and quantized.available(2 * c) and occupancy_kernel.available(c, torch.uint8):
-            s = (self.int8_ranges / 255).tolist()
+            self._scales = s = (self.int8_ranges / 255).tolist()
             layers = [self.down[1], *self.dilated]
             ins = [s[0], s[1], s[3], s[5]]  # each layer's input: the first layer's, down.1's, then the sums
             outs = [s[1], s[2], s[4], s[6]]
@@ -106,7 +107,7 @@ class SSCNetEncoder(nn.Module):
     def _int8_layers(self, occupancy, offsets: list[torch.Tensor], until: int | None = None):
         """The int8 layers on occupancy, with the residual sums' background `offsets`: the last sum, an Int8Volume;
         with `until`, the input of dilated layer `until` and that layer's output instead."""
-        s = (self.int8_ranges / 255).tolist()
+        s = self._scales
         first = self._first(occupancy, s[0])  # (B, C/2, X/2, Y/2, Z/2) z-outer uint8
         f = self._int8[0](quantized.Int8Volume(first.permute(0, 1, 4, 2, 3), s[0]))  # (B, C, Z/4, X/4, Y/4) views
         for i, layer in enumerate(self._int8[1:]):
