@@ -40,6 +40,44 @@ def test_kept_memory_serves_repeated_large_blocks_without_new_pages():
     assert kept < 200  # the first round's pages serve every later one
 
 
+# minor page faults of four threads other than the reserving one, each writing 28 MB (7 blocks of 4 MB) while the
+# others hold theirs, after 128 MB reserved (or not) by the main thread; imported as a node process imports them,
+# numpy and rclpy starting threads of their own after the node package (threads after those took arenas of their
+# own if malloc was set up too late)
+_RESERVED = """
+import resource, sys, threading
+import co3sop_nodes.ros
+import numpy, rclpy
+from co3sop_nodes.common.allocation import reserve_memory
+assert reserve_memory(int(sys.argv[1]) << 20) == (sys.argv[1] != "0")
+together = threading.Barrier(4)
+def frame():
+    blocks = [bytearray(4 << 20) for _ in range(7)]
+    for block in blocks:
+        block[::4096] = bytes(len(block) // 4096)
+    together.wait()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+workers = [threading.Thread(target=frame) for _ in range(4)]
+for worker in workers:
+    worker.start()
+for worker in workers:
+    worker.join()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _faults_after_reserve(mb: int) -> int:
+    done = subprocess.run([sys.executable, "-c", _RESERVED, str(mb)], capture_output=True, text=True, check=True)
+    return int(done.stdout)
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc only")
+def test_memory_reserved_by_one_thread_serves_a_node_processes_other_threads_without_new_pages():
+    none, reserved = _faults_after_reserve(0), _faults_after_reserve(128)
+    assert none > 25_000  # 28672 pages written for the first time
+    assert reserved < 1_000  # the reserve's pages, though other threads wrote and freed them
+
+
 def test_freeze_setup_takes_live_objects_out_of_the_collector():
     try:
         before = gc.get_freeze_count()

@@ -20,7 +20,6 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.common.errors import Co3sopError, exception_line
 from co3sop_nodes.v2x.sender_requests import MAPS_PER_EGO
 
@@ -319,7 +318,6 @@ def spin_node(
 
 def _spin(make_node: Callable[[], Node], args: list[str] | None, events: bool) -> int:
     configure_environment()
-    keep_freed_memory()  # a node repeats its frame's allocations: serve them from memory it already has
     rclpy.init(args=args)
     node = None
     code = 0

@@ -41,6 +41,7 @@ from sensor_msgs.msg import PointCloud2
 
 from co3sop_msgs.msg import RequestMap, SemanticOccupancy, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
+from co3sop_nodes.common.allocation import reserve_memory
 from co3sop_nodes.common.errors import Co3sopError, NonFiniteError, PayloadTooLargeError
 from co3sop_nodes.common.geometry import Pose
 from co3sop_nodes.inference.checkpoint import load_graph_model, resolve_checkpoint
@@ -72,7 +73,7 @@ from co3sop_nodes.ros.dds import (
 from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
 from co3sop_nodes.ros.links import publish_links
 from co3sop_nodes.ros.message_types import RCLPY
-from co3sop_nodes.ros.params import Param, parameters_help
+from co3sop_nodes.ros.params import Param, memory_reserve, parameters_help
 from co3sop_nodes.ros.worker import Worker
 from co3sop_nodes.v2x.codec import REQUEST_LEVELS, decode_features, encode_labels, encode_request
 from co3sop_nodes.v2x.ego_pairing import Pairing, PairingConfig
@@ -181,6 +182,7 @@ PARAMS = (
         REQUEST_LEVELS,
     ),
     Param("threads", int, "torch CPU threads", 1, range=(1, 256)),
+    memory_reserve(256),
     Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
     Param(
         "precision",
@@ -298,6 +300,7 @@ class Ego(ManagedNode):
         self.rng = np.random.default_rng(p["seed"])
         torch.set_num_threads(p["threads"])
         warmed = self._worker.call(lambda: warm_up(self.model, ego=True))  # on the thread that fuses
+        reserved = reserve_memory(p["memory_reserve_mb"] << 20)
         # messages wait in DDS only until the executor takes them (fusing runs on its own thread)
         self._qos = features_qos(p["features_reliability"], p["queue_depth"])
         # names relative to the node's namespace: `__ns` and remapping apply
@@ -313,6 +316,7 @@ class Ego(ManagedNode):
             f"inference on {self.model.path.describe()}"
             + (f" (warmed up in {warmed:.1f} s)" if warmed else "")
             + f"; compiled kernels: {', '.join(self.kernels) or 'none'}"
+            + (f"; {p['memory_reserve_mb']} MB of memory reserved" if reserved else "")
         )
 
     def activate(self) -> None:

@@ -60,6 +60,18 @@ class Param:
         return d
 
 
+def memory_reserve(default_mb: int) -> Param:
+    """`memory_reserve_mb`: the memory a node reserves at configure (`allocation.reserve_memory`)."""
+    return Param(
+        "memory_reserve_mb",
+        int,
+        "memory written at configure and kept for frames (MB), so that the first frames, the graph's busiest, do "
+        "not page-fault it; 0: none",
+        default_mb,
+        range=(0, 65536),
+    )
+
+
 def parameters_help(params: Sequence[Param]) -> str:
     """Every parameter with its type, default (or 'required'), bounds or choices and description: the epilog of
     a node's --help."""

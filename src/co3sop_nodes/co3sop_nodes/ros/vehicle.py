@@ -34,6 +34,7 @@ from tf2_msgs.msg import TFMessage
 
 from co3sop_msgs.msg import RequestMap, VoxelFeatures, VoxelScan
 from co3sop_nodes.common import topics
+from co3sop_nodes.common.allocation import reserve_memory
 from co3sop_nodes.common.errors import Co3sopError, CodecError
 from co3sop_nodes.common.grid import BENCHMARK_RANGES
 from co3sop_nodes.common.transforms import StaticTransforms
@@ -68,7 +69,7 @@ from co3sop_nodes.ros.dds import (
 from co3sop_nodes.ros.lifecycle import AUTOSTART, ManagedNode
 from co3sop_nodes.ros.links import publish_links
 from co3sop_nodes.ros.message_types import RCLPY
-from co3sop_nodes.ros.params import Param, parameters_help
+from co3sop_nodes.ros.params import Param, memory_reserve, parameters_help
 from co3sop_nodes.ros.worker import Worker
 from co3sop_nodes.v2x.codec import (
     CODECS,
@@ -118,6 +119,7 @@ PARAMS = (
     ),
     Param("cameras", list, "camera names of a camera model's frame", ["camera0", "camera1", "camera2", "camera3"]),
     Param("threads", int, "torch CPU threads (several vehicles share a machine in the demo)", 1, range=(1, 256)),
+    memory_reserve(64),
     Param("device", str, "where the model runs: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N", "cpu"),
     Param(
         "precision",
@@ -327,6 +329,7 @@ class Vehicle(ManagedNode):
         # a scan-only sender runs no model (its egos do). On this thread, not the encoder's: there the first frame
         # gained little and the later ones lost 15 % in the graph (BENCHMARKS.md, "Warming up on the thread that fuses")
         warmed = warm_up(self.model, ego=False) if self.send != "scan" or p["local_features"] else 0.0
+        reserved = reserve_memory(p["memory_reserve_mb"] << 20)
         self.cameras = p["cameras"]
         # names relative to the node's namespace (/cav_<id> by default): `__ns` and remapping apply
         self._parts = {"pose": topics.lidar_pose()}
@@ -362,6 +365,7 @@ class Vehicle(ManagedNode):
             f"inference on {self.model.path.describe()}"
             + (f" (warmed up in {warmed:.1f} s)" if warmed else "")
             + f"; compiled kernels: {', '.join(self.kernels) or 'none'}"
+            + (f"; {p['memory_reserve_mb']} MB of memory reserved" if reserved else "")
         )
 
     def activate(self) -> None:

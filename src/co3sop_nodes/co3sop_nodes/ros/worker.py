@@ -7,11 +7,8 @@ its latency grows with the queue. On its own thread the node sees every
 message as it comes and can choose the newest work (PyTorch and the compiled
 kernels release the GIL while they compute).
 
-The thread lives as long as the node, so the node can warm up on it
-(`call`): glibc gives each thread its own memory arena, and the ego's first
-frames on a thread other than its warm-up's page-fault their tensors anew,
-when the graph is busiest (BENCHMARKS.md, "Warming up on the thread that
-fuses").
+The thread lives as long as the node, so the node can warm up on the thread
+that computes its frames (`call`).
 """
 
 from __future__ import annotations
