@@ -32,9 +32,10 @@ from co3sop_nodes.viz.cloud import occupancy_cloud
 # (BENCHMARKS.md, "The demo's rate on a CPU with half the bfloat16 throughput").
 OVERHEAD = 1.55
 # The share of the cores the graph may keep busy on average and still fuse every frame: its processes wake together
-# at each frame and start up together, and a slow spell of a shared machine costs a frame. On 2 cores every frame of
-# 100 was fused in most runs at 61-75 %; at 84-93 % frames were skipped (same section).
-UTILISATION = 0.75
+# at each frame, and a slow spell of a shared machine costs a frame. On 2 cores, with the nodes' memory reserved at
+# configure, every frame of 100 was fused at 76-82 % in two runs of three and 99 in the third; at 84-93 % frames
+# were skipped (BENCHMARKS.md, "Memory reserved at configure" and the section above).
+UTILISATION = 0.8
 # play at 1 / HEADROOM of the rate the measured work allows
 HEADROOM = OVERHEAD / UTILISATION
 
