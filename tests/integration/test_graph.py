@@ -714,6 +714,9 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
     assert sup.state(broken) == "unconfigured" and "missing.pt" in graph.log("broken")
     for node in nodes:
         assert sup.change(node, "configure") and sup.state(node) == "inactive"
+    # the default reserves, written at configure
+    assert "256 MB of memory reserved" in graph.log("ego")
+    assert "64 MB of memory reserved" in graph.log(f"vehicle{neighbour}")
     sup.wait(
         "the publishers made by configure",
         lambda: (

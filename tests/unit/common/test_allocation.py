@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from co3sop_nodes.common.allocation import freeze_setup
+from co3sop_nodes.common.allocation import MAX_RESERVE, freeze_setup, reserve_memory
 
 # minor page faults of 20 rounds of a 40 MB block (beyond the 32 MB malloc adapts to) written, then freed, after
 # a first round
@@ -76,6 +76,11 @@ def test_memory_reserved_by_one_thread_serves_a_node_processes_other_threads_wit
     none, reserved = _faults_after_reserve(0), _faults_after_reserve(128)
     assert none > 25_000  # 28672 pages written for the first time
     assert reserved < 1_000  # the reserve's pages, though other threads wrote and freed them
+
+
+def test_a_reserve_beyond_what_the_trim_threshold_holds_is_refused():
+    with pytest.raises(ValueError, match="trim threshold"):
+        reserve_memory(MAX_RESERVE + 1)
 
 
 def test_freeze_setup_takes_live_objects_out_of_the_collector():

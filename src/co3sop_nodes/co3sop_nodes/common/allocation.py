@@ -35,6 +35,8 @@ TRIM_THRESHOLD = 256 << 20
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8  # mallopt's parameters (malloc.h)
 # a reserve is written and freed in blocks this size, served from the heap (below the mmap threshold)
 _RESERVE_BLOCK = 16 << 20
+# mallopt takes an int: the trim threshold, raised by a reserve, stays below 2 GB
+MAX_RESERVE = (1 << 31) - 1 - TRIM_THRESHOLD
 
 
 @cache
@@ -75,6 +77,10 @@ def reserve_memory(nbytes: int) -> bool:
     with the process (the trim threshold rises by the reserve, so the heap's free top is given back only beyond the
     reserve and the usual threshold) and later allocations of any thread take them without a page fault. False
     where nothing was reserved (malloc left as it is, no reserve asked for, or the memory not there)."""
+    if nbytes > MAX_RESERVE:
+        raise ValueError(
+            f"reserve_memory: {nbytes} bytes, above the {MAX_RESERVE} that malloc's trim threshold (an int) keeps"
+        )
     if nbytes <= 0 or not keep_freed_memory():
         return False
     libc = _libc()

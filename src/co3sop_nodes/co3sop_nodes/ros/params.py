@@ -24,6 +24,7 @@ from rclpy.exceptions import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from co3sop_nodes.common.allocation import MAX_RESERVE
 from co3sop_nodes.common.errors import Co3sopError, exception_line
 
 _TYPES = {
@@ -68,7 +69,7 @@ def memory_reserve(default_mb: int) -> Param:
         "memory written at configure and kept for frames (MB), so that the first frames, the graph's busiest, do "
         "not page-fault it; 0: none",
         default_mb,
-        range=(0, 65536),
+        range=(0, MAX_RESERVE >> 20),
     )
 
 
