@@ -4,8 +4,9 @@ where the CPU has them.
 
 Activations are uint8 with zero point 0 on a per-tensor scale (a calibrated range / 255:
 `inference/calibration.py`), every one after a ReLU, so uint8's clamp at 0 is that ReLU; weights int8 per output
-channel (max |w| / 127), batch norm folded in first (conv_norm.folded_norm). Volumes are z-outer (conv_norm.z_outer) and convolved as their (B, C, Z,
-X, Y) views, channels-last: the layout oneDNN tiles best for a driving grid, whose z is its shortest axis.
+channel (max |w| / 127), batch norm folded in first (conv_norm.folded_norm). Volumes are z-outer (conv_norm.z_outer)
+and convolved as their (B, C, Z, X, Y) views, channels-last: the layout oneDNN tiles best for a driving grid, whose z
+is its shortest axis.
 
 Most of a driving grid is empty: far from any occupied voxel every activation is one profile along z (the
 background: a vector per z-layer, the grid's floor and top padded), and 8-bit rounding errs on it the same way
