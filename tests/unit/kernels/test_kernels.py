@@ -111,7 +111,9 @@ def test_the_compiled_warp_equals_grid_sample(yaw, shift):
     with torch.enable_grad():
         ref = model.ego.align(ego, others, rel)
     assert fast[0].shape == ref[0].shape and fast[2].dtype == torch.bool
-    torch.testing.assert_close(fast[0], ref[0].detach(), rtol=1e-5, atol=1e-5)  # features
+    # grid_sample samples at positions rounded through [-1, 1]: a few 1e-6 voxels off on a 64-voxel axis, times the
+    # random features' differences between neighbouring voxels (up to about 6), as a CPU's own rounding gives them
+    torch.testing.assert_close(fast[0], ref[0].detach(), rtol=1e-5, atol=5e-5)  # features
     torch.testing.assert_close(fast[1], ref[1].detach(), rtol=1e-5, atol=1e-5)  # confidences
     assert 0.1 < ref[2].float().mean() < 0.9 and torch.equal(fast[2], ref[2])  # hybrid masks
 
