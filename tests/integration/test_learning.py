@@ -533,14 +533,16 @@ def test_calibrate_writes_a_checkpoint_that_runs_int8_and_refuses_what_it_should
     data, out = str(small_split / "data"), tmp_path / "calibrated.pt"
     done = tool("calibrate", "--model", "tiny-lidar", "--data", data, "--splits", "train", "--out", str(out))
     assert done.returncode == 0, done.stderr
-    assert "vehicle.encoder.sum.2:" in done.stdout and f"wrote {out}" in done.stdout
+    assert (
+        "vehicle.encoder.sum.2:" in done.stdout and "ego.head.up1.3:" in done.stdout and f"wrote {out}" in done.stdout
+    )
     model, checkpoint = load_model(out)
     assert checkpoint["meta"]["history"][-1]["command"].startswith("calibrate --model tiny-lidar")
     assert checkpoint["int8"]["splits"] == ["train"]
     assert model.use(InferencePath("cpu", "int8")).path.int8
     refused = {
         "--splits test": ["--model", "tiny-lidar", "--data", data, "--splits", "test"],
-        "tiny has no int8 layers": ["--model", "tiny", "--data", data],
+        "tiny is not a LiDAR model with int8 layers": ["--model", "tiny", "--data", data],
         "no OPV2V split folders": ["--model", "tiny-lidar", "--data", str(tmp_path)],
     }
     for message, args in refused.items():

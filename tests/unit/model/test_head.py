@@ -119,6 +119,30 @@ def test_the_reduced_precision_kernel_stays_within_its_tolerance(name):
             np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("name", ["tiny-lidar", "small"])
+def test_uint8_parents_are_read_as_their_scaled_values(name):
+    """An int8 head's parents (uint8, one scale, folded into the transposed convolution's weights): the reduced
+    kernel's result on the same values in float32 (labels equal but where the fold's rounding breaks a near-tie,
+    confidence within one step); other dtypes are refused."""
+    cfg = preset(name)
+    head = random_head(cfg.head_channels, cfg.embed_dims, 6)
+    parents = head.parents(torch.randn(1, cfg.embed_dims, *quarter(cfg.feature_grid.dims)))[0]
+    scale = float(parents.max()) / 255
+    q = torch.round(parents / scale).clamp(0, 255).to(torch.uint8)
+    got_labels, got_conf = octant_labels_scaled(head, q, scale)
+    want_labels, want_conf = octant_labels(head, q.float() * scale, "float16")
+    assert len(np.unique(want_labels)) >= 5
+    assert (got_labels == want_labels).mean() > 0.999
+    assert np.abs(got_conf.astype(int) - want_conf)[got_labels == want_labels].max() <= 1
+    with pytest.raises(ValueError, match="int8 takes uint8 parents, not torch.float32"):
+        octant_labels_scaled(head, parents, scale)
+
+
+def octant_labels_scaled(head: OccupancyHead, parents: torch.Tensor, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    out = octant_kernel.octant_labels(parents, head.up2, head.point2, head.classify[2], 1, "int8", scale)
+    return tuple(t[None].numpy() for t in out)
+
+
 def bfloat16_layers(head: OccupancyHead, parents: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The full-resolution stage as bfloat16 layers compute it, the definition of the kernel's bfloat16 products:
     weights and hidden activations rounded to bfloat16, products and sums exact (float64), the classifier in base 2

@@ -1,6 +1,7 @@
-"""The int8 path: the SSCNet-style encoder's 3D layers after its first in int8 once calibrated, within 8-bit's
-rounding of float32; calibration ranges that minimise the quantization error, shipped in checkpoints; a model
-without them, or a device other than the CPU, never silently on an int8 path it cannot take."""
+"""The int8 path: the SSCNet-style encoder's 3D layers after its first and the head's layers up to 1/2 in int8
+once calibrated, within 8-bit's rounding of float32; calibration ranges that minimise the quantization error,
+shipped in checkpoints; a model without them, or a device other than the CPU, never silently on an int8 path it
+cannot take."""
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from co3sop_nodes.model import path as path_module
 from co3sop_nodes.model import quantized
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
+from co3sop_nodes.model.head import OccupancyHead
 from co3sop_nodes.model.path import InferencePath, inference_path
 
 GRID = ((-12.8, -12.8, -3.0), 0.4, (64, 64, 24))
@@ -109,7 +111,8 @@ def test_the_calibration_travels_in_the_checkpoint(tmp_path):
     loaded, data = load_model(out)
     assert loaded.vehicle.encoder.calibrated and not load_model(source)[0].vehicle.encoder.calibrated
     assert [h["stage"] for h in data["meta"]["history"]] == ["ego", "int8 calibration"]
-    torch.testing.assert_close(loaded.vehicle.encoder.int8_ranges, torch.tensor(list(ranges.values())))
+    ranges_in = torch.cat([loaded.vehicle.encoder.int8_ranges, loaded.ego.head.int8_ranges])  # int8_activations'
+    torch.testing.assert_close(ranges_in, torch.tensor(list(ranges.values())))
     assert loaded.use(InferencePath(precision="int8")).path.int8
 
     data["int8"] = {"ranges": {**ranges, "vehicle.encoder.sum.2": float("nan")}}
@@ -126,12 +129,58 @@ def test_the_calibration_travels_in_the_checkpoint(tmp_path):
         load_model(tmp_path / "odd.pt")
 
 
-def test_a_camera_model_has_no_int8_layers():
+def test_an_uncalibrated_camera_model_takes_the_rest_of_the_path():
     model = build_model(preset("tiny")).eval()
-    assert model.int8_activations() == []
+    assert model.int8_activations() == [f"ego.head.{n}" for n in OccupancyHead.ACTIVATIONS]  # its head's only
     assert model.use(InferencePath(precision="int8")).path.precision == InferencePath(precision="int8").floats
-    with pytest.raises(Co3sopError, match="has no int8 layers"):
+    assert "no int8 calibration" in model.int8_missing()
+    with pytest.raises(Co3sopError, match="gives a positive range"):
         model.calibrate({})
+    with pytest.raises(Co3sopError, match=r"\(not vehicle.encoder.down.0\)"):
+        model.calibrate({"vehicle.encoder.down.0": 1.0})
+    with pytest.raises(Co3sopError, match="an int8 calibration of ego.head lacks ego.head.up1, ego.head.up1.3"):
+        model.calibrate({f"ego.head.{n}": 1.0 for n in OccupancyHead.ACTIVATIONS[:3]})
+
+
+def features(count: int, seed: int, dims=(16, 16, 6)) -> list[torch.Tensor]:
+    """Fused features as the head takes them: signed, mostly one profile along z (the empty grid), with objects."""
+    gen = torch.Generator().manual_seed(seed)
+    background = torch.randn(1, 32, 1, 1, dims[2], generator=gen)
+    out = []
+    for _ in range(count):
+        objects = (torch.rand(1, 1, *dims, generator=gen) < 0.15) * torch.randn(1, 32, *dims, generator=gen) * 2
+        out.append(background + objects + 0.1 * torch.randn(1, 32, *dims, generator=gen))
+    return out
+
+
+@torch.inference_mode()
+def test_a_calibrated_head_computes_its_labels_in_int8_near_float32(monkeypatch):
+    model = lidar_model()
+    head = model.ego.head
+    for layer in (*head.stage0, head.up1[3]):  # norms that are not the identity
+        layer[1].running_mean.normal_(0, 0.1)
+        layer[1].running_var.uniform_(0.5, 2.0)
+    calibration, held_out = features(6, seed=1), features(3, seed=2)
+    want = [head.labels(x) for x in held_out]  # the float32 path
+    histograms = [ActivationHistogram() for _ in head.ACTIVATIONS]
+    for x in calibration:
+        for histogram, values in zip(histograms, head.activations(x)):
+            histogram.add(values)
+    ranges = {f"ego.head.{n}": h.best_range(steps) for n, h, steps in zip(head.ACTIVATIONS, histograms, head.STEPS)}
+    model.calibrate(ranges).use(InferencePath(precision="int8"))
+    assert model.path.int8 and head._int8 is not None and not model.vehicle.encoder.calibrated  # the head's alone
+    calls, original = [], quantized.Int8ConvReLU.__call__
+    monkeypatch.setattr(quantized.Int8ConvReLU, "__call__", lambda self, x: calls.append(1) or original(self, x))
+    got = [head.labels(x) for x in held_out]
+    assert len(calls) == 3 * len(held_out)  # stage0's two 3x3x3 layers and the block at 1/2
+    for (labels, confidence), (want_labels, want_confidence) in zip(got, want):
+        assert labels.shape == want_labels.shape and labels.dtype == confidence.dtype == torch.uint8
+        # 8-bit steps through four layers of random weights (99.8-99.9 % on the shipped weights' bag frames)
+        assert float((labels == want_labels).float().mean()) > 0.97
+        same = labels == want_labels
+        assert float((confidence[same].float() - want_confidence[same].float()).abs().mean()) < 6
+    model.use(InferencePath())
+    assert all(torch.equal(head.labels(x)[0], w[0]) for x, w in zip(held_out, want))  # float32 as it was
 
 
 def test_int8_runs_on_the_cpu_only(monkeypatch):

@@ -3,8 +3,9 @@
     ros2 run co3sop_nodes calibrate --model runs/x/model.pt --data data/bench --splits validate --out model.pt
 
 With them, `precision int8` (the nodes' parameter, `evaluate`'s and `demo`'s option) computes the model's
-SSCNet-style vehicle half in int8 on the CPU. The ranges minimise each activation's squared quantization error
-over every CAV's scan of the splits (inference/calibration.py); calibrate on train or validate, never on test.
+SSCNet-style vehicle half and its head's layers up to 1/2 in int8 on the CPU. The ranges minimise each activation's
+squared quantization error over every CAV's scan of the splits (the head's on each scan's own features:
+inference/calibration.py); calibrate on train or validate, never on test.
 """
 
 from __future__ import annotations
@@ -39,9 +40,10 @@ def main(args: list[str] | None = None) -> int:
     torch.set_num_threads(opts.threads)
     source = resolve_checkpoint(opts.model, "--model")
     model, _ = load_model(source)
-    if not model.int8_activations():
+    if model.cfg.modality != "lidar" or not model.int8_activations():
         raise Co3sopError(
-            f"--model {opts.model}: {model.cfg.name} has no int8 layers (an SSCNet-style LiDAR model has)"
+            f"--model {opts.model}: {model.cfg.name} is not a LiDAR model with int8 layers (calibrate measures on "
+            "scans: an SSCNet-style vehicle half, a convolutional head)"
         )
     dataset = OccupancyDataset(opts.data, opts.splits, model.cfg)
     agents = [(f, j) for f, frame in enumerate(dataset.frames) for j in range(len(frame.cavs))]

@@ -39,6 +39,7 @@ def _kernel(c1: int, c2: int, classes: int, precision: str):
         K=classes,
         REDUCED=int(reduced),
         PARENTS_BF16=int(precision == "bfloat16"),
+        PARENTS_U8=int(precision == "int8"),
         DOT_BF16=int(dot_bf16(precision, c2)),
     )
     if lib is None:
@@ -61,20 +62,26 @@ def octant_labels(
     classify: torch.nn.Conv3d,
     threads: int,
     precision: str = "float32",
+    scale: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """parents (X1, Y1, Z1, C1) of the 1/2 grid on the CPU, in any memory layout with channels innermost (others are
     copied) -> labels, confidence (2X1, 2Y1, 2Z1) uint8, on `threads` threads (the kernel must be `available`) for an
     inference path of `precision`. float32: every sum rounded as the reference rounds it. A reduced precision: fused
     multiply-adds and a shorter exp (labels equal but for near-ties, confidence within one step, as tested);
     bfloat16 parents are read as they are (widening them first would be one more pass over the volume), and where
-    `dot_bf16` the layers compute as bfloat16 layers do (tested against that definition)."""
+    `dot_bf16` the layers compute as bfloat16 layers do (tested against that definition). int8: uint8 parents of an
+    int8 head, each value `scale` times its integer, read as they are; the rest as a reduced precision."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k, precision)
-    x = parents.detach().cpu().to(torch.bfloat16 if precision == "bfloat16" else torch.float32)
+    dtype = {"bfloat16": torch.bfloat16, "int8": torch.uint8}.get(precision, torch.float32)
+    if precision == "int8" and parents.dtype != torch.uint8:
+        raise ValueError(f"octant_labels: int8 takes uint8 parents, not {parents.dtype}")
+    x = parents.detach().cpu().to(dtype)
     if x.stride(-1) != 1:
         x = x.contiguous()
     # (C1, C2, 16) in the kernel's lane order: octant (dx, dy, dz) of parent `half` at lane 4 (2 dx + dy) + 2 half + dz
-    up_w = kernels.array(up.weight.flatten(2).view(c1, c2, 4, 1, 2).expand(c1, c2, 4, 2, 2).reshape(c1, c2, 16))
+    up_w = up.weight.flatten(2).view(c1, c2, 4, 1, 2).expand(c1, c2, 4, 2, 2).reshape(c1, c2, 16)
+    up_w = kernels.array(up_w * scale if precision == "int8" else up_w)
     up_b = kernels.array(up.bias[:, None].expand(c2, 16))  # (C2, 16)
     point_w, point_b = (
         kernels.array(point.weight[:, :, 0, 0, 0].t()),

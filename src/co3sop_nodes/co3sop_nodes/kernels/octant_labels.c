@@ -24,9 +24,12 @@ typedef float f16 __attribute__((vector_size(64)));
 typedef int32_t i16 __attribute__((vector_size(64)));
 typedef f16 f16u __attribute__((aligned(4)));  /* for loads from arrays numpy aligned to less than 64 bytes */
 
-/* parents as the head computed them: float32, or bfloat16 (PARENTS_BF16=1: its bits are a float32's upper half) */
+/* parents as the head computed them: float32, bfloat16 (PARENTS_BF16=1: its bits are a float32's upper half), or
+ * uint8 (PARENTS_U8=1: an int8 head's quantized values, their scale folded into the transposed convolution's weights) */
 #if PARENTS_BF16
 typedef uint16_t parent_t;
+#elif PARENTS_U8
+typedef uint8_t parent_t;
 #else
 typedef float parent_t;
 #endif

@@ -215,43 +215,72 @@ class Co3SOP(nn.Module):
                 fmt = layout.get(module.weight.dim(), torch.contiguous_format)
                 module.weight.data = module.weight.data.contiguous(memory_format=fmt)
         if path.int8:
-            encoder = self.int8_encoder
-            if encoder is None or not encoder.quantize(self.cfg.grid.dims[2]):
+            made = [
+                module.quantize(self.cfg.grid.dims[2]) if isinstance(module, SSCNetEncoder) else module.quantize()
+                for module in self.int8_modules.values()
+            ]
+            if not any(made):
                 return self.use(replace(path, precision=path.floats))
         return self
 
     @property
-    def int8_encoder(self) -> SSCNetEncoder | None:
-        """The module an int8 path computes in int8 (the SSCNet-style LiDAR vehicle half), or None."""
-        encoder = getattr(self.vehicle, "encoder", None)
-        return encoder if isinstance(encoder, SSCNetEncoder) else None
+    def int8_modules(self) -> dict[str, nn.Module]:
+        """The modules an int8 path can compute in int8, by name: an SSCNet-style LiDAR vehicle half's encoder and
+        the convolutional head (each once calibrated)."""
+        modules = {"vehicle.encoder": getattr(self.vehicle, "encoder", None), "ego.head": self.ego.head}
+        return {name: m for name, m in modules.items() if isinstance(m, (SSCNetEncoder, OccupancyHead))}
 
     def int8_missing(self) -> str:
         """Why an int8 path computes nothing of this model in int8 (after `use` of one left it on another path)."""
-        encoder = self.int8_encoder
-        if encoder is None:
-            return f"{self.cfg.name}'s vehicle half is not an SSCNet-style LiDAR one, the one with int8 layers"
-        if not encoder.calibrated:
+        modules = self.int8_modules
+        if not modules:
+            return f"{self.cfg.name} has neither an SSCNet-style LiDAR vehicle half nor a convolutional head"
+        if not any(m.calibrated for m in modules.values()):
             return f"{self.cfg.name} has no int8 calibration: make one with `calibrate`"
         return "this machine has no oneDNN quantized convolution or no C compiler for the int8 kernels"
 
     def int8_activations(self) -> list[str]:
         """The names of the activations an int8 path quantizes, which a calibration gives ranges of (none for a
         model without int8 layers)."""
-        encoder = self.int8_encoder
-        return [] if encoder is None else [f"vehicle.encoder.{name}" for name in encoder.ACTIVATIONS]
+        return [f"{prefix}.{name}" for prefix, m in self.int8_modules.items() for name in m.ACTIVATIONS]
+
+    def int8_steps(self) -> list[float]:
+        """Each of `int8_activations`' quantization steps over its range (255 after a ReLU)."""
+        return [step for m in self.int8_modules.values() for step in m.STEPS]
+
+    @torch.no_grad()
+    def int8_values(self, occupancy: torch.Tensor) -> list[torch.Tensor]:
+        """The float32 forward's values of each of `int8_activations` for a scan (1, 1, X, Y, Z): the vehicle half's,
+        then the head's on that scan's own features (what a calibration measures)."""
+        modules = self.int8_modules
+        values = []
+        if "vehicle.encoder" in modules:
+            values += modules["vehicle.encoder"].activations(occupancy)
+        if "ego.head" in modules:
+            values += modules["ego.head"].activations(self.vehicle(occupancy=occupancy).features)
+        return values
 
     def calibrate(self, ranges: dict[str, float]) -> Co3SOP:
-        """Take an int8 calibration: the range of each of `int8_activations` by name (positive); the int8 layers are
-        made at the next `use` of an int8 path."""
+        """Take an int8 calibration: the range of each activation of one or more of `int8_modules` by name
+        (positive; a module takes all of its own or none); their int8 layers are made at the next `use` of an int8
+        path."""
         names = self.int8_activations()
         if not names:
             raise Co3sopError(f"{self.cfg.name}: has no int8 layers to calibrate")
-        if sorted(ranges) != sorted(names) or not all(float(ranges[n]) > 0 for n in names):
+        unknown = sorted(set(ranges) - set(names))
+        if unknown or not ranges or not all(float(r) > 0 for r in ranges.values()):
             raise Co3sopError(
                 f"{self.cfg.name}: an int8 calibration gives a positive range of each of {', '.join(names)}"
+                + (f" (not {', '.join(unknown)})" if unknown else "")
             )
-        self.int8_encoder.int8_ranges.copy_(torch.tensor([float(ranges[n]) for n in names]))
+        for prefix, module in self.int8_modules.items():
+            own = [f"{prefix}.{n}" for n in module.ACTIVATIONS]
+            given = [n for n in own if n in ranges]
+            if given and len(given) < len(own):
+                missing = ", ".join(n for n in own if n not in ranges)
+                raise Co3sopError(f"{self.cfg.name}: an int8 calibration of {prefix} lacks {missing}")
+            if given:
+                module.int8_ranges.copy_(torch.tensor([float(ranges[n]) for n in own]))
         return self
 
     def forward(

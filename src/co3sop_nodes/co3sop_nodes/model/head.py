@@ -10,6 +10,11 @@ cache-sized chunks, never holding the dense full-resolution logits nor
 computing the 1/4 and 1/2 logits (the dense pass is its reference). On the
 CPU that last stage runs as a compiled kernel (`octant_kernel`) where a C
 compiler is available, about 10x faster than its PyTorch loop, tested equal.
+
+On an int8 path, once calibrated, the layers up to the 1/2 features compute in int8 (quantized.py): the fused
+features quantized symmetrically (zero point 128: they are signed), the 3x3x3 layers and the transposed
+convolution to 1/2 (one matrix product per coarse voxel) on oneDNN's int8 primitives, each output uint8 after its
+ReLU; the last stage reads those uint8 features as they are. Those layers are 80 % of the head's operations.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.model import quantized
 from co3sop_nodes.model.conv_norm import ConvNorm, folded_norm, z_outer
 from co3sop_nodes.model.path import InferencePath
 
@@ -28,6 +34,11 @@ def _block(cin: int, cout: int) -> ConvNorm:
 
 
 class OccupancyHead(nn.Module):
+    # the activations an int8 path quantizes: the fused features (signed), then each layer's output after its ReLU
+    ACTIVATIONS = ("input", "stage0.0", "stage0.1", "up1", "up1.3")
+    # the quantization steps of each activation's range: the input's spans [-range, range]
+    STEPS = (127.5, 255.0, 255.0, 255.0, 255.0)
+
     def __init__(self, dims: int, channels: tuple[int, int, int], classes: int):
         super().__init__()
         c0, c1, c2 = channels
@@ -39,6 +50,56 @@ class OccupancyHead(nn.Module):
         self.point2 = nn.Conv3d(c2, c2, 1)
         self.classify = nn.ModuleList(nn.Conv3d(c, classes, 1) for c in channels)
         self.path = InferencePath()  # set by Co3SOP.use
+        # each ACTIVATIONS' calibrated range (0: none), loaded from a checkpoint's int8 entry (`Co3SOP.calibrate`)
+        self.register_buffer("int8_ranges", torch.zeros(len(self.ACTIVATIONS)), persistent=False)
+        self._int8: tuple | None = None  # (the int8 layers, each activation's step), made by `quantize`
+
+    @property
+    def calibrated(self) -> bool:
+        return bool((self.int8_ranges > 0).all())
+
+    def quantize(self) -> bool:
+        """Make the int8 layers from the weights and ranges as they are now (or none, where the head has no
+        calibration or the machine cannot run them); whether there are some."""
+        self._int8 = None
+        c1, c2, k = self.up2.in_channels, self.up2.out_channels, self.classify[2].out_channels
+        if self.calibrated and quantized.onednn_int8() and octant_kernel.available(c1, c2, k, "int8"):
+            s = [r / n for r, n in zip(self.int8_ranges.tolist(), self.STEPS)]
+            conv, norm = self.up1[0], self.up1[1]
+            scale, shift = folded_norm(norm, conv.bias)  # (C1,)
+            # rows (dz, dx, dy, C1) as in `parents`: a coarse voxel's 8 octants, z-outer
+            weight = (conv.weight * scale[:, None, None, None]).permute(0, 4, 2, 3, 1).flatten(1)  # (C0, 8*C1)
+            layers = (
+                quantized.Int8ConvReLU(self.stage0[0][0], self.stage0[0][1], s[0], s[1], in_zero=128),
+                quantized.Int8ConvReLU(self.stage0[1][0], self.stage0[1][1], s[1], s[2]),
+                quantized.Int8LinearReLU(weight.t(), shift.repeat(8), s[2], s[3]),
+                quantized.Int8ConvReLU(self.up1[3][0], self.up1[3][1], s[3], s[4]),
+            )
+            self._int8 = (layers, s)
+        return self._int8 is not None
+
+    @torch.no_grad()
+    def activations(self, x) -> list[torch.Tensor]:
+        """The float32 forward's ACTIVATIONS for x (B, C, X/4, Y/4, Z/4), as the int8 path quantizes them (the input
+        by its magnitude): what a calibration measures."""
+        f0 = self.stage0[0](x)
+        f1 = self.stage0[1](f0)
+        u = self.up1[2](self.up1[1](self.up1[0](f1)))
+        return [x.abs(), f0, f1, u, self.up1[3](u)]
+
+    def _parents_int8(self, x) -> tuple[torch.Tensor, float]:
+        """x (B, C, X/4, Y/4, Z/4) -> the 1/2 features on the int8 layers: (B, X/2, Y/2, Z/2, C1) uint8, channels
+        innermost in memory (z outermost), and their scale."""
+        (first, second, up, block), s = self._int8
+        b, _, x0, y0, z0 = x.shape
+        q = (x.permute(0, 4, 2, 3, 1) * (1 / s[0])).add_(128).round_().clamp_(0, 255).to(torch.uint8)  # (B, Z, X, Y, C)
+        f = second(first(quantized.Int8Volume(q.contiguous().permute(0, 4, 1, 2, 3), s[0])))  # (B, C0, Z, X, Y) views
+        rows = f.values.permute(0, 2, 3, 4, 1).reshape(-1, f.values.shape[1])  # (B*Z*X*Y, C0): no copy
+        c1 = block.bias.shape[0]
+        u = up(rows, s[2]).view(b, z0, x0, y0, 2, 2, 2, c1).permute(0, 1, 4, 2, 5, 3, 6, 7)  # (B, Z0, dz, X0, ...)
+        u = u.reshape(b, 2 * z0, 2 * x0, 2 * y0, c1).permute(0, 4, 1, 2, 3)  # (B, C1, Z1, X1, Y1) views
+        f1 = block(quantized.Int8Volume(u, s[3]))
+        return f1.values.permute(0, 3, 4, 2, 1), s[4]  # (B, X1, Y1, Z1, C1): no copy
 
     def coarse(self, x):
         """x: (B, C, X/4, Y/4, Z/4) -> features at 1/4 and 1/2."""
@@ -92,6 +153,14 @@ class OccupancyHead(nn.Module):
         PyTorch loop. The 1/2 features follow the path's precision; the last stage sums in float32, its products
         in bfloat16 on a bfloat16 path where the CPU computes them (`octant_kernel.dot_bf16`).
         """
+        if self.path.int8 and self._int8 is not None and self.path.kernels(x) and compiled is not False:
+            parents, scale = self._parents_int8(x)  # (B, X1, Y1, Z1, C1) uint8
+            threads = torch.get_num_threads()
+            pairs = [
+                octant_kernel.octant_labels(p, self.up2, self.point2, self.classify[2], threads, "int8", scale)
+                for p in parents
+            ]
+            return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
         with self.path.autocast():
             parents = self.parents(x)  # (B, X1, Y1, Z1, C1)
         b, x1, y1, z1 = parents.shape[:4]

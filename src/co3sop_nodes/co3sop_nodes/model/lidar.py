@@ -51,6 +51,7 @@ class LMSCNetEncoder(nn.Module):
 class SSCNetEncoder(nn.Module):
     # the activations an int8 path quantizes, each after a ReLU: the output of each 3x3x3 layer and each residual sum
     ACTIVATIONS = ("down.0", "down.1", "dilated.0", "sum.0", "dilated.1", "sum.1", "dilated.2", "sum.2")
+    STEPS = (255.0,) * len(ACTIVATIONS)  # the quantization steps of each one's range (uint8, zero point 0)
 
     def __init__(self, dims: int, channels: int):
         super().__init__()

@@ -45,15 +45,16 @@ class Int8Volume:
         return out if offset is None else out.add_(offset.to(dtype)[:, None, None, :])
 
 
+def onednn_int8() -> bool:
+    """Whether this PyTorch build has oneDNN's quantized convolution and matrix product."""
+    ops = ("qconv_prepack", "qconv_pointwise", "qlinear_prepack", "qlinear_pointwise")
+    return torch.backends.mkldnn.is_available() and all(hasattr(torch.ops.onednn, op) for op in ops)
+
+
 def available(channels: int) -> bool:
-    """Whether this PyTorch build has oneDNN's quantized convolution and the residual sum's kernel compiles for
+    """Whether this PyTorch build has oneDNN's int8 primitives and the residual sum's kernel compiles for
     `channels`."""
-    ops = ("qconv_prepack", "qconv_pointwise")
-    return (
-        torch.backends.mkldnn.is_available()
-        and all(hasattr(torch.ops.onednn, op) for op in ops)
-        and add_kernel.available(channels)
-    )
+    return onednn_int8() and add_kernel.available(channels)
 
 
 def _zxy(t: tuple[int, ...]) -> list[int]:
@@ -62,30 +63,54 @@ def _zxy(t: tuple[int, ...]) -> list[int]:
 
 class Int8ConvReLU:
     """relu(norm(conv(x))) of a Conv3d and its eval-mode batch norm on Int8Volumes, the output quantized with
-    `scale` (its calibrated range / 255). Not an nn.Module: its state is derived from the layers it was made of."""
+    `scale` (its calibrated range / 255); the input's zero point `in_zero` (0 after a ReLU). Not an nn.Module: its
+    state is derived from the layers it was made of."""
 
-    def __init__(self, conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, in_scale: float, scale: float):
+    def __init__(
+        self, conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, in_scale: float, scale: float, in_zero: int = 0
+    ):
         factor, bias = folded_norm(norm, conv.bias)  # (Cout,) each
         weight = (conv.weight * factor.view(-1, 1, 1, 1, 1)).detach().float()  # (Cout, Cin, kx, ky, kz)
         weight = weight.permute(0, 1, 4, 2, 3).contiguous()  # (Cout, Cin, kz, kx, ky): the (z, x, y) views'
         self.w_scale = weight.abs().amax(dim=(1, 2, 3, 4)).clamp_min(1e-12) / 127  # (Cout,)
         q = torch.round(weight / self.w_scale.view(-1, 1, 1, 1, 1)).clamp_(-127, 127).to(torch.int8)
         self.stride, self.padding, self.dilation = _zxy(conv.stride), _zxy(conv.padding), _zxy(conv.dilation)
-        self.groups, self.in_scale, self.scale = conv.groups, in_scale, scale
+        self.groups, self.in_scale, self.in_zero, self.scale = conv.groups, in_scale, in_zero, scale
         self.bias = bias.detach().float()
         self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()
         self.packed = torch.ops.onednn.qconv_prepack(
-            q, self.w_scale, in_scale, 0, self.stride, self.padding, self.dilation, self.groups, None
+            q, self.w_scale, in_scale, in_zero, self.stride, self.padding, self.dilation, self.groups, None
         )
 
     def __call__(self, x: Int8Volume) -> Int8Volume:
         if x.scale != self.in_scale:
             raise ValueError(f"Int8ConvReLU: input scale {x.scale}, made for {self.in_scale}")
         y = torch.ops.onednn.qconv_pointwise(
-            x.values, x.scale, 0, self.packed, self.w_scale, self.w_zero, self.bias,
+            x.values, x.scale, self.in_zero, self.packed, self.w_scale, self.w_zero, self.bias,
             self.stride, self.padding, self.dilation, self.groups, self.scale, 0, None, "none", [], "",
         )  # fmt: skip
         return Int8Volume(y, self.scale)
+
+
+class Int8LinearReLU:
+    """relu(x @ weight.T + bias) of uint8 rows x (N, Cin) with `in_scale` (zero point 0), quantized with `scale`:
+    int8 weights (Cout, Cin) per output channel. Not an nn.Module, as Int8ConvReLU."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor, in_scale: float, scale: float):
+        weight = weight.detach().float()  # (Cout, Cin)
+        self.w_scale = weight.abs().amax(dim=1).clamp_min(1e-12) / 127  # (Cout,)
+        q = torch.round(weight / self.w_scale[:, None]).clamp_(-127, 127).to(torch.int8).contiguous()  # prepack: rows
+        self.in_scale, self.scale, self.bias = in_scale, scale, bias.detach().float()
+        self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()
+        self.packed = torch.ops.onednn.qlinear_prepack(q, None)
+
+    def __call__(self, rows: torch.Tensor, in_scale: float) -> torch.Tensor:
+        """rows (N, Cin) uint8 -> (N, Cout) uint8."""
+        if in_scale != self.in_scale:
+            raise ValueError(f"Int8LinearReLU: input scale {in_scale}, made for {self.in_scale}")
+        return torch.ops.onednn.qlinear_pointwise(
+            rows, in_scale, 0, self.packed, self.w_scale, self.w_zero, self.bias, self.scale, 0, None, "none", [], ""
+        )
 
 
 def add(a: Int8Volume, b: Int8Volume, scale: float, offset: torch.Tensor) -> Int8Volume:
