@@ -151,7 +151,8 @@ class OccupancyHead(nn.Module):
         slices), the pointwise layers, the classifier, then argmax and the label's softmax probability.
         compiled: the compiled kernel (default: as the model's inference path says, where it compiles) or the
         PyTorch loop. The 1/2 features follow the path's precision; the last stage sums in float32, its products
-        in bfloat16 on a bfloat16 path where the CPU computes them (`octant_kernel.dot_bf16`).
+        in bfloat16 on a bfloat16 path where the CPU computes them (`octant_kernel.dot_bf16`). On an int8 path with
+        the int8 layers made (`quantize`), the 1/2 features come from them, uint8, and the kernel reads them so.
         """
         if self.path.int8 and self._int8 is not None and self.path.kernels(x) and compiled is not False:
             parents, scale = self._parents_int8(x)  # (B, X1, Y1, Z1, C1) uint8
