@@ -96,8 +96,10 @@ def test_the_kernel_splits_parents_in_shares_of_any_size():
     assert np.abs(torch.stack(conf).numpy().astype(int) - want_conf).max() <= 1
 
 
-def octant_labels(head: OccupancyHead, parents: torch.Tensor, precision: str) -> tuple[np.ndarray, np.ndarray]:
-    out = octant_kernel.octant_labels(parents, head.up2, head.point2, head.classify[2], 1, precision)
+def octant_labels(
+    head: OccupancyHead, parents: torch.Tensor, precision: str, scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    out = octant_kernel.octant_labels(parents, head.up2, head.point2, head.classify[2], 1, precision, scale)
     return tuple(t[None].numpy() for t in out)
 
 
@@ -129,18 +131,13 @@ def test_uint8_parents_are_read_as_their_scaled_values(name):
     parents = head.parents(torch.randn(1, cfg.embed_dims, *quarter(cfg.feature_grid.dims)))[0]
     scale = float(parents.max()) / 255
     q = torch.round(parents / scale).clamp(0, 255).to(torch.uint8)
-    got_labels, got_conf = octant_labels_scaled(head, q, scale)
+    got_labels, got_conf = octant_labels(head, q, "int8", scale)
     want_labels, want_conf = octant_labels(head, q.float() * scale, "float16")
     assert len(np.unique(want_labels)) >= 5
     assert (got_labels == want_labels).mean() > 0.999
     assert np.abs(got_conf.astype(int) - want_conf)[got_labels == want_labels].max() <= 1
     with pytest.raises(ValueError, match="int8 takes uint8 parents, not torch.float32"):
-        octant_labels_scaled(head, parents, scale)
-
-
-def octant_labels_scaled(head: OccupancyHead, parents: torch.Tensor, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    out = octant_kernel.octant_labels(parents, head.up2, head.point2, head.classify[2], 1, "int8", scale)
-    return tuple(t[None].numpy() for t in out)
+        octant_labels(head, parents, "int8", scale)
 
 
 def bfloat16_layers(head: OccupancyHead, parents: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

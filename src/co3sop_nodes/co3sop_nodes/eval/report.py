@@ -697,9 +697,9 @@ def precision_section(results: Path) -> list[str]:
     if int8:
         lines += [
             "",
-            "int8: a calibrated LiDAR vehicle half's 3D layers after its first and the head's layers up to 1/2 in int8",
-            "(`calibrate`'s ranges, measured on `validate`), the rest in bfloat16 where the CPU computes it; `auto` never",
-            "takes it.",
+            "int8: a calibrated LiDAR vehicle half's 3D layers after its first and the head's layers up to 1/2 in",
+            "int8 (`calibrate`'s ranges, measured on `validate`), the rest in bfloat16 where the CPU computes it;",
+            "`auto` never takes it.",
         ]
     return [*lines, "", "Made by:", "", *commands, ""]
 

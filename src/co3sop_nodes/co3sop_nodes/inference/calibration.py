@@ -4,10 +4,10 @@ An activation's range is the clipping point that minimises its mean squared quan
 measured: below it, uint8 steps of range / 255 (a uniform rounding error of step^2 / 12 a value), above it the
 distance to the clip; a signed activation (the head's input, quantized around a zero point of 128) by its
 magnitude, in steps of range / 127.5. The head's activations are measured on each scan's own features: the fused
-features it takes in the graph add the neighbours' to those. Exact zeros (half of a ReLU's outputs) quantize exactly and count for nothing. The values
-are binned in a histogram that doubles its span when a value exceeds it, so any number of scans takes the same
-memory. Calibrate on `train` or `validate`, never on `test`; the checkpoint then carries the ranges
-(`checkpoint.save_calibrated`) and names the data in its history.
+features it takes in the graph add the neighbours' to those. Exact zeros (half of a ReLU's outputs) quantize
+exactly and count for nothing. The values are binned in a histogram that doubles its span when a value exceeds it,
+so any number of scans takes the same memory. Calibrate on `train` or `validate`, never on `test`; the checkpoint
+then carries the ranges (`checkpoint.save_calibrated`) and names the data in its history.
 """
 
 from __future__ import annotations

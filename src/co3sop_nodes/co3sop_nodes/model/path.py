@@ -12,8 +12,8 @@ the GPU has it, else float16.
 
 `int8` (the CPU only) computes a model's calibrated layers in int8 (`model/quantized.py`: the LiDAR vehicle
 half's 3D convolutions after its first and the head's layers up to 1/2, with activation ranges measured by
-`calibrate` and shipped in the checkpoint) and the rest as `auto` would on this CPU (bfloat16 where the CPU computes it, else float32). A model
-without a calibration runs that rest only (`Co3SOP.use`).
+`calibrate` and shipped in the checkpoint) and the rest as `auto` would on this CPU (bfloat16 where the CPU
+computes it, else float32). A model without a calibration runs that rest only (`Co3SOP.use`).
 """
 
 from __future__ import annotations

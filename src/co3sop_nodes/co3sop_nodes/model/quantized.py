@@ -57,6 +57,14 @@ def available(channels: int) -> bool:
     return onednn_int8() and add_kernel.available(channels)
 
 
+def int8_weight(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """weight (Cout, ...) float -> its int8 values (contiguous, as the prepacks read them) and their scale per output
+    channel (max |w| / 127), (Cout,)."""
+    scale = weight.abs().flatten(1).amax(dim=1).clamp_min(1e-12) / 127
+    shape = (-1,) + (1,) * (weight.dim() - 1)
+    return torch.round(weight / scale.view(shape)).clamp_(-127, 127).to(torch.int8).contiguous(), scale
+
+
 def _zxy(t: tuple[int, ...]) -> list[int]:
     return [t[2], t[0], t[1]]
 
@@ -72,12 +80,11 @@ class Int8ConvReLU:
         factor, bias = folded_norm(norm, conv.bias)  # (Cout,) each
         weight = (conv.weight * factor.view(-1, 1, 1, 1, 1)).detach().float()  # (Cout, Cin, kx, ky, kz)
         weight = weight.permute(0, 1, 4, 2, 3).contiguous()  # (Cout, Cin, kz, kx, ky): the (z, x, y) views'
-        self.w_scale = weight.abs().amax(dim=(1, 2, 3, 4)).clamp_min(1e-12) / 127  # (Cout,)
-        q = torch.round(weight / self.w_scale.view(-1, 1, 1, 1, 1)).clamp_(-127, 127).to(torch.int8)
+        q, self.w_scale = int8_weight(weight)
         self.stride, self.padding, self.dilation = _zxy(conv.stride), _zxy(conv.padding), _zxy(conv.dilation)
         self.groups, self.in_scale, self.in_zero, self.scale = conv.groups, in_scale, in_zero, scale
         self.bias = bias.detach().float()
-        self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()
+        self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()  # symmetric weights
         self.packed = torch.ops.onednn.qconv_prepack(
             q, self.w_scale, in_scale, in_zero, self.stride, self.padding, self.dilation, self.groups, None
         )
@@ -97,9 +104,7 @@ class Int8LinearReLU:
     int8 weights (Cout, Cin) per output channel. Not an nn.Module, as Int8ConvReLU."""
 
     def __init__(self, weight: torch.Tensor, bias: torch.Tensor, in_scale: float, scale: float):
-        weight = weight.detach().float()  # (Cout, Cin)
-        self.w_scale = weight.abs().amax(dim=1).clamp_min(1e-12) / 127  # (Cout,)
-        q = torch.round(weight / self.w_scale[:, None]).clamp_(-127, 127).to(torch.int8).contiguous()  # prepack: rows
+        q, self.w_scale = int8_weight(weight.detach().float())  # (Cout, Cin), (Cout,)
         self.in_scale, self.scale, self.bias = in_scale, scale, bias.detach().float()
         self.w_zero = _ZERO.expand(len(self.w_scale)).contiguous()
         self.packed = torch.ops.onednn.qlinear_prepack(q, None)
