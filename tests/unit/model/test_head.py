@@ -122,29 +122,40 @@ def test_the_reduced_precision_kernel_stays_within_its_tolerance(name):
 
 
 @pytest.mark.parametrize("name", ["tiny-lidar", "small"])
+@torch.no_grad()
 def test_uint8_parents_are_read_as_their_scaled_values(name):
-    """An int8 head's parents (uint8, one scale, folded into the transposed convolution's weights): the reduced
-    kernel's result on the same values in float32 (labels equal but where the fold's rounding breaks a near-tie,
-    confidence within one step); other dtypes are refused."""
+    """An int8 head's parents (uint8, one scale, folded into the transposed convolution's weights): where the CPU
+    has bfloat16 dot products, the bfloat16 layers' result on the integers with the scaled weights (tolerance as
+    for bfloat16 parents); elsewhere the reduced kernel's on the same values in float32 (labels equal but where
+    the fold's rounding breaks a near-tie, confidence within one step). Other dtypes are refused."""
     cfg = preset(name)
     head = random_head(cfg.head_channels, cfg.embed_dims, 6)
     parents = head.parents(torch.randn(1, cfg.embed_dims, *quarter(cfg.feature_grid.dims)))[0]
     scale = float(parents.max()) / 255
     q = torch.round(parents / scale).clamp(0, 255).to(torch.uint8)
     got_labels, got_conf = octant_labels(head, q, "int8", scale)
-    want_labels, want_conf = octant_labels(head, q.float() * scale, "float16")
+    if octant_kernel.dot_bf16("int8", cfg.head_channels[2]):
+        want_labels, want_conf, gap = bfloat16_layers(head, q, scale)
+        differ = got_labels != want_labels
+        assert differ.mean() <= 1e-5 and (gap[differ] <= 0.01).all()
+        assert (np.abs(got_conf.astype(int) - want_conf) > 1).mean() <= 1e-5
+    else:
+        want_labels, want_conf = octant_labels(head, q.float() * scale, "float16")
+        assert (got_labels == want_labels).mean() > 0.999
+        assert np.abs(got_conf.astype(int) - want_conf)[got_labels == want_labels].max() <= 1
     assert len(np.unique(want_labels)) >= 5
-    assert (got_labels == want_labels).mean() > 0.999
-    assert np.abs(got_conf.astype(int) - want_conf)[got_labels == want_labels].max() <= 1
     with pytest.raises(ValueError, match="int8 takes uint8 parents, not torch.float32"):
         octant_labels(head, parents, "int8", scale)
 
 
-def bfloat16_layers(head: OccupancyHead, parents: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bfloat16_layers(
+    head: OccupancyHead, parents: torch.Tensor, scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The full-resolution stage as bfloat16 layers compute it, the definition of the kernel's bfloat16 products:
     weights and hidden activations rounded to bfloat16, products and sums exact (float64), the classifier in base 2
-    as the reduced kernel scales it. parents (X1, Y1, Z1, C1) -> labels, round(255 p(label)) and the gap between
-    the two best logits, each (1, X, Y, Z)."""
+    as the reduced kernel scales it. parents (X1, Y1, Z1, C1), each `scale` times its value (folded into the
+    transposed convolution's weights before they are rounded, as the kernel folds it) -> labels, round(255
+    p(label)) and the gap between the two best logits, each (1, X, Y, Z)."""
 
     def rounded(t):
         return t.float().bfloat16().double()
@@ -152,7 +163,7 @@ def bfloat16_layers(head: OccupancyHead, parents: torch.Tensor) -> tuple[np.ndar
     x1, y1, z1, c1 = parents.shape
     log2e = 1.44269504  # in float32, as the kernel scales
     p = parents.double().reshape(-1, c1)  # (P, C1)
-    up = rounded(head.up2.weight.flatten(2))  # (C1, C2, 8): octant 4 dx + 2 dy + dz
+    up = rounded(head.up2.weight.flatten(2) * scale)  # (C1, C2, 8): octant 4 dx + 2 dy + dz
     h = torch.relu(torch.einsum("pc,cjo->poj", p, up) + head.up2.bias.double())  # (P, 8, C2)
     g = torch.relu(rounded(h) @ rounded(head.point2.weight[:, :, 0, 0, 0].t()) + head.point2.bias.double())
     cls = head.classify[2]

@@ -23,9 +23,9 @@ _ARGS = [_POINTER, *[ctypes.c_int64] * 7, *[_POINTER] * 8]
 
 
 def dot_bf16(precision: str, c2: int) -> bool:
-    """Whether the kernel for `precision` takes its products as bfloat16 dot products of channel pairs: bfloat16
-    inference on a CPU that computes them (AVX-512 BF16, which every CPU with AMX also has), C2 even."""
-    return precision == "bfloat16" and c2 % 2 == 0 and "avx512_bf16" in kernels.cpu_flags()
+    """Whether the kernel for `precision` takes its products as bfloat16 dot products of channel pairs: bfloat16 or
+    int8 inference on a CPU that computes them (AVX-512 BF16, which every CPU with AMX also has), C2 even."""
+    return precision in ("bfloat16", "int8") and c2 % 2 == 0 and "avx512_bf16" in kernels.cpu_flags()
 
 
 @cache
@@ -70,7 +70,8 @@ def octant_labels(
     multiply-adds and a shorter exp (labels equal but for near-ties, confidence within one step, as tested);
     bfloat16 parents are read as they are (widening them first would be one more pass over the volume), and where
     `dot_bf16` the layers compute as bfloat16 layers do (tested against that definition). int8: uint8 parents of an
-    int8 head, each value `scale` times its integer, read as they are; the rest as a reduced precision."""
+    int8 head, each value `scale` times its integer, read as they are; the rest as a reduced precision, its products
+    in bfloat16 where `dot_bf16` (the integers exact, the scaled weights rounded)."""
     c1, c2, k = up.in_channels, up.out_channels, classify.out_channels
     fn = _kernel(c1, c2, k, precision)
     dtype = {"bfloat16": torch.bfloat16, "int8": torch.uint8}.get(precision, torch.float32)

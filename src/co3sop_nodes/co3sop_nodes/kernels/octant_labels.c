@@ -10,9 +10,9 @@
  * Sums run in the reference's order per voxel (over input channels), so logits match it to float rounding; with
  * REDUCED=1 (a reduced-precision path, compiled with fused multiply-adds) they round once per multiply-add, the
  * classifier's weights are scaled by log2 e so that the softmax's exp is a power of two, and its series is shorter.
- * With DOT_BF16=1 (bfloat16 parents on a CPU with AVX-512 BF16) the three layers' products are bfloat16 dot products
- * of channel pairs (vdpbf16ps, two multiply-adds per lane): weights and hidden activations rounded to bfloat16 as a
- * bfloat16 layer rounds them, sums in float32.
+ * With DOT_BF16=1 (bfloat16 or uint8 parents on a CPU with AVX-512 BF16) the three layers' products are bfloat16 dot
+ * products of channel pairs (vdpbf16ps, two multiply-adds per lane): weights and hidden activations rounded to
+ * bfloat16 as a bfloat16 layer rounds them, sums in float32. uint8 parents are integers, exact in bfloat16.
  */
 #include <stdint.h>
 #include <string.h>
@@ -97,8 +97,8 @@ static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]
 static inline f16 relu(f16 v) { return (f16)((i16)v & gt(v, (f16){0})); }
 
 #if DOT_BF16
-#if !PARENTS_BF16 || C2 % 2
-#error "DOT_BF16 needs bfloat16 parents and an even C2"
+#if !(PARENTS_BF16 || PARENTS_U8) || C2 % 2
+#error "DOT_BF16 needs bfloat16 or uint8 parents and an even C2"
 #endif
 /* x rounded to bfloat16 (to nearest, ties to even, as the hardware's conversions): its bits */
 static inline uint32_t bf16_bits(float x) {
@@ -119,6 +119,18 @@ static inline __m512bh relu_pairs(f16 a, f16 b) {
 /* acc + x.lo * w.lo + x.hi * w.hi per lane */
 static inline f16 dot(f16 acc, __m512bh x, __m512bh w) { return (f16)_mm512_dpbf16_ps((__m512)acc, x, w); }
 static inline __m512bh broadcast(uint32_t pair) { return (__m512bh)_mm512_set1_epi32((int32_t)pair); }
+
+#if PARENTS_U8
+/* channels c and c + 1 of parents a (half 0) and b (half 1) as bfloat16 pairs, c in the low half: u8_bf16[v] holds
+ * the bits of v in bfloat16 */
+static inline i16 parent_pairs(const parent_t *a, const parent_t *b, const uint16_t *u8_bf16) {
+  const int32_t pa = u8_bf16[a[0]] | (int32_t)u8_bf16[a[1]] << 16, pb = u8_bf16[b[0]] | (int32_t)u8_bf16[b[1]] << 16;
+  return (((i16){0} + pa) & HALF0) | (((i16){0} + pb) & ~HALF0);
+}
+#define PARENT_PAIRS(a, b) parent_pairs(a, b, u8_bf16)
+#else
+#define PARENT_PAIRS(a, b) parent_pairs(a, b)
+#endif
 
 /* a pointwise layer: out[o] = bias[o] + sum over i of relu(in[i]) w[i][o], pairs[i / 2 * n_out + o] holding the
  * bfloat16 pair w[i][o], w[i + 1][o] (inlined with constant sizes: every vector stays in a register) */
@@ -204,6 +216,10 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
       point_pairs[c / 2 * C2 + d] = bf16_pair(point_w[c * C2 + d], point_w[(c + 1) * C2 + d]);
     for (int q = 0; q < K; ++q) cls_pairs[c / 2 * K + q] = bf16_pair(w_cls[c * K + q], w_cls[(c + 1) * K + q]);
   }
+#if PARENTS_U8
+  uint16_t u8_bf16[256];
+  for (int v = 0; v < 256; ++v) u8_bf16[v] = (uint16_t)bf16_bits((float)v);
+#endif
 #endif
   int64_t px = start / (y1 * z1), py = (start / z1) % y1, pz = start % z1;
   for (int64_t p = start; p < end;) {
@@ -215,7 +231,7 @@ UNROLLED
 #if DOT_BF16
 UNROLLED
     for (int c = 0; c < C1; c += 2) {
-      const __m512bh x = (__m512bh)parent_pairs(xa + c, xb + c);
+      const __m512bh x = (__m512bh)PARENT_PAIRS(xa + c, xb + c);
 UNROLLED
       for (int j = 0; j < C2; ++j) h[j] = dot(h[j], x, (__m512bh)up_pairs[c / 2 * C2 + j]);
     }
