@@ -112,6 +112,19 @@ def start_ego(tmp_path: Path, *params: str) -> tuple[subprocess.Popen, Path]:
     return start(tmp_path, "ego", executable("ego"), "--ros-args", *limits, "-p", "publish_points:=false", *params)
 
 
+def test_a_node_killed_by_a_fatal_signal_logs_every_threads_stack(tmp_path, sup):
+    """A crash in native code (here a SIGSEGV from outside) leaves the node's Python stacks in its log, so a report
+    says where it died."""
+    proc, log = start_ego(tmp_path)
+    wait_ready(sup, "/ego", proc, log)
+    proc.send_signal(signal.SIGSEGV)
+    assert proc.wait(30) == -signal.SIGSEGV
+    text = log.read_text()
+    assert "Fatal Python error: Segmentation fault" in text, text
+    assert re.search(r"Thread 0x[0-9a-f]+.*\n(.*\n)*.*co3sop_nodes/ros/worker\.py", text), text  # the fusion thread
+    assert re.search(r"rclpy/executors\.py.*\n(.*\n)*.*co3sop_nodes/ros/dds\.py", text), text  # the spinning one
+
+
 def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, sup):
     ego, log = start_ego(tmp_path, *CAMERA)
     try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import re
 import sys
@@ -308,7 +309,12 @@ def spin_node(
     messages"), for a node that takes many messages a frame and whose
     callbacks never raise by design (it logs a raising callback as fatal,
     with its stack).
+    A fatal signal (a crash in native code: DDS, PyTorch, a compiled kernel)
+    prints every thread's Python stack to standard error before the process
+    dies of it, so the node's log says where.
     """
+    if not faulthandler.is_enabled():
+        faulthandler.enable(all_threads=True)
     try:
         return _spin(make_node, args, events)
     except (Co3sopError, OSError) as exc:
