@@ -121,8 +121,8 @@ def test_a_node_killed_by_a_fatal_signal_logs_every_threads_stack(tmp_path, sup)
     assert proc.wait(30) == -signal.SIGSEGV
     text = log.read_text()
     assert "Fatal Python error: Segmentation fault" in text, text
-    assert re.search(r"Thread 0x[0-9a-f]+.*\n(.*\n)*.*co3sop_nodes/ros/worker\.py", text), text  # the fusion thread
-    assert re.search(r"rclpy/executors\.py.*\n(.*\n)*.*co3sop_nodes/ros/dds\.py", text), text  # the spinning one
+    assert "co3sop_nodes/ros/worker.py" in text, text  # the fusion thread's stack
+    assert "rclpy/executors.py" in text and "co3sop_nodes/ros/dds.py" in text, text  # the spinning thread's
 
 
 def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, sup):
