@@ -20,32 +20,41 @@ from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
 
 
 @pytest.mark.parametrize("channels_per_head, threads", [(8, 1), (16, 1), (8, 3), (12, 1), (4, 2)])
-def test_the_compiled_sampler_equals_grid_sample(channels_per_head, threads):
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("levels, points", [(3, 4), (4, 4), (2, 3)])
+def test_the_compiled_sampler_equals_grid_sample(channels_per_head, threads, dtype, levels, points):
+    """Offsets and logits as a float32 or a bfloat16 path's projections write them; the definition reads the same
+    values widened to float32. Terms (levels x points) in whole vectors of 8 and not."""
     gen = torch.Generator().manual_seed(channels_per_head + threads)
-    h, levels, points, q, n = 4, 3, 4, 2000, 3
-    shapes = [(30, 40), (15, 20), (7, 11)]  # (Hl, Wl)
+    h, q, n = 4, 2000, 3
+    shapes = [(30, 40), (15, 20), (7, 11), (4, 5)][:levels]  # (Hl, Wl)
     values = [
         torch.randn(n, rows, cols, h * channels_per_head, generator=gen) for rows, cols in shapes
     ]  # channels-last, per camera
     visible = torch.rand(n, q, generator=gen) < 0.4
-    camera, query = visible.nonzero(as_tuple=True)
-    uv = torch.rand(len(camera), 2, generator=gen)
-    offsets = torch.randn(q, h, levels, points, 2, generator=gen) * 8  # pixels: some points fall outside every map
-    offsets[query[0], 0, 0, 0] = float(
-        "nan"
-    )  # the kernel reads zeros there (grid_sample's value for NaN is unspecified)
-    weights = torch.softmax(torch.randn(q, h, levels * points, generator=gen), -1).view(q, h, levels, points)
+    visible[:, :5] = False  # queries no camera sees: zeros
+    uv = torch.rand(n, q, 2, generator=gen)
+    # pixels: some points fall outside every map
+    offsets = (torch.randn(q, h, levels, points, 2, generator=gen) * 8).to(dtype)
+    first = visible.any(0).nonzero()[0, 0]
+    offsets[first, 0, 0, 0] = float("nan")  # the kernel reads zeros there (grid_sample's value for NaN is unspecified)
+    logits = (torch.randn(q, h, levels * points, generator=gen) * 3).to(dtype)
     assert deform_kernel.available(channels_per_head)
-    got = deform_kernel.sample_pairs(values, camera, query, uv, offsets, weights, threads)
-    offsets[query[0], 0, 0, 0] = 1e6  # the definition on a point outside every map: zeros
+    got = deform_kernel.sample_cameras(values, uv, visible, offsets, logits, threads)
+    offsets, logits = offsets.float(), logits.float()
+    offsets[first, 0, 0, 0] = 1e6  # the definition on a point outside every map: zeros
+    weights = torch.softmax(logits, -1).view(q, h, levels, points)
     scale = torch.tensor([[cols, rows] for rows, cols in shapes], dtype=torch.float32)  # (L, 2) W, H
-    want = []
+    total = torch.zeros(q, h * channels_per_head)
     for k in range(n):  # the definition, camera by camera: (B*H, Ch, Hl, Wl) maps, B = 1
         maps = [v[k].permute(2, 0, 1).reshape(h, channels_per_head, *v.shape[1:3]) for v in values]
-        mine = camera == k
-        loc = uv[mine][:, None, None, None, :] + offsets[query[mine]] / scale[None, None, :, None, :]
-        want.append(sample_2d(maps, loc[None], weights[query[mine]][None])[0])
-    torch.testing.assert_close(got, torch.cat(want), rtol=1e-5, atol=1e-5)
+        mine = visible[k].nonzero()[:, 0]
+        loc = uv[k, mine][:, None, None, None, :] + offsets[mine] / scale[None, None, :, None, :]
+        total[mine] += sample_2d(maps, loc[None], weights[mine][None])[0]
+    want = total / visible.sum(0).clamp(min=1)[:, None]
+    # the kernel's softmax takes libm's exp, not PyTorch's, and divides each weight by the sum: the 3D sampler's 1e-4
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
+    assert not got[:5].any()
 
 
 def test_no_kernel_for_head_widths_that_are_not_vectors():
@@ -60,8 +69,8 @@ def test_the_camera_vehicle_half_at_inference_equals_its_training_path(name, mon
     model = build_model(preset(name, **MICRO)).eval()
     inputs = pace.shaped_inputs(model)
     calls = []
-    compiled = deform_kernel.sample_pairs
-    monkeypatch.setattr(deform_kernel, "sample_pairs", lambda *a: calls.append(1) or compiled(*a))
+    compiled = deform_kernel.sample_cameras
+    monkeypatch.setattr(deform_kernel, "sample_cameras", lambda *a: calls.append(1) or compiled(*a))
     with torch.no_grad():  # inference: the compiled sampler
         fast = model.vehicle(**inputs)
     assert len(calls) == model.cfg.image_attention.layers  # every lifting layer
@@ -91,6 +100,21 @@ def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads,
         want = att(query, reference, values, mask).detach()
     assert calls == [1]
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_the_3d_sampler_reads_bfloat16_projections_as_their_float32_widening():
+    """A bfloat16 path's offsets and logits, read as they are: the same sums as from the same values in float32,
+    bit for bit (bfloat16 widens exactly; only the loads differ)."""
+    gen = torch.Generator().manual_seed(5)
+    q, h, a, p, ch = 1500, 4, 3, 4, 8
+    values = torch.randn(a, 16, 12, 6, h * ch, generator=gen)
+    reference = torch.rand(q, 3, generator=gen)
+    offsets = (torch.randn(q, h, a, p, 3, generator=gen) * 3).bfloat16()
+    logits = (torch.randn(q, h, a, p, generator=gen) * 3).bfloat16()
+    allowed = torch.rand(q, a, generator=gen) < 0.6
+    got = deform_kernel.sample_3d(values, reference, offsets, logits, allowed, 1)
+    want = deform_kernel.sample_3d(values, reference, offsets.float(), logits.float(), allowed, 1)
+    assert got.any() and torch.equal(got, want)
 
 
 @pytest.mark.parametrize("yaw, shift", [(0.3, (7.3, -4.1, 0.2)), (-2.0, (-20.5, 13.7, -0.4))])

@@ -1,12 +1,13 @@
 """Deformable sampling on the CPU as compiled kernels (kernels/deform_sample.c), for inference.
 
 Image to voxel (`ImageCrossAttention`) and voxel to voxel (`DeformableAttention3d`):
-the same sums as their PyTorch paths (`deform_attn.sample_2d` / `sample_3d`
-with `grid_sample`, the definitions), without the (queries x heads x levels
-or agents x points) intermediates those paths gather, add, sample and weight:
-locations are computed per sample, values read channels-last, a head's
-channels at a pixel or voxel as contiguous vectors. Threads split the queries
-(ctypes releases the GIL).
+the same sums as their PyTorch paths (the attention weights' softmax, then
+`deform_attn.sample_2d` / `sample_3d` with `grid_sample`, the definitions, and
+for images the mean over the cameras that see a query), without the (queries x
+heads x levels or agents x points) intermediates those paths gather, add,
+sample and weight: locations and weights are computed per sample, values read
+channels-last, a head's channels at a pixel or voxel as contiguous vectors.
+Threads split the queries (ctypes releases the GIL).
 """
 
 from __future__ import annotations
@@ -24,9 +25,12 @@ _I = ctypes.c_int64
 
 
 _ARGS = {
-    "deform_sample_2d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I],
+    "deform_sample_2d": [_P, _P, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I],
     "deform_sample_3d": [_P, _P, _I, _I, _I, _P, _P, _P, _P, _P, _I, _I],
 }
+# the attention's softmax terms per query and head (levels x points, agents x points) at most: MAX_TERMS in
+# deform_sample.c
+MAX_TERMS = 256
 
 
 @cache
@@ -37,7 +41,7 @@ def _kernel(channels_per_head: int, name: str = "deform_sample_2d"):
     if lib is None:
         return None
     fn = getattr(lib, name)
-    fn.argtypes, fn.restype = _ARGS[name], None
+    fn.argtypes, fn.restype = _ARGS[name.removesuffix("_bf16")], None
     return fn
 
 
@@ -46,52 +50,66 @@ def available(channels_per_head: int) -> bool:
     return kernels.ENABLED and _kernel(channels_per_head) is not None
 
 
-def sample_pairs(
+def _projections(offsets: torch.Tensor, logits: torch.Tensor) -> tuple[str, list[torch.Tensor]]:
+    """The kernel's name suffix and the offsets and logits as it reads them: as the projections wrote them where
+    both are bfloat16 (a reduced path's products; widening them here would cost more than sampling), else float32;
+    contiguous, on the CPU (the caller keeps them referenced while the kernel runs)."""
+    if offsets.dtype == logits.dtype == torch.bfloat16:
+        return "_bf16", [t.detach().cpu().contiguous() for t in (offsets, logits)]
+    return "", [t.detach().cpu().float().contiguous() for t in (offsets, logits)]
+
+
+def _terms(name: str, terms: int) -> None:
+    if terms > MAX_TERMS:
+        raise ValueError(f"{name}: {terms} softmax terms per query and head, above the kernel's {MAX_TERMS}")
+
+
+def sample_cameras(
     values: list[torch.Tensor],
-    camera: torch.Tensor,
-    query: torch.Tensor,
     uv: torch.Tensor,
+    visible: torch.Tensor,
     offsets: torch.Tensor,
-    weights: torch.Tensor,
+    logits: torch.Tensor,
     threads: int,
 ) -> torch.Tensor:
-    """values: L x (N, Hl, Wl, H*Ch) channels-last, per camera; per pair (camera, query index, uv (pairs, 2) in [0, 1]);
-    offsets (Q, H, L, P, 2) in pixels of each level, weights (Q, H, L, P) -> (pairs, H*Ch). `available` first."""
-    _, h, levels, p, _ = offsets.shape
+    """values: L x (N, Hl, Wl, H*Ch) channels-last, per camera; uv (N, Q, 2) in [0, 1], each query's projection in
+    each camera; visible (N, Q) bool; offsets (Q, H, L, P, 2) in pixels of each level; logits (Q, H, L*P) of the
+    attention weights (softmax over a query's levels and points per head) -> (Q, H*Ch): the mean over the cameras
+    that see a query of its samples in each (zeros where none does). `available` first."""
+    q, h, levels, p, _ = offsets.shape
     n, c = values[0].shape[0], values[0].shape[-1]
-    fn = _kernel(c // h)
+    _terms("sample_cameras", levels * p)
+    suffix, (off, w) = _projections(offsets, logits)
+    fn = _kernel(c // h, "deform_sample_2d" + suffix)
     maps = [kernels.array(v) for v in values]
+    if max(m[0].size for m in maps) >= 2**31:
+        raise ValueError("sample_cameras: a feature map of 2^31 elements or more, beyond the kernel's int32 indices")
     pointers = (ctypes.c_void_p * (n * levels))(
         *[m.ctypes.data + k * m.strides[0] for k in range(n) for m in maps]
     )  # camera-major
     shapes = np.array([m.shape[1:3] for m in maps], np.int64)  # (L, 2) Hl, Wl
-    cams, queries, uvs = kernels.array(camera, np.int64), kernels.array(query, np.int64), kernels.array(uv)
-    off, w = kernels.array(offsets), kernels.array(weights)
-    pairs = len(cams)
-    out = np.empty((pairs, c), np.float32)
+    uvs, seen = kernels.array(uv), kernels.array(visible, np.uint8)
+    out = np.empty((q, c), np.float32)
     kernels.parallel(
         fn,
         (
             ctypes.addressof(pointers),
             shapes.ctypes.data,
+            n,
             levels,
             h,
             p,
-            cams.ctypes.data,
-            queries.ctypes.data,
+            q,
             uvs.ctypes.data,
-            off.ctypes.data,
-            w.ctypes.data,
+            seen.ctypes.data,
+            off.data_ptr(),
+            w.data_ptr(),
             out.ctypes.data,
         ),
-        pairs,
+        q,
         threads,
     )
     return torch.from_numpy(out)
-
-
-# the 3D sampler's softmax terms per query and head (agents x points) at most: MAX_TERMS in deform_sample.c
-MAX_TERMS = 256
 
 
 def sample_3d(
@@ -107,13 +125,13 @@ def sample_3d(
     with none reads nothing) -> (Q, H*Ch). `available` first."""
     a, c = values.shape[0], values.shape[-1]
     q, h, _, p, _ = offsets.shape
-    if a * p > MAX_TERMS:
-        raise ValueError(f"sample_3d: {a} agents x {p} points is above the kernel's {MAX_TERMS} terms")
-    fn = _kernel(c // h, "deform_sample_3d")
+    _terms("sample_3d", a * p)
+    suffix, (off, w) = _projections(offsets, logits)
+    fn = _kernel(c // h, "deform_sample_3d" + suffix)
     maps = kernels.array(values)
     pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
     dims = np.array(maps.shape[1:4], np.int64)
-    ref, off, w = (kernels.array(t) for t in (reference, offsets, logits))
+    ref = kernels.array(reference)
     may = kernels.array(allowed, np.uint8)
     out = np.empty((q, c), np.float32)
     kernels.parallel(
@@ -125,8 +143,8 @@ def sample_3d(
             h,
             p,
             ref.ctypes.data,
-            off.ctypes.data,
-            w.ctypes.data,
+            off.data_ptr(),
+            w.data_ptr(),
             may.ctypes.data,
             out.ctypes.data,
         ),

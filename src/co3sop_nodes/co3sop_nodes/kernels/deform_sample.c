@@ -1,15 +1,18 @@
-/* Image-to-voxel deformable sampling for (camera, query) pairs [start, end): see co3sop_nodes/model/deform_kernel.py;
- * the definition is lifting.ImageCrossAttention's PyTorch path (deform_attn.sample_2d: grid_sample, bilinear,
- * zeros outside, align_corners=False).
+/* Deformable sampling for inference: image to voxel (queries over the cameras' feature maps) and voxel to voxel (the
+ * ego's queries over the warped agents' volumes); see co3sop_nodes/kernels/deform.py. The definitions are the
+ * attentions' PyTorch paths (deform_attn.sample_2d / sample_3d: grid_sample, zeros outside, align_corners=False,
+ * after the softmax of the attention's logits).
  *
- * Values are channels-last, (Hl, Wl, heads * CH) per camera and level, so a head's CH channels at a pixel are
- * CH/W contiguous W-lane vectors: each sample is 4 corners x CH/W vector multiply-adds into registers, with the
- * attention weight folded into the corner weights. The sampling location is computed here as the reference
- * does (projected point + offset in pixels / level size). CH (channels per head, a multiple of 4) is defined
- * on the command line.
+ * Values are channels-last, a head's CH channels at a pixel or voxel CH/W contiguous W-lane vectors: each sample
+ * is 2^dims corners x CH/W vector multiply-adds into registers, with the attention weight folded into the corner
+ * weights. Locations are computed here as the references compute them; the softmax is taken here too, per query
+ * and head over at most MAX_TERMS logits: PyTorch's softmax over rows of 8 or 16 costs more than the sampling.
+ * Offsets and logits are read as the projections wrote them, float32 or bfloat16 (widened exactly), in one function
+ * for each. CH (channels per head, a multiple of 4) is defined on the command line.
  */
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
 /* W = 8 lanes where CH is a multiple of 8, else 4 (CH = 12: `small`'s heads); the sums are the same per channel */
 #if CH % 8 == 0
@@ -23,66 +26,202 @@ typedef float fv __attribute__((vector_size(16)));
 #endif
 typedef fv fvu __attribute__((aligned(4)));  /* loads and stores at float alignment */
 
-/* values[camera * levels + l]: (Hl, Wl, heads * CH); shapes: (levels, 2) as Hl, Wl;
- * per pair: its camera, its query and the query's projection uv (x, y in [0, 1]) in that camera;
- * per query: offsets (heads, levels, points, 2) in pixels of the level, attention weights (heads, levels, points)
- * -> out: (pairs, heads * CH) */
-void deform_sample_2d(const float *const *values, const int64_t *shapes, int64_t levels, int64_t heads, int64_t points,
-                      const int64_t *restrict camera, const int64_t *restrict query, const float *restrict uv,
-                      const float *restrict offsets, const float *restrict weights, float *restrict out,
-                      int64_t start, int64_t end) {
-  const int64_t c = heads * CH;
-  for (int64_t pair = start; pair < end; ++pair) {
-    const int64_t q = query[pair];
-    const float u = uv[2 * pair], v = uv[2 * pair + 1];
+#define MAX_TERMS 256
+#define INLINE static inline __attribute__((always_inline))
+
+/* element i of a float32 (bf16 = 0) or bfloat16 (bf16 = 1) array; bf16 is a constant in every inlined copy */
+INLINE float load(const void *p, int64_t i, int bf16) {
+  if (!bf16) return ((const float *)p)[i];
+  const uint32_t bits = (uint32_t)((const uint16_t *)p)[i] << 16;
+  float f;
+  memcpy(&f, &bits, sizeof f);
+  return f;
+}
+
+typedef float f8 __attribute__((vector_size(32)));
+typedef int32_t i8 __attribute__((vector_size(32)));
+/* unaligned views of the kernels' inputs (their elements' alignment; they alias the arrays they read) */
+typedef f8 f8u __attribute__((aligned(4), may_alias));
+typedef i8 i8u __attribute__((aligned(4), may_alias));
+typedef uint16_t u16x8 __attribute__((vector_size(16)));
+typedef u16x8 u16x8u __attribute__((aligned(2), may_alias));
+
+/* elements i..i+7 of a float32 or bfloat16 array, as load() widens them */
+INLINE f8 load8(const void *p, int64_t i, int bf16) {
+  if (!bf16) return *(const f8u *)((const float *)p + i);
+  return (f8)(__builtin_convertvector(*(const u16x8u *)((const uint16_t *)p + i), i8) << 16);
+}
+
+/* the (x, y) pairs i..i+7 of a float32 or bfloat16 array of pairs, split into their x and their y */
+INLINE void load8_pairs(const void *p, int64_t i, int bf16, f8 *x, f8 *y) {
+  if (bf16) {  /* a pair's two bfloat16 as one int32: x in its low half */
+    const i8 both = *(const i8u *)((const uint16_t *)p + 2 * i);
+    *x = (f8)(both << 16), *y = (f8)(both & -65536);
+    return;
+  }
+  const f8 a = *(const f8u *)((const float *)p + 2 * i), b = *(const f8u *)((const float *)p + 2 * i + 8);
+  *x = __builtin_shufflevector(a, b, 0, 2, 4, 6, 8, 10, 12, 14);
+  *y = __builtin_shufflevector(a, b, 1, 3, 5, 7, 9, 11, 13, 15);
+}
+
+/* exp for x <= 0 (logits minus their maximum), 8 lanes, as Cephes computes expf: x = n ln2 + r with |r| <= ln2 / 2,
+ * e^r by its degree-7 polynomial (relative error about 2e-7), times 2^n built in the exponent bits; below -87 (where
+ * 2^n leaves the normal floats), -inf and NaN 0, as the reference's underflow. libm's expf, a call per term, cost
+ * more than the sampling. */
+INLINE f8 exp8(f8 x) {
+  const i8 keep = x >= -87.0f;                  /* all ones where x is in range (a vector cast keeps the bits) */
+  const f8 lo = (f8)(keep & (i8)x);             /* lanes out of range as 0 here, so their n stays small */
+  const f8 round = (f8){0} + 12582912.0f;       /* 1.5 * 2^23: adding and subtracting it rounds to an integer */
+  const f8 n = (lo * 1.44269504088896341f + round) - round;
+  const f8 r = (lo - n * 0.693359375f) - n * -2.12194440e-4f;
+  f8 q = (f8){0} + 1.9875691500e-4f;
+  q = q * r + 1.3981999507e-3f;
+  q = q * r + 8.3334519073e-3f;
+  q = q * r + 4.1665795894e-2f;
+  q = q * r + 1.6666665459e-1f;
+  q = q * r + 5.0000001201e-1f;
+  const f8 e = q * r * r + r + 1.0f;
+  const f8 scale = (f8)((__builtin_convertvector(n, i8) + 127) << 23);
+  return (f8)(keep & (i8)(e * scale));
+}
+
+/* the attention weights of one query and head into `weights` (MAX_TERMS + 8 floats, 32-byte aligned): softmax over
+ * `terms` logits, where `may` (per group of `group` terms; NULL: all) allows, each weight the term's exp times the
+ * sum's reciprocal as PyTorch's softmax computes it; returns the sum, 0 where nothing is allowed */
+INLINE float softmax(const void *logits, int64_t at, int64_t terms, const uint8_t *may, int64_t group, int bf16,
+                     float *weights) {
+  const int64_t vectors = (terms + 7) / 8;
+  f8 *w = (f8 *)weights;
+  if (!may && terms % 8 == 0) {  /* a vector at a time: a vector read of scalar writes would wait for them */
+    for (int64_t v = 0; v < vectors; ++v) w[v] = load8(logits, at + 8 * v, bf16);
+  } else {
+    for (int64_t t = 0; t < terms; ++t) weights[t] = (!may || may[t / group]) ? load(logits, at + t, bf16) : -INFINITY;
+    for (int64_t t = terms; t < 8 * vectors; ++t) weights[t] = -INFINITY;
+  }
+  f8 top = w[0];
+  for (int64_t v = 1; v < vectors; ++v) {
+    const i8 more = w[v] > top;
+    top = (f8)((more & (i8)w[v]) | (~more & (i8)top));
+  }
+  float most = top[0];
+  for (int j = 1; j < 8; ++j) most = top[j] > most ? top[j] : most;
+  f8 sum = {0};
+  for (int64_t v = 0; v < vectors; ++v) {
+    w[v] = exp8(w[v] - most);  /* everything disallowed: -inf - -inf, NaN, exp 0 */
+    sum += w[v];
+  }
+  float total = 0.0f;
+  for (int j = 0; j < 8; ++j) total += sum[j];
+  if (total > 0.0f) {
+    const float inverse = 1.0f / total;
+    for (int64_t v = 0; v < vectors; ++v) w[v] *= inverse;
+  }
+  return total;
+}
+
+/* values[camera * levels + l]: (Hl, Wl, heads * CH); shapes: (levels, 2) as Hl, Wl; uv: (cameras, Q, 2), each
+ * query's projection (x, y in [0, 1]) in each camera; visible: (cameras, Q), nonzero where the camera sees the query;
+ * per query: offsets (heads, levels, points, 2) in pixels of the level, logits (heads, levels * points)
+ * -> out: (Q, heads * CH), the mean over the cameras that see the query of its samples in each (zeros where none).
+ * A query's terms (levels x points) are laid out 8 to a vector: their locations, corners and corner weights are
+ * computed a vector at a time, then each corner inside its map adds its CH channels (a map's elements fit int32:
+ * deform.py checks). */
+INLINE void sample_2d(const float *const *values, const int64_t *shapes, int64_t cameras, int64_t levels,
+                      int64_t heads, int64_t points, int64_t queries, const float *restrict uv,
+                      const uint8_t *restrict visible, const void *restrict offsets, const void *restrict logits,
+                      float *restrict out, int64_t start, int64_t end, int bf16) {
+  const int64_t c = heads * CH, terms = levels * points, vectors = (terms + 7) / 8;
+  float weights[MAX_TERMS + 8] __attribute__((aligned(32)));  /* terms rounded up to whole vectors */
+  /* per term: its level's width and height (as floats and as integers), its offset in pixels */
+  f8 cols[MAX_TERMS / 8 + 1], rows[MAX_TERMS / 8 + 1], ox[MAX_TERMS / 8 + 1], oy[MAX_TERMS / 8 + 1];
+  i8 icols[MAX_TERMS / 8 + 1], irows[MAX_TERMS / 8 + 1];
+  for (int64_t t = 0; t < 8 * vectors; ++t) {
+    const int64_t l = t < terms ? t / points : 0;  /* padding: a real level's size, weight 0 */
+    icols[t / 8][t % 8] = (int32_t)shapes[2 * l + 1], irows[t / 8][t % 8] = (int32_t)shapes[2 * l];
+    cols[t / 8][t % 8] = (float)shapes[2 * l + 1], rows[t / 8][t % 8] = (float)shapes[2 * l];
+    ox[t / 8][t % 8] = oy[t / 8][t % 8] = 0.0f;
+  }
+  /* per term and corner (x0 y0, x0+1 y0, x0 y0+1, x0+1 y0+1): its weight (0 outside its map) and element */
+  float cw[4][MAX_TERMS + 8] __attribute__((aligned(32)));
+  int32_t at[4][MAX_TERMS + 8] __attribute__((aligned(32)));
+  for (int64_t q = start; q < end; ++q) {
+    int64_t seen = 0;
+    for (int64_t n = 0; n < cameras; ++n) seen += visible[n * queries + q] != 0;
     for (int64_t h = 0; h < heads; ++h) {
       fv acc[NV];
       for (int j = 0; j < NV; ++j) acc[j] = (fv){0};
-      for (int64_t l = 0; l < levels; ++l) {
-        const float *map = values[camera[pair] * levels + l] + h * CH;
-        const int64_t rows = shapes[2 * l], cols = shapes[2 * l + 1];
-        /* the reference's (u + offset / cols) * cols - 0.5 without its division (pixel centres at i + 0.5): the
-         * same location up to float rounding */
-        const float u0 = u * cols - 0.5f, v0 = v * rows - 0.5f;
-        for (int64_t p = 0; p < points; ++p) {
-          const int64_t i = ((q * heads + h) * levels + l) * points + p;
-          const float x = u0 + offsets[2 * i], y = v0 + offsets[2 * i + 1];
-          if (!(x > -1.0f && x < cols && y > -1.0f && y < rows)) continue;  /* every corner outside (or NaN): zeros */
-          const float fx = floorf(x), fy = floorf(y), ax = x - fx, ay = y - fy, w = weights[i];
-          const int64_t x0 = (int64_t)fx, y0 = (int64_t)fy;
-          const int64_t cx[4] = {x0, x0 + 1, x0, x0 + 1}, cy[4] = {y0, y0, y0 + 1, y0 + 1};
-          const float cw[4] = {(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay};
-          for (int k = 0; k < 4; ++k) {
-            if (cx[k] < 0 || cx[k] >= cols || cy[k] < 0 || cy[k] >= rows) continue;
-            const fvu *src = (const fvu *)(map + (cy[k] * cols + cx[k]) * c);
-            const float s = w * cw[k];
-            for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
-          }
+      if (seen) {
+        softmax(logits, (q * heads + h) * terms, terms, NULL, 1, bf16, weights);
+        const int64_t first = (q * heads + h) * terms;
+        if (terms % 8 == 0)
+          for (int64_t k = 0; k < vectors; ++k) load8_pairs(offsets, first + 8 * k, bf16, &ox[k], &oy[k]);
+        else
+          for (int64_t t = 0; t < terms; ++t)
+            ox[t / 8][t % 8] = load(offsets, 2 * (first + t), bf16), oy[t / 8][t % 8] = load(offsets, 2 * (first + t) + 1, bf16);
+      }
+      for (int64_t n = 0; n < cameras && seen; ++n) {
+        if (!visible[n * queries + q]) continue;
+        const float u = uv[2 * (n * queries + q)], v = uv[2 * (n * queries + q) + 1];
+        for (int64_t k = 0; k < vectors; ++k) {
+          /* the reference's (u + offset / cols) * cols - 0.5 without its division (pixel centres at i + 0.5): the
+           * same location up to float rounding */
+          const f8 x = (u * cols[k] - 0.5f) + ox[k], y = (v * rows[k] - 0.5f) + oy[k];
+          const i8 inside = (x > -1.0f) & (x < cols[k]) & (y > -1.0f) & (y < rows[k]);  /* NaN: outside */
+          const f8 sx = (f8)(inside & (i8)x), sy = (f8)(inside & (i8)y);  /* in (-1, size): truncation is safe */
+          i8 x0 = __builtin_convertvector(sx, i8), y0 = __builtin_convertvector(sy, i8);
+          x0 += __builtin_convertvector(x0, f8) > sx, y0 += __builtin_convertvector(y0, f8) > sy;  /* floor */
+          const f8 ax = sx - __builtin_convertvector(x0, f8), ay = sy - __builtin_convertvector(y0, f8);
+          const f8 w = (f8)(inside & (i8)((f8 *)weights)[k]);
+          const i8 left = x0 >= 0, right = x0 + 1 < icols[k], top = y0 >= 0, bottom = y0 + 1 < irows[k];
+          const i8 row0 = y0 * icols[k] + x0;
+          const f8 bx = 1.0f - ax, by = 1.0f - ay;
+          *(f8 *)&cw[0][8 * k] = (f8)(left & top & (i8)(w * (bx * by)));
+          *(f8 *)&cw[1][8 * k] = (f8)(right & top & (i8)(w * (ax * by)));
+          *(f8 *)&cw[2][8 * k] = (f8)(left & bottom & (i8)(w * (bx * ay)));
+          *(f8 *)&cw[3][8 * k] = (f8)(right & bottom & (i8)(w * (ax * ay)));
+          *(i8 *)&at[0][8 * k] = row0 * (int32_t)c;
+          *(i8 *)&at[1][8 * k] = (row0 + 1) * (int32_t)c;
+          *(i8 *)&at[2][8 * k] = (row0 + icols[k]) * (int32_t)c;
+          *(i8 *)&at[3][8 * k] = (row0 + icols[k] + 1) * (int32_t)c;
+        }
+        for (int64_t l = 0; l < levels; ++l) {
+          const float *map = values[n * levels + l] + h * CH;
+          for (int64_t t = l * points; t < (l + 1) * points; ++t)
+            for (int k = 0; k < 4; ++k) {
+              const float s = cw[k][t];
+              if (s == 0.0f) continue;  /* outside the map (its element index meaningless), or no weight */
+              const fvu *src = (const fvu *)(map + at[k][t]);
+              for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
+            }
         }
       }
-      fvu *dst = (fvu *)(out + pair * c + h * CH);
-      for (int j = 0; j < NV; ++j) dst[j] = acc[j];
+      fvu *dst = (fvu *)(out + q * c + h * CH);
+      const float mean = seen ? (float)seen : 1.0f;
+      for (int j = 0; j < NV; ++j) dst[j] = acc[j] / mean;
     }
   }
 }
 
-/* Voxel-to-voxel deformable sampling (the ego's queries over the warped agents' volumes) for queries [start, end);
- * the definition is deform_attn.DeformableAttention3d's PyTorch path (the softmax over a query's allowed agents and
- * points per head, then sample_3d: trilinear grid_sample, zeros outside, align_corners=False). The softmax is taken
- * here, per query and head over at most MAX_TERMS logits: PyTorch's softmax over rows of 8 costs more than the
- * sampling.
+#define SAMPLE_2D_ARGS                                                                                               \
+  const float *const *values, const int64_t *shapes, int64_t cameras, int64_t levels, int64_t heads, int64_t points, \
+      int64_t queries, const float *uv, const uint8_t *visible, const void *offsets, const void *logits, float *out,  \
+      int64_t start, int64_t end
+#define SAMPLE_2D_CALL values, shapes, cameras, levels, heads, points, queries, uv, visible, offsets, logits, out, start, end
+void deform_sample_2d(SAMPLE_2D_ARGS) { sample_2d(SAMPLE_2D_CALL, 0); }
+void deform_sample_2d_bf16(SAMPLE_2D_ARGS) { sample_2d(SAMPLE_2D_CALL, 1); }
+
+/* The ego's queries over the warped agents' volumes, for queries [start, end); the softmax over a query's allowed
+ * agents and points per head.
  *
  * values[a]: (X, Y, Z, heads * CH) channels-last per agent; dims: X, Y, Z; reference: (Q, 3) in [0, 1];
  * offsets: (Q, heads, agents, points, 3) in voxels; logits: (Q, heads, agents, points)
  * of the attention weights; allowed: (Q, agents), nonzero where the query may attend to the agent (none: it reads
  * nothing) -> out: (Q, heads * CH) */
-#define MAX_TERMS 256
-void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
-                      const float *restrict reference, const float *restrict offsets,
-                      const float *restrict logits, const uint8_t *restrict allowed, float *restrict out,
-                      int64_t start, int64_t end) {
+INLINE void sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
+                      const float *restrict reference, const void *restrict offsets, const void *restrict logits,
+                      const uint8_t *restrict allowed, float *restrict out, int64_t start, int64_t end, int bf16) {
   const int64_t c = heads * CH, nx = dims[0], ny = dims[1], nz = dims[2], terms = agents * points;
-  float weights[MAX_TERMS];
+  float weights[MAX_TERMS + 8] __attribute__((aligned(32)));  /* terms rounded up to whole vectors */
   for (int64_t q = start; q < end; ++q)
     for (int64_t h = 0; h < heads; ++h) {
       fv acc[NV];
@@ -91,24 +230,17 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
        * voxels: the same location up to float rounding */
       float centre[3];
       for (int d = 0; d < 3; ++d) centre[d] = reference[3 * q + d] * dims[d] - 0.5f;
-      const float *l = logits + (q * heads + h) * terms;
       const uint8_t *may = allowed + q * agents;
-      float top = -INFINITY, total = 0.0f;
-      for (int64_t a = 0; a < agents; ++a)
-        for (int64_t p = 0; p < points && may[a]; ++p) top = fmaxf(top, l[a * points + p]);
-      for (int64_t t = 0; t < terms; ++t) {
-        weights[t] = may[t / points] ? expf(l[t] - top) : 0.0f;
-        total += weights[t];
-      }
+      const float total = softmax(logits, (q * heads + h) * terms, terms, may, points, bf16, weights);
       for (int64_t a = 0; a < agents && total > 0.0f; ++a) {
         if (!may[a]) continue;
         const float *map = values[a] + h * CH;
         for (int64_t p = 0; p < points; ++p) {
-          const float w = weights[a * points + p] / total;
+          const float w = weights[a * points + p];
           if (w == 0.0f) continue;
-          const float *o = offsets + (((q * heads + h) * agents + a) * points + p) * 3;
+          const int64_t o = (((q * heads + h) * agents + a) * points + p) * 3;
           float pos[3];
-          for (int d = 0; d < 3; ++d) pos[d] = centre[d] + o[d];
+          for (int d = 0; d < 3; ++d) pos[d] = centre[d] + load(offsets, o + d, bf16);
           if (!(pos[0] > -1.0f && pos[0] < nx && pos[1] > -1.0f && pos[1] < ny && pos[2] > -1.0f && pos[2] < nz)) continue;
           const float fx = floorf(pos[0]), fy = floorf(pos[1]), fz = floorf(pos[2]);
           const float ax = pos[0] - fx, ay = pos[1] - fy, az = pos[2] - fz;
@@ -138,3 +270,11 @@ void deform_sample_3d(const float *const *values, const int64_t *dims, int64_t a
       for (int j = 0; j < NV; ++j) dst[j] = acc[j];
     }
 }
+
+#define SAMPLE_3D_ARGS                                                                                                \
+  const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,                    \
+      const float *reference, const void *offsets, const void *logits, const uint8_t *allowed, float *out,            \
+      int64_t start, int64_t end
+#define SAMPLE_3D_CALL values, dims, agents, heads, points, reference, offsets, logits, allowed, out, start, end
+void deform_sample_3d(SAMPLE_3D_ARGS) { sample_3d(SAMPLE_3D_CALL, 0); }
+void deform_sample_3d_bf16(SAMPLE_3D_ARGS) { sample_3d(SAMPLE_3D_CALL, 1); }

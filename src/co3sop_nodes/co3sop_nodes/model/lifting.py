@@ -57,45 +57,44 @@ class ImageCrossAttention(nn.Module):
         n = uv.shape[1]
         h, lv, p = self.heads, self.levels, self.points
         offsets = self.offsets(query).view(b, q, h, lv, p, 2)  # in pixels of each level
-        # in float32 whatever the path's precision: the CPU's softmax over bfloat16 takes three times as long
-        w = torch.softmax(self.weights(query).view(b, q, h, lv * p).float(), -1).view(b, q, h, lv, p)
+        logits = self.weights(query).view(b, q, h, lv * p)
         values = [self.value(f.permute(0, 2, 3, 1)) for f in feats]  # L x (B*N, Hl, Wl, C)
         # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
-        compiled = self.path.kernels(query) and deform_kernel.available(c // h)
-        if not compiled:
-            shapes = torch.tensor(
-                [[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device
-            )  # (L, 2) W, H
-            off = offsets / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
-            # per level, every image's value map split by head: L x (B*N) x (H, C/H, Hl, Wl)
-            values = [v.permute(0, 3, 1, 2).unflatten(1, (h, c // h)).unbind(0) for v in values]
+        if self.path.kernels(query) and deform_kernel.available(c // h) and lv * p <= deform_kernel.MAX_TERMS:
+            pooled = [
+                deform_kernel.sample_cameras(
+                    [v[i * n : (i + 1) * n] for v in values],
+                    uv[i],
+                    visible[i],
+                    offsets[i],
+                    logits[i],
+                    torch.get_num_threads(),
+                )
+                for i in range(b)
+            ]
+            return self.output(torch.stack(pooled))
+        # in float32 whatever the path's precision: the CPU's softmax over bfloat16 takes three times as long
+        w = torch.softmax(logits.float(), -1).view(b, q, h, lv, p)
+        shapes = torch.tensor(
+            [[f.shape[-1], f.shape[-2]] for f in feats], dtype=query.dtype, device=query.device
+        )  # (L, 2) W, H
+        off = offsets / shapes[None, None, None, :, None, :]  # pixels -> [0, 1]
+        # per level, every image's value map split by head: L x (B*N) x (H, C/H, Hl, Wl)
+        values = [v.permute(0, 3, 1, 2).unflatten(1, (h, c // h)).unbind(0) for v in values]
         pooled = []
         for i in range(b):
             # only the (camera, query) pairs where the camera sees the query, camera-major
             cam, idx = visible[i].nonzero(as_tuple=True)
-            if compiled:
-                sampled = [
-                    deform_kernel.sample_pairs(
-                        [v[i * n : (i + 1) * n] for v in values],
-                        cam,
-                        idx,
-                        uv[i, cam, idx],
-                        offsets[i],
-                        w[i],
-                        torch.get_num_threads(),
-                    )
-                ]
-            else:
-                # one gather for all pairs (a gather per camera would zero-fill a full-size gradient for each), then
-                # split by camera
-                per_cam = torch.bincount(cam, minlength=n).tolist()
-                locs = (uv[i, cam, idx][:, None, None, None, :] + off[i, idx]).split(per_cam)  # N x (Qv, H, L, P, 2)
-                weights = w[i, idx].split(per_cam)  # N x (Qv, H, L, P)
-                sampled = [
-                    sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0]
-                    for k in range(n)
-                    if per_cam[k]
-                ]
+            # one gather for all pairs (a gather per camera would zero-fill a full-size gradient for each), then
+            # split by camera
+            per_cam = torch.bincount(cam, minlength=n).tolist()
+            locs = (uv[i, cam, idx][:, None, None, None, :] + off[i, idx]).split(per_cam)  # N x (Qv, H, L, P, 2)
+            weights = w[i, idx].split(per_cam)  # N x (Qv, H, L, P)
+            sampled = [
+                sample_2d([v[i * n + k] for v in values], locs[k][None], weights[k][None])[0]
+                for k in range(n)
+                if per_cam[k]
+            ]
             total = query.new_zeros(q, c)
             if sampled:
                 total = total.index_add(0, idx, torch.cat(sampled))  # (Q, C)
