@@ -179,17 +179,18 @@ INLINE void sample_2d(const float *const *values, const int64_t *shapes, int64_t
           *(f8 *)&cw[1][8 * k] = (f8)(right & top & (i8)(w * (ax * by)));
           *(f8 *)&cw[2][8 * k] = (f8)(left & bottom & (i8)(w * (bx * ay)));
           *(f8 *)&cw[3][8 * k] = (f8)(right & bottom & (i8)(w * (ax * ay)));
-          *(i8 *)&at[0][8 * k] = row0 * (int32_t)c;
-          *(i8 *)&at[1][8 * k] = (row0 + 1) * (int32_t)c;
-          *(i8 *)&at[2][8 * k] = (row0 + icols[k]) * (int32_t)c;
-          *(i8 *)&at[3][8 * k] = (row0 + icols[k] + 1) * (int32_t)c;
+          *(i8 *)&at[0][8 * k] = left & top & (row0 * (int32_t)c);
+          *(i8 *)&at[1][8 * k] = right & top & ((row0 + 1) * (int32_t)c);
+          *(i8 *)&at[2][8 * k] = left & bottom & ((row0 + icols[k]) * (int32_t)c);
+          *(i8 *)&at[3][8 * k] = right & bottom & ((row0 + icols[k] + 1) * (int32_t)c);
         }
         for (int64_t l = 0; l < levels; ++l) {
           const float *map = values[n * levels + l] + h * CH;
           for (int64_t t = l * points; t < (l + 1) * points; ++t)
             for (int k = 0; k < 4; ++k) {
+              /* a corner outside the map adds its first pixel times 0: no branch (half the samples of the coarse
+               * levels fall outside, unpredictably) */
               const float s = cw[k][t];
-              if (s == 0.0f) continue;  /* outside the map (its element index meaningless), or no weight */
               const fvu *src = (const fvu *)(map + at[k][t]);
               for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
             }
