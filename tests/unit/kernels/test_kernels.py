@@ -102,11 +102,12 @@ def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads,
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
 
 
-def test_the_3d_sampler_reads_bfloat16_projections_as_their_float32_widening():
+@pytest.mark.parametrize("agents", [2, 3])
+def test_the_3d_sampler_reads_bfloat16_projections_as_their_float32_widening(agents):
     """A bfloat16 path's offsets and logits, read as they are: the same sums as from the same values in float32,
-    bit for bit (bfloat16 widens exactly; only the loads differ)."""
+    bit for bit (bfloat16 widens exactly; only the loads differ). Terms (agents x points) in whole vectors and not."""
     gen = torch.Generator().manual_seed(5)
-    q, h, a, p, ch = 1500, 4, 3, 4, 8
+    q, h, a, p, ch = 1500, 4, agents, 4, 8
     values = torch.randn(a, 16, 12, 6, h * ch, generator=gen)
     reference = torch.rand(q, 3, generator=gen)
     offsets = (torch.randn(q, h, a, p, 3, generator=gen) * 3).bfloat16()

@@ -129,6 +129,8 @@ def sample_3d(
     suffix, (off, w) = _projections(offsets, logits)
     fn = _kernel(c // h, "deform_sample_3d" + suffix)
     maps = kernels.array(values)
+    if maps[0].size >= 2**31:
+        raise ValueError("sample_3d: a volume of 2^31 elements or more, beyond the kernel's int32 indices")
     pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
     dims = np.array(maps.shape[1:4], np.int64)
     ref = kernels.array(reference)

@@ -64,6 +64,14 @@ INLINE void load8_pairs(const void *p, int64_t i, int bf16, f8 *x, f8 *y) {
   *y = __builtin_shufflevector(a, b, 1, 3, 5, 7, 9, 11, 13, 15);
 }
 
+/* the (x, y, z) triples i..i+7 of a float32 or bfloat16 array of triples, split into their x, y and z */
+INLINE void load8_triples(const void *p, int64_t i, int bf16, f8 *x, f8 *y, f8 *z) {
+  const f8 a = load8(p, 3 * i, bf16), b = load8(p, 3 * i + 8, bf16), c = load8(p, 3 * i + 16, bf16);
+  *x = __builtin_shufflevector(__builtin_shufflevector(a, b, 0, 3, 6, 9, 12, 15, 0, 0), c, 0, 1, 2, 3, 4, 5, 10, 13);
+  *y = __builtin_shufflevector(__builtin_shufflevector(a, b, 1, 4, 7, 10, 13, 0, 0, 0), c, 0, 1, 2, 3, 4, 8, 11, 14);
+  *z = __builtin_shufflevector(__builtin_shufflevector(a, b, 2, 5, 8, 11, 14, 0, 0, 0), c, 0, 1, 2, 3, 4, 9, 12, 15);
+}
+
 /* exp for x <= 0 (logits minus their maximum), 8 lanes, as Cephes computes expf: x = n ln2 + r with |r| <= ln2 / 2,
  * e^r by its degree-7 polynomial (relative error about 2e-7), times 2^n built in the exponent bits; below -87 (where
  * 2^n leaves the normal floats), -inf and NaN 0, as the reference's underflow. libm's expf, a call per term, cost
@@ -217,54 +225,75 @@ void deform_sample_2d_bf16(SAMPLE_2D_ARGS) { sample_2d(SAMPLE_2D_CALL, 1); }
  * values[a]: (X, Y, Z, heads * CH) channels-last per agent; dims: X, Y, Z; reference: (Q, 3) in [0, 1];
  * offsets: (Q, heads, agents, points, 3) in voxels; logits: (Q, heads, agents, points)
  * of the attention weights; allowed: (Q, agents), nonzero where the query may attend to the agent (none: it reads
- * nothing) -> out: (Q, heads * CH) */
+ * nothing) -> out: (Q, heads * CH).
+ * As the image sampler: a query's terms (agents x points) 8 to a vector for their locations, corners and weights,
+ * a corner outside its volume adding the volume's first voxel times 0 (a volume's elements fit int32: deform.py
+ * checks); most of the volumes' few z-layers' samples have a corner outside, unpredictably. */
 INLINE void sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
                       const float *restrict reference, const void *restrict offsets, const void *restrict logits,
                       const uint8_t *restrict allowed, float *restrict out, int64_t start, int64_t end, int bf16) {
-  const int64_t c = heads * CH, nx = dims[0], ny = dims[1], nz = dims[2], terms = agents * points;
+  const int64_t c = heads * CH, terms = agents * points, vectors = (terms + 7) / 8;
+  const int32_t nx = (int32_t)dims[0], ny = (int32_t)dims[1], nz = (int32_t)dims[2];
+  const int32_t step[3] = {ny * nz * (int32_t)c, nz * (int32_t)c, (int32_t)c};  /* elements per x, y, z */
   float weights[MAX_TERMS + 8] __attribute__((aligned(32)));  /* terms rounded up to whole vectors */
+  f8 ox[MAX_TERMS / 8 + 1], oy[MAX_TERMS / 8 + 1], oz[MAX_TERMS / 8 + 1];  /* per term: its offset in voxels */
+  for (int64_t k = 0; k <= MAX_TERMS / 8; ++k) ox[k] = oy[k] = oz[k] = (f8){0};
+  /* per term and corner (x, y, z the bits of the corner's number, z lowest): its weight (0 outside) and element */
+  float cw[8][MAX_TERMS + 8] __attribute__((aligned(32)));
+  int32_t at[8][MAX_TERMS + 8] __attribute__((aligned(32)));
   for (int64_t q = start; q < end; ++q)
     for (int64_t h = 0; h < heads; ++h) {
       fv acc[NV];
       for (int j = 0; j < NV; ++j) acc[j] = (fv){0};
-      /* the reference's (reference + offset / dims) * dims - 0.5 as the query's voxel position plus the offset in
-       * voxels: the same location up to float rounding */
-      float centre[3];
-      for (int d = 0; d < 3; ++d) centre[d] = reference[3 * q + d] * dims[d] - 0.5f;
       const uint8_t *may = allowed + q * agents;
       const float total = softmax(logits, (q * heads + h) * terms, terms, may, points, bf16, weights);
-      for (int64_t a = 0; a < agents && total > 0.0f; ++a) {
-        if (!may[a]) continue;
-        const float *map = values[a] + h * CH;
-        for (int64_t p = 0; p < points; ++p) {
-          const float w = weights[a * points + p];
-          if (w == 0.0f) continue;
-          const int64_t o = (((q * heads + h) * agents + a) * points + p) * 3;
-          float pos[3];
-          for (int d = 0; d < 3; ++d) pos[d] = centre[d] + load(offsets, o + d, bf16);
-          if (!(pos[0] > -1.0f && pos[0] < nx && pos[1] > -1.0f && pos[1] < ny && pos[2] > -1.0f && pos[2] < nz)) continue;
-          const float fx = floorf(pos[0]), fy = floorf(pos[1]), fz = floorf(pos[2]);
-          const float ax = pos[0] - fx, ay = pos[1] - fy, az = pos[2] - fz;
-          const int64_t x0 = (int64_t)fx, y0 = (int64_t)fy, z0 = (int64_t)fz;
-          if (x0 >= 0 && x0 + 1 < nx && y0 >= 0 && y0 + 1 < ny && z0 >= 0 && z0 + 1 < nz) {
-            /* all 8 corners inside, most samples: the same sum without a bounds check per corner */
-            const float *base = map + ((x0 * ny + y0) * nz + z0) * c;
-            const int64_t sx = ny * nz * c, sy = nz * c;
-            const float wx[2] = {w * (1 - ax), w * ax}, wy[2] = {1 - ay, ay}, wz[2] = {1 - az, az};
-            for (int k = 0; k < 8; ++k) {
-              const float s = wx[k >> 2] * wy[(k >> 1) & 1] * wz[k & 1];
-              const fvu *src = (const fvu *)(base + (k >> 2) * sx + ((k >> 1) & 1) * sy + (k & 1) * c);
+      if (total > 0.0f) {
+        /* the reference's (reference + offset / dims) * dims - 0.5 as the query's voxel position plus the offset
+         * in voxels: the same location up to float rounding */
+        float centre[3];
+        for (int d = 0; d < 3; ++d) centre[d] = reference[3 * q + d] * dims[d] - 0.5f;
+        const int64_t first = (q * heads + h) * terms;
+        if (terms % 8 == 0)
+          for (int64_t k = 0; k < vectors; ++k) load8_triples(offsets, first + 8 * k, bf16, &ox[k], &oy[k], &oz[k]);
+        else
+          for (int64_t t = 0; t < terms; ++t) {
+            ox[t / 8][t % 8] = load(offsets, 3 * (first + t), bf16);
+            oy[t / 8][t % 8] = load(offsets, 3 * (first + t) + 1, bf16);
+            oz[t / 8][t % 8] = load(offsets, 3 * (first + t) + 2, bf16);
+          }
+        for (int64_t k = 0; k < vectors; ++k) {
+          const f8 px = centre[0] + ox[k], py = centre[1] + oy[k], pz = centre[2] + oz[k];
+          const i8 inside = (px > -1.0f) & (px < (float)nx) & (py > -1.0f) & (py < (float)ny) & (pz > -1.0f) &
+                            (pz < (float)nz);  /* NaN: outside */
+          const f8 sx = (f8)(inside & (i8)px), sy = (f8)(inside & (i8)py), sz = (f8)(inside & (i8)pz);
+          i8 x0 = __builtin_convertvector(sx, i8), y0 = __builtin_convertvector(sy, i8);
+          i8 z0 = __builtin_convertvector(sz, i8);  /* in (-1, size): truncation, then floor */
+          x0 += __builtin_convertvector(x0, f8) > sx, y0 += __builtin_convertvector(y0, f8) > sy;
+          z0 += __builtin_convertvector(z0, f8) > sz;
+          const f8 ax = sx - __builtin_convertvector(x0, f8), ay = sy - __builtin_convertvector(y0, f8);
+          const f8 az = sz - __builtin_convertvector(z0, f8);
+          const f8 w = (f8)(inside & (i8)((f8 *)weights)[k]);
+          const f8 wx[2] = {w * (1.0f - ax), w * ax}, wy[2] = {1.0f - ay, ay}, wz[2] = {1.0f - az, az};
+          const i8 vx[2] = {x0 >= 0, x0 + 1 < nx}, vy[2] = {y0 >= 0, y0 + 1 < ny}, vz[2] = {z0 >= 0, z0 + 1 < nz};
+          const i8 base = ((x0 * ny + y0) * nz + z0) * (int32_t)c;
+#pragma GCC unroll 8
+          for (int n = 0; n < 8; ++n) {
+            const int i = n >> 2, j = (n >> 1) & 1, l = n & 1;
+            const i8 valid = vx[i] & vy[j] & vz[l];
+            *(f8 *)&cw[n][8 * k] = (f8)(valid & (i8)(wx[i] * wy[j] * wz[l]));
+            *(i8 *)&at[n][8 * k] = valid & (base + (i * step[0] + j * step[1] + l * step[2]));
+          }
+        }
+        for (int64_t a = 0; a < agents; ++a) {
+          if (!may[a]) continue;
+          const float *map = values[a] + h * CH;
+          for (int64_t t = a * points; t < (a + 1) * points; ++t)
+#pragma GCC unroll 8
+            for (int n = 0; n < 8; ++n) {
+              const float s = cw[n][t];
+              const fvu *src = (const fvu *)(map + at[n][t]);
               for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
             }
-            continue;
-          }
-          for (int k = 0; k < 8; ++k) {
-            const int64_t x = x0 + (k >> 2), y = y0 + ((k >> 1) & 1), z = z0 + (k & 1);
-            if (x < 0 || x >= nx || y < 0 || y >= ny || z < 0 || z >= nz) continue;
-            const float s = w * ((k >> 2) ? ax : 1 - ax) * (((k >> 1) & 1) ? ay : 1 - ay) * ((k & 1) ? az : 1 - az);
-            const fvu *src = (const fvu *)(map + ((x * ny + y) * nz + z) * c);
-            for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
-          }
         }
       }
       fvu *dst = (fvu *)(out + q * c + h * CH);
