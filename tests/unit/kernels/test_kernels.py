@@ -61,6 +61,10 @@ def test_no_kernel_for_head_widths_that_are_not_vectors():
     """A head's channels are read as 8-lane vectors, or 4-lane ones (`small`'s 12 channels a head)."""
     assert not deform_kernel.available(6) and not deform_kernel.available(10)
     assert deform_kernel.available(12) and deform_kernel.available(8)
+    # the kernels' softmax takes at most MAX_TERMS terms a query and head
+    assert deform_kernel.available(8, deform_kernel.MAX_TERMS) and not deform_kernel.available(
+        8, deform_kernel.MAX_TERMS + 1
+    )
 
 
 @pytest.mark.parametrize("name", ["tiny", "small", "paper"])

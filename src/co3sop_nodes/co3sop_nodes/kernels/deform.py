@@ -45,9 +45,10 @@ def _kernel(channels_per_head: int, name: str = "deform_sample_2d"):
     return fn
 
 
-def available(channels_per_head: int) -> bool:
-    """Whether the kernels exist for this head width, are enabled and compile here (compiling them on first call)."""
-    return kernels.ENABLED and _kernel(channels_per_head) is not None
+def available(channels_per_head: int, terms: int = 1) -> bool:
+    """Whether the kernels exist for this head width and `terms` softmax terms per query and head (at most
+    MAX_TERMS), are enabled and compile here (compiling them on first call)."""
+    return kernels.ENABLED and terms <= MAX_TERMS and _kernel(channels_per_head) is not None
 
 
 def _projections(offsets: torch.Tensor, logits: torch.Tensor) -> tuple[str, list[torch.Tensor]]:

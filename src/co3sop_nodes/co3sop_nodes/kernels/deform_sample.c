@@ -72,6 +72,12 @@ INLINE void load8_triples(const void *p, int64_t i, int bf16, f8 *x, f8 *y, f8 *
   *z = __builtin_shufflevector(__builtin_shufflevector(a, b, 2, 5, 8, 11, 14, 0, 0, 0), c, 0, 1, 2, 3, 4, 9, 12, 15);
 }
 
+/* floor of 8 lanes in (-1, 2^31): truncation toward zero, less one where that rounded up (negative fractions) */
+INLINE i8 floor8(f8 x) {
+  const i8 t = __builtin_convertvector(x, i8);
+  return t + (__builtin_convertvector(t, f8) > x);  /* a true comparison is -1 */
+}
+
 /* exp for x <= 0 (logits minus their maximum), 8 lanes, as Cephes computes expf: x = n ln2 + r with |r| <= ln2 / 2,
  * e^r by its degree-7 polynomial (relative error about 2e-7), times 2^n built in the exponent bits; below -87 (where
  * 2^n leaves the normal floats), -inf and NaN 0, as the reference's underflow. libm's expf, a call per term, cost
@@ -175,9 +181,8 @@ INLINE void sample_2d(const float *const *values, const int64_t *shapes, int64_t
            * same location up to float rounding */
           const f8 x = (u * cols[k] - 0.5f) + ox[k], y = (v * rows[k] - 0.5f) + oy[k];
           const i8 inside = (x > -1.0f) & (x < cols[k]) & (y > -1.0f) & (y < rows[k]);  /* NaN: outside */
-          const f8 sx = (f8)(inside & (i8)x), sy = (f8)(inside & (i8)y);  /* in (-1, size): truncation is safe */
-          i8 x0 = __builtin_convertvector(sx, i8), y0 = __builtin_convertvector(sy, i8);
-          x0 += __builtin_convertvector(x0, f8) > sx, y0 += __builtin_convertvector(y0, f8) > sy;  /* floor */
+          const f8 sx = (f8)(inside & (i8)x), sy = (f8)(inside & (i8)y);  /* in (-1, size), 0 outside */
+          const i8 x0 = floor8(sx), y0 = floor8(sy);
           const f8 ax = sx - __builtin_convertvector(x0, f8), ay = sy - __builtin_convertvector(y0, f8);
           const f8 w = (f8)(inside & (i8)((f8 *)weights)[k]);
           const i8 left = x0 >= 0, right = x0 + 1 < icols[k], top = y0 >= 0, bottom = y0 + 1 < irows[k];
@@ -266,10 +271,7 @@ INLINE void sample_3d(const float *const *values, const int64_t *dims, int64_t a
           const i8 inside = (px > -1.0f) & (px < (float)nx) & (py > -1.0f) & (py < (float)ny) & (pz > -1.0f) &
                             (pz < (float)nz);  /* NaN: outside */
           const f8 sx = (f8)(inside & (i8)px), sy = (f8)(inside & (i8)py), sz = (f8)(inside & (i8)pz);
-          i8 x0 = __builtin_convertvector(sx, i8), y0 = __builtin_convertvector(sy, i8);
-          i8 z0 = __builtin_convertvector(sz, i8);  /* in (-1, size): truncation, then floor */
-          x0 += __builtin_convertvector(x0, f8) > sx, y0 += __builtin_convertvector(y0, f8) > sy;
-          z0 += __builtin_convertvector(z0, f8) > sz;
+          const i8 x0 = floor8(sx), y0 = floor8(sy), z0 = floor8(sz);  /* sx, sy, sz in (-1, size), 0 outside */
           const f8 ax = sx - __builtin_convertvector(x0, f8), ay = sy - __builtin_convertvector(y0, f8);
           const f8 az = sz - __builtin_convertvector(z0, f8);
           const f8 w = (f8)(inside & (i8)((f8 *)weights)[k]);

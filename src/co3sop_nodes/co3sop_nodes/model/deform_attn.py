@@ -83,7 +83,7 @@ class DeformableAttention3d(nn.Module):
         b, q, c = query.shape
         a = values.shape[1]
         h, p = self.heads, self.points
-        if self.path.kernels(query) and deform_kernel.available(c // h) and a * p <= deform_kernel.MAX_TERMS:
+        if self.path.kernels(query) and deform_kernel.available(c // h, a * p):
             return self.output(self._sampled(query, reference, values, mask))
         v = self.value(values.permute(0, 1, 3, 4, 5, 2))  # (B, A, X, Y, Z, C)
         offsets = self.offsets(query).view(b, q, h, self.slots, p, 3)  # in voxels

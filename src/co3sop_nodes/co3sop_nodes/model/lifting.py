@@ -60,7 +60,7 @@ class ImageCrossAttention(nn.Module):
         logits = self.weights(query).view(b, q, h, lv * p)
         values = [self.value(f.permute(0, 2, 3, 1)) for f in feats]  # L x (B*N, Hl, Wl, C)
         # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
-        if self.path.kernels(query) and deform_kernel.available(c // h) and lv * p <= deform_kernel.MAX_TERMS:
+        if self.path.kernels(query) and deform_kernel.available(c // h, lv * p):
             pooled = [
                 deform_kernel.sample_cameras(
                     [v[i * n : (i + 1) * n] for v in values],
