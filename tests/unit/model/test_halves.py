@@ -153,6 +153,44 @@ def test_camera_rig_projection():
     assert not visible.any()
 
 
+def test_projection_is_float32_under_autocast():
+    """Geometry in float32 whatever the precision around it: bfloat16 would move a point by up to a pixel."""
+    pts = torch.rand(2000, 3, generator=torch.Generator().manual_seed(3)) * 40 - 20
+    want = project(pts, RIG[None], (W, H))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        uv, visible = project(pts, RIG[None], (W, H))
+    assert uv.dtype == torch.float32 and torch.equal(uv, want[0]) and torch.equal(visible, want[1])
+    assert want[1].any() and not want[1].all()
+
+
+def test_the_learned_queries_projections_are_computed_once_per_weights(monkeypatch):
+    """The first lifting layer's offsets and logits of the learned queries are the same every frame: inference
+    computes them once, again when a weight changes in place (an optimiser's step, a checkpoint loaded), and
+    training through the layer. Either way the features are those computed afresh, bit for bit."""
+    model = _model(SMALL, 4).eval()
+    attention = model.vehicle.lifting[0].attention
+    calls = []
+    projections = attention.projections
+    monkeypatch.setattr(attention, "projections", lambda q: calls.append(1) or projections(q))
+    g = torch.Generator().manual_seed(4)
+    inputs = {"images": torch.randint(0, 256, (1, 2, 3, H, W), generator=g, dtype=torch.uint8), "lidar2img": RIG[None]}
+
+    def afresh():
+        model.vehicle._projected = None
+        return model.vehicle(**inputs).features
+
+    with torch.no_grad():
+        first, second = model.vehicle(**inputs).features, model.vehicle(**inputs).features
+        assert len(calls) == 1 and torch.equal(first, second) and torch.equal(first, afresh())
+        attention.offsets.bias.add_(0.7)
+        changed = model.vehicle(**inputs).features
+        assert len(calls) == 3 and not torch.equal(changed, first) and torch.equal(changed, afresh())
+    with torch.enable_grad():
+        model.vehicle(**inputs)
+        model.vehicle(**inputs)
+    assert len(calls) == 6
+
+
 # ---------------------------------------------------------------- shapes
 
 

@@ -62,6 +62,7 @@ class VehicleHalf(nn.Module):
                 LiftingLayer(c, att.heads, cfg.fpn_levels, att.points) for _ in range(att.layers)
             )
             self.register_buffer("centres", voxel_centres(fg), persistent=False)
+            self._projected = None  # (key, projections): `_learned_projections`
         elif cfg.modality == "lidar":
             lc = cfg.lidar
             self.encoder = (
@@ -92,6 +93,23 @@ class VehicleHalf(nn.Module):
         """The wire code (B, K, X, Y, Z) of features (B, C, X, Y, Z) and confidence (B, 1, X, Y, Z), or None."""
         return None if self.wire is None else self.wire(features, confidence)
 
+    def _learned_projections(self, b: int):
+        """The first lifting layer's offsets and logits of the learned queries, for a batch of b: the same in every
+        frame, so inference computes them once per weights (their tensors' versions) and path; None while training
+        (they take their gradients through the layer)."""
+        if torch.is_grad_enabled():
+            return None
+        attention = self.lifting[0].attention
+        weights = (self.queries, *attention.offsets.parameters(), *attention.weights.parameters())
+        key = (
+            self.path,
+            torch.is_autocast_enabled(self.queries.device.type),
+            *((t.data_ptr(), t._version) for t in weights),
+        )
+        if self._projected is None or self._projected[0] != key:
+            self._projected = key, attention.projections(self.queries[None])
+        return tuple(t.expand(b, *t.shape[1:]) for t in self._projected[1])
+
     def _forward(self, images, lidar2img, occupancy) -> VehicleOutput:
         fg = self.cfg.feature_grid
         if self.cfg.modality == "camera":
@@ -100,8 +118,8 @@ class VehicleHalf(nn.Module):
             feats = [self.to_dims(f) for f in self.fpn(self.backbone(x)[1:])]  # levels x (B*N, C, Hl, Wl)
             uv, visible = project(self.centres, lidar2img, self.cfg.image_size)  # (B, N, Q, 2), (B, N, Q)
             q = self.queries[None].expand(b, -1, -1)
-            for layer in self.lifting:
-                q = layer(q, uv, visible, feats)
+            for i, layer in enumerate(self.lifting):
+                q = layer(q, uv, visible, feats, self._learned_projections(b) if i == 0 else None)
             volume = q.transpose(1, 2).reshape(b, -1, *fg.dims)  # (B, C, X, Y, Z)
         else:
             volume = self.encoder(occupancy)

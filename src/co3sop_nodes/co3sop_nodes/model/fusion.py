@@ -17,6 +17,7 @@ from co3sop_nodes.model.config import AttentionConfig
 from co3sop_nodes.model.deform_attn import DeformableAttention3d
 from co3sop_nodes.model.path import InferencePath
 from co3sop_nodes.model.positional import sine_encoding_3d
+from co3sop_nodes.model.post_norm import AddNorm, FeedForward
 
 
 def hybrid_mask(ego_conf, warped_conf, warp_mask):
@@ -39,12 +40,12 @@ class FusionLayer(nn.Module):
     def __init__(self, dims: int, att: AttentionConfig, slots: int, extent_voxels):
         super().__init__()
         self.attention = DeformableAttention3d(dims, att.heads, att.points, slots, extent_voxels)
-        self.norm1, self.norm2 = nn.LayerNorm(dims), nn.LayerNorm(dims)
-        self.ffn = nn.Sequential(nn.Linear(dims, 2 * dims), nn.ReLU(inplace=True), nn.Linear(2 * dims, dims))
+        self.norm1, self.norm2 = AddNorm(dims), AddNorm(dims)
+        self.ffn = FeedForward(dims, 2 * dims)
 
     def forward(self, query, pos, reference, values, mask):
-        x = self.norm1(query + self.attention(query + pos, reference, values, mask))
-        return self.norm2(x + self.ffn(x))
+        x = self.norm1(query, self.attention(query + pos, reference, values, mask))
+        return self.norm2(x, self.ffn(x))
 
 
 class VoxelFusion(nn.Module):

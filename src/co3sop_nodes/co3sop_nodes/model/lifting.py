@@ -15,6 +15,7 @@ from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.model.deform_attn import sample_2d
 from co3sop_nodes.model.path import InferencePath
+from co3sop_nodes.model.post_norm import AddNorm, FeedForward
 
 
 def voxel_centres(grid: GridSpec) -> torch.Tensor:
@@ -26,13 +27,18 @@ def voxel_centres(grid: GridSpec) -> torch.Tensor:
 
 
 def project(points: torch.Tensor, lidar2img: torch.Tensor, image_size: tuple[int, int]):
-    """points (Q, 3) LiDAR frame; lidar2img (B, N, 4, 4) -> uv in [0, 1] (B, N, Q, 2), visible (B, N, Q)."""
-    homo = torch.cat([points, torch.ones_like(points[:, :1])], dim=-1)  # (Q, 4)
-    cam = torch.einsum("bnij,qj->bnqi", lidar2img, homo)  # (B, N, Q, 4): (u*d, v*d, d, 1)
-    depth = cam[..., 2]
-    uv = cam[..., :2] / depth.clamp(min=1e-5)[..., None]
-    uv = uv / torch.tensor(image_size, dtype=uv.dtype, device=uv.device)
-    visible = (depth > 1e-5) & (uv >= 0).all(-1) & (uv <= 1).all(-1)
+    """points (Q, 3) LiDAR frame; lidar2img (B, N, 4, 4) -> uv in [0, 1] (B, N, Q, 2), visible (B, N, Q).
+
+    In float32 whatever the autocast around it: in bfloat16 a projected point would move by up to a pixel and
+    the visibility at an image's edges with it."""
+    with torch.autocast(points.device.type, enabled=False):
+        homo = torch.cat([points.float(), torch.ones_like(points[:, :1], dtype=torch.float32)], dim=-1)  # (Q, 4)
+        cam = torch.einsum("bnij,qj->bnqi", lidar2img.float(), homo)  # (B, N, Q, 4): (u*d, v*d, d, 1)
+        depth = cam[..., 2]
+        uv = cam[..., :2] / depth.clamp(min=1e-5)[..., None]
+        uv = uv / torch.tensor(image_size, dtype=uv.dtype, device=uv.device)
+        # the extremes of (u, v), not all() of each comparison: a third of the time (a NaN fails either way)
+        visible = (depth > 1e-5) & (uv.amin(-1) >= 0) & (uv.amax(-1) <= 1)
     return uv, visible
 
 
@@ -51,13 +57,20 @@ class ImageCrossAttention(nn.Module):
             ring = torch.stack([angle.cos(), angle.sin()], -1).view(heads, 1, points, 2) * 2.0
             self.offsets.bias.copy_(ring.expand(heads, levels, points, 2).reshape(-1))
 
-    def forward(self, query, uv, visible, feats):
-        """query: (B, Q, C); uv: (B, N, Q, 2); visible: (B, N, Q); feats: L x (B*N, C, Hl, Wl). -> (B, Q, C)."""
+    def projections(self, query):
+        """query (B, Q, C) -> the sampling offsets (B, Q, H, L, P, 2) in pixels of each level and the attention
+        weights' logits (B, Q, H, L*P)."""
+        b, q, _ = query.shape
+        h, lv, p = self.heads, self.levels, self.points
+        return self.offsets(query).view(b, q, h, lv, p, 2), self.weights(query).view(b, q, h, lv * p)
+
+    def forward(self, query, uv, visible, feats, projected=None):
+        """query: (B, Q, C); uv: (B, N, Q, 2); visible: (B, N, Q); feats: L x (B*N, C, Hl, Wl); projected: the
+        query's `projections` where the caller has them. -> (B, Q, C)."""
         b, q, c = query.shape
         n = uv.shape[1]
         h, lv, p = self.heads, self.levels, self.points
-        offsets = self.offsets(query).view(b, q, h, lv, p, 2)  # in pixels of each level
-        logits = self.weights(query).view(b, q, h, lv * p)
+        offsets, logits = self.projections(query) if projected is None else projected
         values = [self.value(f.permute(0, 2, 3, 1)) for f in feats]  # L x (B*N, Hl, Wl, C)
         # inference on the CPU: the compiled sampler, from the channels-last maps (tested equal to the path below)
         if self.path.kernels(query) and deform_kernel.available(c // h, lv * p):
@@ -109,9 +122,10 @@ class LiftingLayer(nn.Module):
     def __init__(self, dims: int, heads: int, levels: int, points: int):
         super().__init__()
         self.attention = ImageCrossAttention(dims, heads, levels, points)
-        self.norm1, self.norm2 = nn.LayerNorm(dims), nn.LayerNorm(dims)
-        self.ffn = nn.Sequential(nn.Linear(dims, 2 * dims), nn.ReLU(inplace=True), nn.Linear(2 * dims, dims))
+        self.norm1, self.norm2 = AddNorm(dims), AddNorm(dims)
+        self.ffn = FeedForward(dims, 2 * dims)
 
-    def forward(self, query, uv, visible, feats):
-        query = self.norm1(query + self.attention(query, uv, visible, feats))
-        return self.norm2(query + self.ffn(query))
+    def forward(self, query, uv, visible, feats, projected=None):
+        """As ImageCrossAttention.forward."""
+        query = self.norm1(query, self.attention(query, uv, visible, feats, projected))
+        return self.norm2(query, self.ffn(query))

@@ -70,11 +70,16 @@ class InferencePath:
             return "bfloat16" if cpu_bfloat16_unit() else "float32"
         return self.precision
 
+    @property
+    def float_dtype(self) -> torch.dtype:
+        """`floats` as a torch dtype: what autocast computes products in on this path."""
+        return _DTYPES[self.floats]
+
     def autocast(self):
         """The context a forward pass runs in: nothing in float32, autocast to `floats` otherwise."""
         if self.floats == "float32":
             return nullcontext()
-        return torch.autocast(self.torch_device.type, dtype=_DTYPES[self.floats])
+        return torch.autocast(self.torch_device.type, dtype=self.float_dtype)
 
     def linear(
         self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False
