@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from co3sop_nodes import kernels
 from co3sop_nodes.common.grid import GridSpec
+from co3sop_nodes.kernels.transpose import transposed
 
 MAX_FEATURES = 256  # as warp.c's
 
@@ -98,8 +99,7 @@ def warp_compiled(
         raise ValueError(f"warp_compiled: {c} channels, above the kernel's {MAX_FEATURES}")
     theta = kernels.array(warp_theta(neighbour_from_ego, grid)[0])  # (3, 4): the kernel applies affine_grid's map
     base = _base_grid(nx, ny, nz)
-    # channels-last: a 2D transposition, which PyTorch copies in cache-sized tiles (the fastest copy here)
-    src = kernels.array(features[0].reshape(c, -1).t().contiguous())  # (X*Y*Z, C)
+    src = kernels.array(transposed(features[0].reshape(c, -1), threads))  # (X*Y*Z, C): channels-last
     conf_src = kernels.array(confidence.reshape(-1))  # (X*Y*Z,)
     warped, conf = out if out is not None else (torch.empty(nx, ny, nz, c), torch.empty(nx, ny, nz))
     filled = np.empty((nx, ny, nz), np.float32)
