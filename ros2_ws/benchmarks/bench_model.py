@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from timing import timed
+from timing import alternated, timed
 from torch.utils.flop_counter import FlopCounterMode
 
 from co3sop_nodes import kernels
@@ -181,37 +181,49 @@ def bag_scans(bag: Path, grid, count: int = 12) -> list[torch.Tensor]:
 def precision_table(device: torch.device, precisions: list[str], repeats: int, bag: Path | None = None) -> str:
     """Each shipped model at 51.2 m, as the nodes run it on `device` (its compiled kernels on the CPU): wall time of
     the vehicle half and of the ego's frame (2 neighbours 10 m away, fusion, labels) per precision, with the ratio
-    to float32 measured in the same run. With `bag`, a LiDAR model's vehicle half runs on the bag's scans in turn
-    (the random scan of 3 % hit otherwise)."""
+    to float32 measured in the same run. Each precision has its own copy of the model, and the copies take turns
+    of a few frames each (`timing.alternated`). With `bag`, a LiDAR model's vehicle half runs on the bag's scans in
+    turn (the random scan of 3 % hit otherwise)."""
     rows = [
         "| model | precision | vehicle half ms | ego frame ms | vehicle: float32 / this | ego: float32 / this |",
         "|---|---|---:|---:|---:|---:|",
     ]
-    timed_on = on(device)
+    finish = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
     for name in ("tiny-lidar", "tiny", "small"):
-        model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
-        base = None
-        scans = bag_scans(bag, model.cfg.grid) if bag is not None and model.cfg.modality == "lidar" else None
+        groups = {}
         for precision in ["float32", *(p for p in precisions if p != "float32")]:
+            model, _ = load_model(shipped_checkpoint(f"{name}.pt"))
             model.use(InferencePath(str(device), precision))
             if model.path.precision != precision:  # int8 for a model without int8 layers: its other precision
                 print(f"  {name} {precision}: none here, the model runs {model.path.describe()}", flush=True)
                 continue
-            inputs = pace.shaped_inputs(model)
-            if scans is not None:
-                turn = itertools.cycle([s.to(device) for s in scans])
-                t_vehicle, ego = timed_on(lambda: model.vehicle(occupancy=next(turn)), repeats)
-            else:
-                t_vehicle, ego = timed_on(lambda: model.vehicle(**inputs), repeats)
+            vehicle = _vehicle_call(model, bag, device)
+            ego = vehicle()
             others = pace.shaped_neighbours(ego)
-            t_ego, _ = timed_on(lambda: predict_frame(model, ego, np.eye(4), others), repeats)
-            base = base or (t_vehicle, t_ego)
+            groups[precision] = {
+                "vehicle": vehicle,
+                "ego": lambda model=model, ego=ego, others=others: predict_frame(model, ego, np.eye(4), others),
+            }
+        times = alternated(groups, repeats, finish)
+        for precision in groups:
+            t_vehicle, t_ego = times[precision, "vehicle"], times[precision, "ego"]
+            base_vehicle, base_ego = times["float32", "vehicle"], times["float32", "ego"]
             rows.append(
                 f"| {name} | {precision} | {1e3 * t_vehicle:.1f} | {1e3 * t_ego:.1f} | "
-                f"{base[0] / t_vehicle:.2f}x | {base[1] / t_ego:.2f}x |"
+                f"{base_vehicle / t_vehicle:.2f}x | {base_ego / t_ego:.2f}x |"
             )
             print(f"  {name} {precision}: vehicle {1e3 * t_vehicle:.1f} ms, ego {1e3 * t_ego:.1f} ms", flush=True)
     return "\n".join(rows)
+
+
+def _vehicle_call(model, bag: Path | None, device: torch.device):
+    """The vehicle half's call as `precision_table` times it: on the bag's scans in turn for a LiDAR model with
+    `bag`, on the model's shaped inputs otherwise."""
+    if bag is not None and model.cfg.modality == "lidar":
+        turn = itertools.cycle([s.to(device) for s in bag_scans(bag, model.cfg.grid)])
+        return lambda: model.vehicle(occupancy=next(turn))
+    inputs = pace.shaped_inputs(model)
+    return lambda: model.vehicle(**inputs)
 
 
 @torch.no_grad()
