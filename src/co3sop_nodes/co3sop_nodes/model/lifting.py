@@ -37,7 +37,7 @@ def project(points: torch.Tensor, lidar2img: torch.Tensor, image_size: tuple[int
         depth = cam[..., 2]
         uv = cam[..., :2] / depth.clamp(min=1e-5)[..., None]
         uv = uv / torch.tensor(image_size, dtype=uv.dtype, device=uv.device)
-        # the extremes of (u, v), not all() of each comparison: a third of the time (a NaN fails either way)
+        # the extremes of (u, v), not all() of each comparison: fewer passes over the pairs (a NaN fails either way)
         visible = (depth > 1e-5) & (uv.amin(-1) >= 0) & (uv.amax(-1) <= 1)
     return uv, visible
 
