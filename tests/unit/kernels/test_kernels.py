@@ -107,18 +107,25 @@ def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads,
 
 
 @pytest.mark.parametrize("agents", [2, 3])
-def test_the_3d_sampler_reads_bfloat16_projections_as_their_float32_widening(agents):
-    """A bfloat16 path's offsets and logits, read as they are: the same sums as from the same values in float32,
-    bit for bit (bfloat16 widens exactly; only the loads differ). Terms (agents x points) in whole vectors and not."""
+@pytest.mark.parametrize("ch", [8, 12])
+def test_the_3d_sampler_reads_bfloat16_values_and_projections_as_their_float32_widening(agents, ch):
+    """A bfloat16 path's volumes, offsets and logits, read as they are: the same sums as from the same values in
+    float32, bit for bit (bfloat16 widens exactly; only the loads differ). Terms (agents x points) in whole vectors
+    and not; a head's channels in vectors of 8 and of 4."""
     gen = torch.Generator().manual_seed(5)
-    q, h, a, p, ch = 1500, 4, agents, 4, 8
-    values = torch.randn(a, 16, 12, 6, h * ch, generator=gen)
+    q, h, a, p = 1500, 4, agents, 4
+    values = torch.randn(a, 16, 12, 6, h * ch, generator=gen).bfloat16()
     reference = torch.rand(q, 3, generator=gen)
     offsets = (torch.randn(q, h, a, p, 3, generator=gen) * 3).bfloat16()
     logits = (torch.randn(q, h, a, p, generator=gen) * 3).bfloat16()
     allowed = torch.rand(q, a, generator=gen) < 0.6
-    got = deform_kernel.sample_3d(values, reference, offsets, logits, allowed, 1)
-    want = deform_kernel.sample_3d(values, reference, offsets.float(), logits.float(), allowed, 1)
+    calls = []
+    compiled = deform_kernel._kernel
+    with pytest.MonkeyPatch.context() as patch:  # the bfloat16 function is the one that ran
+        patch.setattr(deform_kernel, "_kernel", lambda *a: calls.append(a[-1]) or compiled(*a))
+        got = deform_kernel.sample_3d(values, reference, offsets, logits, allowed, 1)
+    want = deform_kernel.sample_3d(values.float(), reference, offsets.float(), logits.float(), allowed, 1)
+    assert calls == ["deform_sample_3d_bf16"]
     assert got.any() and torch.equal(got, want)
 
 

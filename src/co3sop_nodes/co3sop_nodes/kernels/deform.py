@@ -123,16 +123,21 @@ def sample_3d(
 ) -> torch.Tensor:
     """values (A, X, Y, Z, H*Ch) channels-last; reference (Q, 3) in [0, 1]; offsets (Q, H, A, P, 3) in voxels; logits
     (Q, H, A, P) of the attention weights, softmax over the agents `allowed` (Q, A) bool and their points (a query
-    with none reads nothing) -> (Q, H*Ch). `available` first."""
+    with none reads nothing) -> (Q, H*Ch). Values, offsets and logits all bfloat16 (a reduced path's projections)
+    are read as they are, else each as float32. `available` first."""
     a, c = values.shape[0], values.shape[-1]
     q, h, _, p, _ = offsets.shape
     _terms("sample_3d", a * p)
-    suffix, (off, w) = _projections(offsets, logits)
+    if values.dtype == offsets.dtype == logits.dtype == torch.bfloat16:
+        suffix, tensors = "_bf16", [t.detach().cpu().contiguous() for t in (values, offsets, logits)]
+    else:
+        suffix, tensors = "", [t.detach().cpu().float().contiguous() for t in (values, offsets, logits)]
+    maps, off, w = tensors
     fn = _kernel(c // h, "deform_sample_3d" + suffix)
-    maps = kernels.array(values)
-    if maps[0].size >= 2**31:
+    if maps[0].numel() >= 2**31:
         raise ValueError("sample_3d: a volume of 2^31 elements or more, beyond the kernel's int32 indices")
-    pointers = (ctypes.c_void_p * a)(*[maps.ctypes.data + k * maps.strides[0] for k in range(a)])
+    volume = maps.stride(0) * maps.element_size()
+    pointers = (ctypes.c_void_p * a)(*[maps.data_ptr() + k * volume for k in range(a)])
     dims = np.array(maps.shape[1:4], np.int64)
     ref = kernels.array(reference)
     may = kernels.array(allowed, np.uint8)

@@ -8,7 +8,8 @@
  * weights. Locations are computed here as the references compute them; the softmax is taken here too, per query
  * and head over at most MAX_TERMS logits: PyTorch's softmax over rows of 8 or 16 costs more than the sampling.
  * Offsets and logits are read as the projections wrote them, float32 or bfloat16 (widened exactly), in one function
- * for each. CH (channels per head, a multiple of 4) is defined on the command line.
+ * for each; the agents' volumes too, in the voxel-to-voxel sampler's bfloat16 function (a reduced path's value
+ * projection writes them so). CH (channels per head, a multiple of 4) is defined on the command line.
  */
 #include <math.h>
 #include <stdint.h>
@@ -25,6 +26,10 @@ typedef float fv __attribute__((vector_size(16)));
 #error "CH must be a multiple of 4"
 #endif
 typedef fv fvu __attribute__((aligned(4)));  /* loads and stores at float alignment */
+/* a vector's lanes as int32 and as bfloat16 bits (a bfloat16 value's vector widened exactly: its bits << 16) */
+typedef int32_t iv __attribute__((vector_size(sizeof(fv))));
+typedef uint16_t hv __attribute__((vector_size(sizeof(fv) / 2)));
+typedef hv hvu __attribute__((aligned(2), may_alias));
 
 #define MAX_TERMS 256
 #define INLINE static inline __attribute__((always_inline))
@@ -227,14 +232,15 @@ void deform_sample_2d_bf16(SAMPLE_2D_ARGS) { sample_2d(SAMPLE_2D_CALL, 1); }
 /* The ego's queries over the warped agents' volumes, for queries [start, end); the softmax over a query's allowed
  * agents and points per head.
  *
- * values[a]: (X, Y, Z, heads * CH) channels-last per agent; dims: X, Y, Z; reference: (Q, 3) in [0, 1];
+ * values[a]: (X, Y, Z, heads * CH) channels-last per agent, float32 or (with the projections) bfloat16; dims: X,
+ * Y, Z; reference: (Q, 3) in [0, 1];
  * offsets: (Q, heads, agents, points, 3) in voxels; logits: (Q, heads, agents, points)
  * of the attention weights; allowed: (Q, agents), nonzero where the query may attend to the agent (none: it reads
  * nothing) -> out: (Q, heads * CH).
  * As the image sampler: a query's terms (agents x points) 8 to a vector for their locations, corners and weights,
  * a corner outside its volume adding the volume's first voxel times 0 (a volume's elements fit int32: deform.py
  * checks); most of the volumes' few z-layers' samples have a corner outside, unpredictably. */
-INLINE void sample_3d(const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
+INLINE void sample_3d(const void *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
                       const float *restrict reference, const void *restrict offsets, const void *restrict logits,
                       const uint8_t *restrict allowed, float *restrict out, int64_t start, int64_t end, int bf16) {
   const int64_t c = heads * CH, terms = agents * points, vectors = (terms + 7) / 8;
@@ -288,13 +294,17 @@ INLINE void sample_3d(const float *const *values, const int64_t *dims, int64_t a
         }
         for (int64_t a = 0; a < agents; ++a) {
           if (!may[a]) continue;
-          const float *map = values[a] + h * CH;
           for (int64_t t = a * points; t < (a + 1) * points; ++t)
 #pragma GCC unroll 8
             for (int n = 0; n < 8; ++n) {
               const float s = cw[n][t];
-              const fvu *src = (const fvu *)(map + at[n][t]);
-              for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
+              if (!bf16) {
+                const fvu *src = (const fvu *)((const float *)values[a] + h * CH + at[n][t]);
+                for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
+              } else {
+                const hvu *src = (const hvu *)((const uint16_t *)values[a] + h * CH + at[n][t]);
+                for (int j = 0; j < NV; ++j) acc[j] += s * (fv)(__builtin_convertvector(src[j], iv) << 16);
+              }
             }
         }
       }
@@ -304,7 +314,7 @@ INLINE void sample_3d(const float *const *values, const int64_t *dims, int64_t a
 }
 
 #define SAMPLE_3D_ARGS                                                                                                \
-  const float *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,                    \
+  const void *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,                    \
       const float *reference, const void *offsets, const void *logits, const uint8_t *allowed, float *out,            \
       int64_t start, int64_t end
 #define SAMPLE_3D_CALL values, dims, agents, heads, points, reference, offsets, logits, allowed, out, start, end

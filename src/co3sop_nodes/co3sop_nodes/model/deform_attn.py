@@ -101,17 +101,17 @@ class DeformableAttention3d(nn.Module):
     def _sampled(self, query, reference, values, mask):
         """Inference on the CPU: the compiled sampler (tested equal to sample_3d), which takes the attention's logits
         and takes their masked softmax itself, from channels-last volumes -> (B, Q, C) before the output projection.
-        The projections run in float32 whatever the path's precision (as the path computes float32 products),
-        offsets and logits for the A agents present only: their products are small (C inputs), and in bfloat16
-        (which the kernel reads as well) they measured no faster."""
+        The projections (offsets and logits for the A agents present only) in the path's precision, as autocast
+        would compute them: on a reduced path bfloat16 values, offsets and logits, which the kernel reads as they
+        are (the value projection covers every agent's whole volume)."""
         b, q, c = query.shape
         a = values.shape[1]
         h, p = self.heads, self.points
         with torch.autocast(query.device.type, enabled=False):
-            x = query.float()
+            x = query.to(self.path.float_dtype)
             offsets = self._present(self.offsets, x, a).view(b, q, h, a, p, 3)  # in voxels
             logits = self._present(self.weights, x, a).view(b, q, h, a, p)
-            voxels = values.float().permute(0, 1, 3, 4, 5, 2)  # (B, A, X, Y, Z, C)
+            voxels = values.to(self.path.float_dtype).permute(0, 1, 3, 4, 5, 2)  # (B, A, X, Y, Z, C)
             v = self.path.linear(voxels, self.value.weight, self.value.bias)
         threads = torch.get_num_threads()
         return torch.stack(
