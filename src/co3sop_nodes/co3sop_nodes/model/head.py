@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.kernels import quantize_volume as quantize_kernel
 from co3sop_nodes.model import quantized
 from co3sop_nodes.model.conv_norm import ConvNorm, folded_norm, z_outer
 from co3sop_nodes.model.path import InferencePath
@@ -92,8 +93,11 @@ class OccupancyHead(nn.Module):
         innermost in memory (z outermost), and their scale."""
         (first, second, up, block), s = self._int8
         b, _, x0, y0, z0 = x.shape
-        q = (x.permute(0, 4, 2, 3, 1) * (1 / s[0])).add_(128).round_().clamp_(0, 255).to(torch.uint8)  # (B, Z, X, Y, C)
-        f = second(first(quantized.Int8Volume(q.contiguous().permute(0, 4, 1, 2, 3), s[0])))  # (B, C0, Z, X, Y) views
+        if quantize_kernel.available(x):  # the fusion's output: channels-last
+            q = quantize_kernel.quantized_z_outer(x, 1 / s[0], 128, torch.get_num_threads())  # (B, Z, X, Y, C)
+        else:
+            q = (x.permute(0, 4, 2, 3, 1) * (1 / s[0])).add_(128).round_().clamp_(0, 255).to(torch.uint8).contiguous()
+        f = second(first(quantized.Int8Volume(q.permute(0, 4, 1, 2, 3), s[0])))  # (B, C0, Z, X, Y) views
         rows = f.values.permute(0, 2, 3, 4, 1).reshape(-1, f.values.shape[1])  # (B*Z*X*Y, C0): no copy
         c1 = block.bias.shape[0]
         u = up(rows, s[2]).view(b, z0, x0, y0, 2, 2, 2, c1).permute(0, 1, 4, 2, 5, 3, 6, 7)  # (B, Z0, dz, X0, ...)
