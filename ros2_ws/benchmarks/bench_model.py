@@ -205,9 +205,9 @@ def precision_table(device: torch.device, precisions: list[str], repeats: int, b
                 "ego": lambda model=model, ego=ego, others=others: predict_frame(model, ego, np.eye(4), others),
             }
         times = alternated(groups, repeats, finish)
+        base_vehicle, base_ego = times["float32", "vehicle"], times["float32", "ego"]
         for precision in groups:
             t_vehicle, t_ego = times[precision, "vehicle"], times[precision, "ego"]
-            base_vehicle, base_ego = times["float32", "vehicle"], times["float32", "ego"]
             rows.append(
                 f"| {name} | {precision} | {1e3 * t_vehicle:.1f} | {1e3 * t_ego:.1f} | "
                 f"{base_vehicle / t_vehicle:.2f}x | {base_ego / t_ego:.2f}x |"

@@ -51,13 +51,13 @@ def available(channels_per_head: int, terms: int = 1) -> bool:
     return kernels.ENABLED and terms <= MAX_TERMS and _kernel(channels_per_head) is not None
 
 
-def _projections(offsets: torch.Tensor, logits: torch.Tensor) -> tuple[str, list[torch.Tensor]]:
-    """The kernel's name suffix and the offsets and logits as it reads them: as the projections wrote them where
-    both are bfloat16 (a reduced path's products; widening them here would cost more than sampling), else float32;
-    contiguous, on the CPU (the caller keeps them referenced while the kernel runs)."""
-    if offsets.dtype == logits.dtype == torch.bfloat16:
-        return "_bf16", [t.detach().cpu().contiguous() for t in (offsets, logits)]
-    return "", [t.detach().cpu().float().contiguous() for t in (offsets, logits)]
+def _as_read(*tensors: torch.Tensor) -> tuple[str, list[torch.Tensor]]:
+    """The kernel's name suffix and `tensors` as it reads them: as a reduced path's products wrote them where all
+    are bfloat16 (widening them here would cost more than sampling), else float32; contiguous, on the CPU (the
+    caller keeps them referenced while the kernel runs)."""
+    if all(t.dtype == torch.bfloat16 for t in tensors):
+        return "_bf16", [t.detach().cpu().contiguous() for t in tensors]
+    return "", [t.detach().cpu().float().contiguous() for t in tensors]
 
 
 def _terms(name: str, terms: int) -> None:
@@ -80,7 +80,7 @@ def sample_cameras(
     q, h, levels, p, _ = offsets.shape
     n, c = values[0].shape[0], values[0].shape[-1]
     _terms("sample_cameras", levels * p)
-    suffix, (off, w) = _projections(offsets, logits)
+    suffix, (off, w) = _as_read(offsets, logits)
     fn = _kernel(c // h, "deform_sample_2d" + suffix)
     maps = [kernels.array(v) for v in values]
     if max(m[0].size for m in maps) >= 2**31:
@@ -128,11 +128,7 @@ def sample_3d(
     a, c = values.shape[0], values.shape[-1]
     q, h, _, p, _ = offsets.shape
     _terms("sample_3d", a * p)
-    if values.dtype == offsets.dtype == logits.dtype == torch.bfloat16:
-        suffix, tensors = "_bf16", [t.detach().cpu().contiguous() for t in (values, offsets, logits)]
-    else:
-        suffix, tensors = "", [t.detach().cpu().float().contiguous() for t in (values, offsets, logits)]
-    maps, off, w = tensors
+    suffix, (maps, off, w) = _as_read(values, offsets, logits)
     fn = _kernel(c // h, "deform_sample_3d" + suffix)
     if maps[0].numel() >= 2**31:
         raise ValueError("sample_3d: a volume of 2^31 elements or more, beyond the kernel's int32 indices")

@@ -101,11 +101,7 @@ class VehicleHalf(nn.Module):
             return None
         attention = self.lifting[0].attention
         weights = (self.queries, *attention.offsets.parameters(), *attention.weights.parameters())
-        key = (
-            self.path,
-            torch.is_autocast_enabled(self.queries.device.type),
-            *((t.data_ptr(), t._version) for t in weights),
-        )
+        key = (self.path, *((t.data_ptr(), t._version) for t in weights))
         if self._projected is None or self._projected[0] != key:
             self._projected = key, attention.projections(self.queries[None])
         return tuple(t.expand(b, *t.shape[1:]) for t in self._projected[1])
