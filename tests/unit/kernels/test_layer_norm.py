@@ -25,7 +25,7 @@ def test_equals_the_layer_norm_of_the_sum(channels, x_dtype, y_dtype, threads):
     x = (torch.randn(1, rows, channels, generator=gen) * 3 + 1).to(x_dtype)
     y = torch.randn(1, rows, channels, generator=gen).to(y_dtype)
     weight, bias = torch.randn(channels, generator=gen), torch.randn(channels, generator=gen)
-    assert layer_norm.available(x, y)
+    assert layer_norm.fits(x, y)
     got = layer_norm.add_layer_norm(x, y, weight, bias, 1e-5, threads)
     want = F.layer_norm(x.float() + y.float(), (channels,), weight, bias, 1e-5)
     assert got.dtype == torch.float32 and got.shape == want.shape
@@ -42,9 +42,10 @@ def test_rows_of_one_value_normalise_to_the_bias():
 
 def test_what_the_kernel_does_not_take(monkeypatch):
     x = torch.randn(10, 32)
-    assert layer_norm.available(x, x.bfloat16())
-    assert not layer_norm.available(torch.randn(10, 12), torch.randn(10, 12))  # rows of whole vectors of 8 only
-    assert not layer_norm.available(x, torch.randn(10, 1))  # a broadcast, not a residual sum
-    assert not layer_norm.available(x, x.half())
+    assert layer_norm.fits(x, x.bfloat16()) and layer_norm.available(32)
+    assert not layer_norm.fits(torch.randn(10, 12), torch.randn(10, 12))  # rows of whole vectors of 8 only
+    assert not layer_norm.available(12)
+    assert not layer_norm.fits(x, torch.randn(10, 1))  # a broadcast, not a residual sum
+    assert not layer_norm.fits(x, x.half())
     monkeypatch.setattr(kernels, "ENABLED", False)
-    assert not layer_norm.available(x, x)
+    assert not layer_norm.fits(x, x) and not layer_norm.available(32)

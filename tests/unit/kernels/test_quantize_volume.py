@@ -19,7 +19,7 @@ def _volume(channels: int) -> torch.Tensor:
 @pytest.mark.parametrize("threads", [1, 2])
 def test_equals_pytorchs_quantization(channels, threads):
     x = _volume(channels)
-    assert quantize_volume.available(x)
+    assert quantize_volume.fits(x)
     got = quantize_volume.quantized_z_outer(x, 1 / 0.0625, 128, threads)
     want = (x.permute(0, 4, 2, 3, 1) * (1 / 0.0625)).add_(128).round_().clamp_(0, 255).to(torch.uint8)
     assert got.is_contiguous() and got.shape == want.shape and torch.equal(got, want)
@@ -28,7 +28,7 @@ def test_equals_pytorchs_quantization(channels, threads):
 
 def test_what_the_kernel_does_not_take(monkeypatch):
     x = _volume(32)
-    assert not quantize_volume.available(x.contiguous())  # channels-first in memory
-    assert not quantize_volume.available(x.double())
+    assert not quantize_volume.fits(x.contiguous())  # channels-first in memory
+    assert not quantize_volume.fits(x.double())
     monkeypatch.setattr(kernels, "ENABLED", False)
-    assert not quantize_volume.available(x)
+    assert not quantize_volume.fits(x) and not quantize_volume.available(32)

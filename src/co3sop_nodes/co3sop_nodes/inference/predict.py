@@ -16,8 +16,11 @@ import torch
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.kernels import half_float, quantized_add, visible_voxels
+from co3sop_nodes.kernels import layer_norm as layer_norm_kernel
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
+from co3sop_nodes.kernels import quantize_volume as quantize_kernel
+from co3sop_nodes.kernels import transpose as transpose_kernel
 from co3sop_nodes.kernels.warp import compiled_available
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
 from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
@@ -77,7 +80,7 @@ def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
     `points` the point cloud's (an ego's picture of its prediction), so that no frame waits for a compiler: nodes
     call it before they say they are ready. The kernels that compiled, by name."""
     cfg = model.cfg
-    c1, c2, _ = cfg.head_channels
+    _, c1, c2 = cfg.head_channels  # the last stage: 1/2 -> full resolution
     precision = model.path.floats
     kernels = (
         {"head": lambda: octant_kernel.available(c1, c2, cfg.num_classes, precision)} if cfg.head == "conv" else {}
@@ -89,8 +92,13 @@ def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
         kernels["scan's first layer"] = lambda: occupancy_kernel.available(cfg.lidar.channels // 2, encoder.first_dtype)
         if model.path.int8:
             kernels["int8 residual sum"] = lambda: quantized_add.available(cfg.lidar.channels)
+    if cfg.modality == "camera" or cfg.fusion:  # the transformer layers' sums and norms
+        kernels["layer norm"] = lambda: layer_norm_kernel.available(cfg.embed_dims)
+    if model.path.int8 and cfg.head == "conv":
+        kernels["int8 head's input"] = lambda: quantize_kernel.available(cfg.embed_dims)
     if cfg.fusion:
         kernels["warp"] = compiled_available
+        kernels["channels-last copies"] = transpose_kernel.available
         kernels["voxel sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.fusion_attention.heads)
     kernels["float16 codec"] = half_float.available  # every vehicle encodes, every ego decodes
     if points:

@@ -30,16 +30,20 @@ def _kernel(channels: int):
     return fn
 
 
-def available(x: torch.Tensor, y: torch.Tensor) -> bool:
+def available(channels: int) -> bool:
+    """Whether the kernel for rows of `channels` compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
+    return kernels.ENABLED and _kernel(channels) is not None
+
+
+def fits(x: torch.Tensor, y: torch.Tensor) -> bool:
     """Whether `add_layer_norm` takes x and y (..., C): on the CPU, of one shape, float32 or bfloat16, and the kernel
-    for C compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
+    for C `available`."""
     return (
-        kernels.ENABLED
-        and x.shape == y.shape
+        x.shape == y.shape
         and x.device.type == y.device.type == "cpu"
         and x.dtype in _READS
         and y.dtype in _READS
-        and _kernel(x.shape[-1]) is not None
+        and available(x.shape[-1])
     )
 
 
@@ -47,7 +51,7 @@ def add_layer_norm(
     x: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float, threads: int
 ) -> torch.Tensor:
     """LayerNorm(x + y) over the last axis with `weight` and `bias` (C,): x, y (..., C) -> (..., C) float32, rows
-    split over `threads`. `available` first."""
+    split over `threads`. `fits` first."""
     c = x.shape[-1]
     rows = x.numel() // c
     xs, ys = x.detach().contiguous(), y.detach().contiguous()

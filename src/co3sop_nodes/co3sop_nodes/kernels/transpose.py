@@ -22,6 +22,11 @@ def _kernel():
     return fn
 
 
+def available() -> bool:
+    """Whether the kernel compiles here (compiling it on first call; CO3SOP_NATIVE=0: never)."""
+    return kernels.ENABLED and _kernel() is not None
+
+
 def transposed(x: torch.Tensor, threads: int = 1, out: torch.Tensor | None = None) -> torch.Tensor:
     """x (R, S) -> x.t() as a contiguous (S, R) tensor, written into `out` where given (contiguous, float32, (S, R)).
     The compiled kernel for a float32 CPU matrix whose rows are contiguous and that takes no gradient (where it
@@ -33,7 +38,7 @@ def transposed(x: torch.Tensor, threads: int = 1, out: torch.Tensor | None = Non
         raise ValueError(f"transposed: out must be a contiguous ({s}, {r}) {x.dtype} tensor, not {tuple(out.shape)}")
     fits = x.dtype == out.dtype == torch.float32 and x.device.type == "cpu" and x.stride(1) == 1
     fits = fits and not (torch.is_grad_enabled() and x.requires_grad)
-    if not (fits and kernels.ENABLED and _kernel() is not None):
+    if not (fits and available()):
         return out.copy_(x.t())
     kernels.parallel(_kernel(), (x.data_ptr(), out.data_ptr(), r, x.stride(0)), s, threads, 64)
     return out

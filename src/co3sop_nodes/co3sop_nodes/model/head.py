@@ -93,7 +93,7 @@ class OccupancyHead(nn.Module):
         innermost in memory (z outermost), and their scale."""
         (first, second, up, block), s = self._int8
         b, _, x0, y0, z0 = x.shape
-        if quantize_kernel.available(x):  # the fusion's output: channels-last
+        if quantize_kernel.fits(x):  # the fusion's output: channels-last
             q = quantize_kernel.quantized_z_outer(x, 1 / s[0], 128, torch.get_num_threads())  # (B, Z, X, Y, C)
         else:
             q = (x.permute(0, 4, 2, 3, 1) * (1 / s[0])).add_(128).round_().clamp_(0, 255).to(torch.uint8).contiguous()

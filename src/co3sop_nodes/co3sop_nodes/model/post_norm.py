@@ -24,7 +24,7 @@ class AddNorm(nn.LayerNorm):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """x, y (..., C) -> (..., C), float32 (autocast's layer norm is float32 as well)."""
-        if self.path.kernels(x) and layer_norm_kernel.available(x, y):
+        if self.path.kernels(x) and layer_norm_kernel.fits(x, y):
             return layer_norm_kernel.add_layer_norm(x, y, self.weight, self.bias, self.eps, torch.get_num_threads())
         return super().forward(x + y)
 
