@@ -2,8 +2,8 @@
 
 Every ego draws its prediction and the recorder the ego's ground truth, once a frame each: NumPy's version of it
 (viz/cloud.py, the definition) passes over the 1.6 million voxels of the 51.2 m grid a dozen times and fills the
-points field by field. The kernel marks the visible voxels in two passes and writes each point's 20 bytes at
-once, the same bytes (tested).
+points field by field. The kernel reads the grid once, marking a plane at a time within the first-level cache, and
+writes each point's 20 bytes at once, the same bytes (tested).
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ def _kernels():
     lib = kernels.load("visible_voxels", EMPTY=EMPTY, IGNORE=IGNORE)
     if lib is None:
         return None
-    mask, points = lib.visible_mask, lib.visible_points
-    mask.argtypes, mask.restype = [_POINTER, *[ctypes.c_int64] * 3, _POINTER, _POINTER], ctypes.c_int64
-    points.argtypes, points.restype = [_POINTER, _POINTER, *[ctypes.c_int64] * 3, *[_POINTER] * 5], None
+    points = lib.visible_points
+    points.argtypes = [_POINTER, *[ctypes.c_int64] * 3, *[_POINTER] * 6]
+    points.restype = ctypes.c_int64
     return lib
 
 
@@ -44,14 +44,13 @@ def visible_points(labels: np.ndarray, centres: list[np.ndarray], colours: np.nd
     lib = _kernels()
     labels = np.ascontiguousarray(labels, np.uint8)
     nx, ny, nz = labels.shape
-    shown = np.zeros((nx + 2, ny + 2, nz + 2), np.uint8)  # padded by one voxel of "not shown" on every side
-    mask = np.empty_like(shown)
-    count = lib.visible_mask(labels.ctypes.data, nx, ny, nz, shown.ctypes.data, mask.ctypes.data)
-    points = np.empty(count, dtype)
+    scratch = np.zeros((5, ny + 2, nz + 2), np.uint8)  # three planes' shown flags, a plane's marks, its flags
+    # room for every voxel: only the pages written are ever touched, a grid's points a fraction of it
+    points = np.empty(labels.size, dtype)
     cx, cy, cz = (np.ascontiguousarray(c, np.float64) for c in centres)
     rgb = np.ascontiguousarray(colours, np.uint32)
-    lib.visible_points(
-        labels.ctypes.data, mask.ctypes.data, nx, ny, nz, cx.ctypes.data, cy.ctypes.data, cz.ctypes.data,
+    count = lib.visible_points(
+        labels.ctypes.data, nx, ny, nz, scratch.ctypes.data, cx.ctypes.data, cy.ctypes.data, cz.ctypes.data,
         rgb.ctypes.data, points.ctypes.data,
     )  # fmt: skip
-    return points
+    return points[:count]
