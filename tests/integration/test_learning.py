@@ -461,6 +461,26 @@ def test_reduced_precision_agrees_with_float32_on_a_real_sample(street_split, na
     assert (labels["float32"] == labels[precision]).mean() >= AGREEMENT[precision]
 
 
+@torch.no_grad()
+def test_evaluate_takes_every_agents_features_from_the_vehicle_model_given(street_split):
+    """`evaluate(vehicles=...)` (`--vehicle-precision`): the vehicle halves of a copy on its own path (here int8) make
+    every agent's features, the model (float32) fuses them, as an ego node beside vehicle nodes on another path."""
+    net, _ = load_model(shipped_checkpoint("tiny-lidar.pt"))
+    vehicles = load_model(shipped_checkpoint("tiny-lidar.pt"))[0].use(InferencePath("cpu", "int8"))
+    assert vehicles.path.int8, vehicles.int8_missing()
+    net.use(InferencePath("cpu", "float32"))
+    dataset = OccupancyDataset(street_split, ["test"], net.cfg)
+    split, own = {}, {}
+    evaluate(net, dataset, cache={}, labels=split, indices=[0], vehicles=vehicles)
+    evaluate(net, dataset, cache={}, labels=own, indices=[0])
+    sample = dataset.sample(0)
+    ego, *others = (vehicles.vehicle(**to_batch(a.inputs)) for a in (sample.ego, *sample.others))
+    candidates = {a.cav_id: (out, a.world_from_lidar) for a, out in zip(sample.others, others)}
+    want = predict_frame(net, ego, sample.ego.world_from_lidar, candidates).labels
+    assert np.array_equal(split[0], want)
+    assert not np.array_equal(own[0], want)  # the int8 features moved some labels: the copy's were used
+
+
 def trained_parameters(run: Path) -> dict[str, torch.Tensor]:
     """The float32 parameters a run's training state holds (buffers aside: DDP keeps rank 0's batch-norm statistics)."""
     model, _ = load_model(run / "state.pt")

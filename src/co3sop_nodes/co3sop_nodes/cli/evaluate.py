@@ -9,6 +9,8 @@
     ros2 run co3sop_nodes evaluate ... --ablation distance        # off vs on by the nearest collaborator's distance
     ros2 run co3sop_nodes evaluate ... --precision bfloat16 --ablation precision   # against float32, labels compared
     ros2 run co3sop_nodes evaluate ... --precision int8 --ablation precision       # a calibrated LiDAR model's int8
+    ros2 run co3sop_nodes evaluate ... --precision int8 --vehicle-precision bfloat16 --ablation precision
+        # an ego node on int8 (its head) fusing the features of vehicle nodes on bfloat16
     ros2 run co3sop_nodes evaluate --model A.pt B.pt ... --collaborators 0   # every model alone (single agent)
 
 Every CAV of every frame is the ego in turn. Results are printed as markdown
@@ -74,6 +76,12 @@ def main(args: list[str] | None = None) -> int:
         default="float32",
         choices=PRECISIONS,
         help="inference precision (float32, the reference, by default; auto: what the machine computes fast)",
+    )
+    parser.add_argument(
+        "--vehicle-precision",
+        choices=PRECISIONS,
+        help="the vehicle halves' precision, as vehicle nodes would run (default: --precision); --precision is then "
+        "the ego's: its fusion and head",
     )
     parser.add_argument(
         "--reference-paths", action="store_true", help="the PyTorch reference paths instead of the compiled kernels"

@@ -72,6 +72,7 @@ def evaluate(
     request_levels: int = 256,
     request_answer: str = "each",
     request_frame: str = "previous",
+    vehicles: Co3SOP | None = None,
 ) -> tuple[dict, float]:
     """({"split/scenario": Confusion}, mean bytes per collaborator frame sent) over every sample of the dataset.
 
@@ -87,7 +88,9 @@ def evaluate(
     agent of the frame, each an ego, chosen by the union of their requests within the communication range: the
     vehicle's parameter request_answer where every CAV runs an ego); `request_frame`: the frame whose request maps a
     frame answers, "previous" (the graph's default: a map reaches a neighbour a frame late) or "current" (the
-    vehicles' request_wait: a frame waits for the maps made of it).
+    vehicles' request_wait: a frame waits for the maps made of it). `vehicles`, where given, is the model (the same
+    weights on a path of its own, as vehicle nodes run on theirs) whose vehicle halves make every agent's features;
+    `model` then fuses them, as an ego node.
     """
     if request_frame not in REQUEST_FRAMES:
         raise Co3sopError(f"request_frame {request_frame!r}: one of {', '.join(REQUEST_FRAMES)}")
@@ -103,6 +106,7 @@ def evaluate(
     rng = np.random.default_rng(seed)
     if path is not None:
         model.use(path)
+    vehicles = model if vehicles is None else vehicles
     device, grid = model.path.torch_device, model.cfg.feature_grid
     confusions, sent = {}, []
     senders: dict[tuple, SenderBudgets] = {}  # (scenario, sender) -> its byte budgets, one per ego
@@ -123,7 +127,7 @@ def evaluate(
             key = (frame, cav, inputs)
             out = cache.get(key)
             if out is None:
-                out = model.vehicle(**to_batch(controlled(frame, position[cav] if j is None else j), device))
+                out = vehicles.vehicle(**to_batch(controlled(frame, position[cav] if j is None else j), device))
                 cache[key] = out  # kept while the cache has room
             return out
 
@@ -157,7 +161,7 @@ def evaluate(
                     model.cfg.grid,
                     lambda r: controlled(f, position[r.cav_id])["occupancy"],
                 )
-                ego = model.vehicle(**to_batch(merged.ego.inputs, device))
+                ego = vehicles.vehicle(**to_batch(merged.ego.inputs, device))
                 if not noisy:
                     cache[key] = ego
             others = []
@@ -514,20 +518,23 @@ def distance_table(bins: dict) -> list[str]:
 
 
 def _precision(opts, cfg, stem, title, measure, boot) -> None:
-    """--precision (reduced) against float32 on the same device: the paired mIoU difference and the share of voxels
-    whose label is the same."""
-    fast = opts.inference
-    if not fast.reduced:
+    """--precision (reduced; with --vehicle-precision, the ego's, and that the vehicle halves') against float32 on
+    the same device: the paired mIoU difference and the share of voxels whose label is the same."""
+    fast, vehicles = opts.inference, opts.vehicle_inference or opts.inference
+    if not (fast.reduced or vehicles.reduced):
         raise Co3sopError(
             "--ablation precision compares --precision bfloat16, float16 or int8 with float32: name one of them"
         )
     reference = replace(fast, precision="float32")
+    name = fast.precision if vehicles == fast else f"{fast.precision} (vehicle halves {vehicles.precision})"
     labels: dict[str, dict] = {}
     runs = {}
-    for path in (reference, fast):  # the model's own path last: it stays on it
-        labels[path.precision] = {}
-        runs[path.precision] = measure(path=path, shared={}, labels=labels[path.precision], desc=path.precision)[0]
-    same = sum(int((labels["float32"][i] == labels[fast.precision][i]).sum()) for i in labels["float32"])
+    for run, path, vehicle_path in (("float32", reference, reference), (name, fast, vehicles)):  # own paths last
+        if opts.vehicles is not None:
+            opts.vehicles.use(vehicle_path)
+        labels[run] = {}
+        runs[run] = measure(path=path, shared={}, labels=labels[run], desc=run)[0]
+    same = sum(int((labels["float32"][i] == labels[name][i]).sum()) for i in labels["float32"])
     total = sum(v.size for v in labels["float32"].values())
     agreement = same / max(1, total)
     _compare(
@@ -559,6 +566,14 @@ def evaluate_models(opts) -> int:
     torch.set_num_threads(opts.threads)
     opts.data_origin = data_origin(opts.data)
     opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
+    opts.vehicle_inference = None
+    if getattr(opts, "vehicle_precision", None) is not None:
+        if opts.vehicle_precision == "int8" and opts.inference.torch_device.type != "cpu":
+            raise Co3sopError(
+                f"--vehicle-precision int8 with --device {opts.inference.device}: int8 runs on the CPU only"
+            )
+        device, compiled = opts.inference.device, not opts.reference_paths
+        opts.vehicle_inference = inference_path(device, opts.vehicle_precision, compiled=compiled, what="--vehicle-")
     table: dict[str, dict] = {}
     for path in [resolve_checkpoint(m, "--model") for m in opts.model] if opts.model else [shipped_checkpoint()]:
         model, checkpoint = load_model(path)
@@ -568,6 +583,11 @@ def evaluate_models(opts) -> int:
         model.use(opts.inference)
         if opts.inference.int8 and not model.path.int8:
             raise Co3sopError(f"--precision int8: {path}: {model.int8_missing()}")
+        opts.vehicles = None
+        if opts.vehicle_inference is not None:  # the vehicle halves on a path of their own: a copy of the model
+            opts.vehicles = load_model(path)[0].use(opts.vehicle_inference)
+            if opts.vehicle_inference.int8 and not opts.vehicles.path.int8:
+                raise Co3sopError(f"--vehicle-precision int8: {path}: {opts.vehicles.int8_missing()}")
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg, cache=opts.cache)
         title = f"{cfg.name} ({cfg.modality}), {cfg.range}, {'+'.join(opts.splits)}: {len(dataset)} samples"
@@ -577,7 +597,7 @@ def evaluate_models(opts) -> int:
 
         def measure(model=model, dataset=dataset, shared=shared, **kw) -> tuple[dict, float]:
             return evaluate(
-                model, dataset, cache=shared, seed=opts.seed, **kw
+                model, dataset, cache=shared, seed=opts.seed, vehicles=opts.vehicles, **kw
             )  # runs of one model share vehicle outputs
 
         if not opts.ablation:

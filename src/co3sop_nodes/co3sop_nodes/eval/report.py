@@ -685,7 +685,7 @@ def precision_section(results: Path) -> list[str]:
     for path in found:
         report = read_json(path, "precision")
         precision = next(iter(report["differences"]))
-        int8 = int8 or precision == "int8"
+        int8 = int8 or precision.startswith("int8")
         diff = report["differences"][precision]["co3sop-code"]
         name, rng = path.stem.removesuffix("_precision").rsplit("_", 1)
         lines.append(
@@ -699,7 +699,9 @@ def precision_section(results: Path) -> list[str]:
             "",
             "int8: a calibrated LiDAR vehicle half's 3D layers after its first and the head's layers up to 1/2 in",
             "int8 (`calibrate`'s ranges, measured on `validate`), the rest in bfloat16 where the CPU computes it;",
-            "`auto` never takes it.",
+            "`auto` never takes it. int8 (vehicle halves bfloat16): the head's layers alone in int8, the features",
+            "made in bfloat16, as an ego node on int8 fuses those of vehicle nodes on bfloat16",
+            "(`evaluate --vehicle-precision`).",
         ]
     return [*lines, "", "Made by:", "", *commands, ""]
 
