@@ -189,7 +189,7 @@ PARAMS = (
         str,
         "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
         "float16 on other GPUs, else float32), float32, bfloat16, float16, int8 (the CPU: a calibrated LiDAR "
-        "vehicle half's 3D layers in int8, the rest as auto)",
+        "model's head up to 1/2 in int8, and the vehicle halves it runs on neighbours' scans; the rest as auto)",
         "auto",
         choices=PRECISIONS,
     ),
