@@ -567,7 +567,7 @@ def evaluate_models(opts) -> int:
     opts.data_origin = data_origin(opts.data)
     opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
     opts.vehicle_inference = None
-    if getattr(opts, "vehicle_precision", None) is not None:
+    if opts.vehicle_precision is not None:
         if opts.vehicle_precision == "int8" and opts.inference.torch_device.type != "cpu":
             raise Co3sopError(
                 f"--vehicle-precision int8 with --device {opts.inference.device}: int8 runs on the CPU only"

@@ -2,7 +2,7 @@
 
 Every ego draws its prediction and the recorder the ego's ground truth, once a frame each: NumPy's version of it
 (viz/cloud.py, the definition) passes over the 1.6 million voxels of the 51.2 m grid a dozen times and fills the
-points field by field. The kernel reads the grid once, marking a plane at a time within the first-level cache, and
+points field by field. The kernel reads the grid once, marking a plane at a time in a scratch that stays in cache, and
 writes each point's 20 bytes at once, the same bytes (tested).
 """
 
