@@ -1,4 +1,5 @@
-"""What model tests share (unit and integration): a micro configuration, the head's paths against their dense reference."""
+"""What model tests share (unit and integration): a micro configuration, a small LiDAR model and scans for its int8
+path, the head's paths against their dense reference."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import numpy as np
 import torch
 
 from co3sop_nodes.inference.outputs import labels_from_logits
-from co3sop_nodes.model.config import AttentionConfig, BackboneConfig
+from co3sop_nodes.model.co3sop import build_model
+from co3sop_nodes.model.config import AttentionConfig, BackboneConfig, preset
 from co3sop_nodes.model.head import OccupancyHead
 
 # a model small enough to train for a few steps or time a frame in seconds on CPU, of any preset's structure
@@ -20,6 +22,26 @@ MICRO = dict(
     fusion_attention=AttentionConfig(1, 2, 2),
     head_channels=(16, 8, 8),
 )
+
+
+LIDAR_GRID = ((-12.8, -12.8, -3.0), 0.4, (64, 64, 24))
+
+
+def scans(count: int, seed: int, dims=LIDAR_GRID[2]) -> list[torch.Tensor]:
+    """Random occupancy scans (1, 1, X, Y, Z) uint8, 8 % of voxels hit."""
+    gen = torch.Generator().manual_seed(seed)
+    return [(torch.rand(1, 1, *dims, generator=gen) < 0.08).to(torch.uint8) for _ in range(count)]
+
+
+def lidar_model(seed: int = 0):
+    """A `tiny-lidar` of LIDAR_GRID with random weights, its encoder's norms not the identity."""
+    torch.manual_seed(seed)
+    model = build_model(preset("tiny-lidar", custom_grid=LIDAR_GRID)).eval()
+    enc = model.vehicle.encoder
+    for layer in (*enc.down, *enc.dilated):  # norms that are not the identity
+        layer[1].running_mean.normal_(0, 0.1)
+        layer[1].running_var.uniform_(0.5, 2.0)
+    return model
 
 
 def assert_labels_equal(labels: np.ndarray, want: np.ndarray, head: OccupancyHead, x: torch.Tensor) -> None:

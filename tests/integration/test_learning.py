@@ -549,7 +549,8 @@ def test_torchrun_two_processes_train_as_one_on_the_same_global_batch(small_spli
 
 def test_calibrate_writes_a_checkpoint_that_runs_int8_and_refuses_what_it_should(small_split, tmp_path):
     """`calibrate` measures a LiDAR model's ranges on a split and writes them with the command into a checkpoint that
-    takes the int8 path; the test split, a camera model and a missing dataset are refused by name, no traceback."""
+    takes the int8 path, with `--fine-tune` the int8 layers' own weights too; the test split, a camera model and a
+    missing dataset are refused by name, no traceback."""
     data, out = str(small_split / "data"), tmp_path / "calibrated.pt"
     done = tool("calibrate", "--model", "tiny-lidar", "--data", data, "--splits", "train", "--out", str(out))
     assert done.returncode == 0, done.stderr
@@ -558,10 +559,22 @@ def test_calibrate_writes_a_checkpoint_that_runs_int8_and_refuses_what_it_should
     )
     model, checkpoint = load_model(out)
     assert checkpoint["meta"]["history"][-1]["command"].startswith("calibrate --model tiny-lidar")
-    assert checkpoint["int8"]["splits"] == ["train"]
+    assert checkpoint["int8"]["splits"] == ["train"] and "weights" not in checkpoint["int8"]
     assert model.use(InferencePath("cpu", "int8")).path.int8
+
+    tuned = tmp_path / "tuned.pt"  # the int8 layers fine-tuned for two steps on train's scans
+    args = ["--model", str(out), "--data", data, "--splits", "train", "--fine-tune", "train", "--steps", "2"]
+    done = tool("calibrate", *args, "--out", str(tuned))
+    assert done.returncode == 0, done.stderr
+    assert "the int8 layers fine-tuned on train (2 steps)" in done.stdout and "fine-tune int8" in done.stderr
+    model, checkpoint = load_model(tuned)
+    assert checkpoint["int8"]["fine_tune"] == {"splits": ["train"], "steps": 2, "lr": 1e-4, "seed": 0}
+    assert sorted(model.int8_tuned_weights()) == sorted(checkpoint["int8"]["weights"])
+    assert model.use(InferencePath("cpu", "int8")).path.int8
+    assert not (tmp_path / "tuned.pt.int8-tuning").exists()
     refused = {
         "--splits test": ["--model", "tiny-lidar", "--data", data, "--splits", "test"],
+        "--fine-tune test": ["--model", "tiny-lidar", "--data", data, "--fine-tune", "test"],
         "tiny is not a LiDAR model with int8 layers": ["--model", "tiny", "--data", data],
         "no OPV2V split folders": ["--model", "tiny-lidar", "--data", str(tmp_path)],
     }

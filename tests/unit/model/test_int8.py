@@ -6,6 +6,7 @@ cannot take."""
 import numpy as np
 import pytest
 import torch
+from model_checks import lidar_model, scans
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.inference.calibration import ActivationHistogram, calibrate
@@ -17,23 +18,6 @@ from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.head import OccupancyHead
 from co3sop_nodes.model.path import InferencePath, inference_path
-
-GRID = ((-12.8, -12.8, -3.0), 0.4, (64, 64, 24))
-
-
-def scans(count: int, seed: int, dims=GRID[2]) -> list[torch.Tensor]:
-    gen = torch.Generator().manual_seed(seed)
-    return [(torch.rand(1, 1, *dims, generator=gen) < 0.08).to(torch.uint8) for _ in range(count)]
-
-
-def lidar_model(seed: int = 0):
-    torch.manual_seed(seed)
-    model = build_model(preset("tiny-lidar", custom_grid=GRID)).eval()
-    enc = model.vehicle.encoder
-    for layer in (*enc.down, *enc.dilated):  # norms that are not the identity
-        layer[1].running_mean.normal_(0, 0.1)
-        layer[1].running_var.uniform_(0.5, 2.0)
-    return model
 
 
 def test_the_histograms_range_minimises_the_squared_quantization_error():

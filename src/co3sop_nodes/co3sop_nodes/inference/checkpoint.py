@@ -126,8 +126,15 @@ def load_model(path: Path) -> tuple[Co3SOP, dict]:
         raise Co3sopError(f"{path}: its weights do not fit its config ({exception_line(exc)})") from None
     if "int8" in data:
         ranges = _int8_ranges(path, data["int8"])
+        weights = data["int8"].get("weights", {})
+        if not isinstance(weights, dict) or not all(
+            isinstance(k, str) and isinstance(v, torch.Tensor) and v.is_floating_point() for k, v in weights.items()
+        ):
+            raise Co3sopError(f"{path}: its int8 weights are not a dict of named float tensors")
+        if not all(bool(torch.isfinite(v).all()) for v in weights.values()):
+            raise Co3sopError(f"{path}: its int8 weights hold a value that is not a finite number")
         try:
-            model.calibrate(ranges)
+            model.calibrate(ranges, {k: v.float() for k, v in weights.items()})
         except Co3sopError as exc:
             raise Co3sopError(f"{path}: its int8 calibration does not fit its model ({exc})") from None
     return model.eval(), data
@@ -145,11 +152,16 @@ def _int8_ranges(path: Path, entry) -> dict[str, float]:
     return ranges
 
 
-def save_calibrated(source: Path, out: Path, ranges: dict[str, float], made: dict) -> None:
-    """`source`'s checkpoint with the int8 calibration `ranges` (replacing any it had), `made` (the command, data
-    and splits) added to its history, written atomically to `out` (which may be `source`)."""
+def save_calibrated(
+    source: Path, out: Path, ranges: dict[str, float], made: dict, weights: dict[str, torch.Tensor] | None = None
+) -> None:
+    """`source`'s checkpoint with the int8 calibration `ranges` and the int8 layers' own `weights` where given
+    (`Co3SOP.int8_tuned_weights`; replacing any it had), `made` (the command, data and splits) added to its
+    history, written atomically to `out` (which may be `source`)."""
     data = read_checkpoint(source)
     data["int8"] = {"ranges": dict(ranges), **made}
+    if weights:
+        data["int8"]["weights"] = {k: v.detach().float().contiguous() for k, v in weights.items()}
     meta = data.setdefault("meta", {})
     meta["history"] = [*meta.get("history", []), {"stage": "int8 calibration", **made}]
     _atomic_save(data, out)

@@ -274,10 +274,11 @@ class Co3SOP(nn.Module):
             values += modules["ego.head"].activations(self.vehicle(occupancy=occupancy).features)
         return values
 
-    def calibrate(self, ranges: dict[str, float]) -> Co3SOP:
+    def calibrate(self, ranges: dict[str, float], weights: dict[str, torch.Tensor] | None = None) -> Co3SOP:
         """Take an int8 calibration: the range of each activation of one or more of `int8_modules` by name
-        (positive; a module takes all of its own or none); their int8 layers are made at the next `use` of an int8
-        path."""
+        (positive; a module takes all of its own or none), and the int8 layers' own folded weights where it has
+        them (`int8_tuned_weights`' names; else the float layers', folded); their int8 layers are made at the next
+        `use` of an int8 path."""
         names = self.int8_activations()
         if not names:
             raise Co3sopError(f"{self.cfg.name}: has no int8 layers to calibrate")
@@ -295,7 +296,36 @@ class Co3SOP(nn.Module):
                 raise Co3sopError(f"{self.cfg.name}: an int8 calibration of {prefix} lacks {missing}")
             if given:
                 module.int8_ranges.copy_(torch.tensor([float(ranges[n]) for n in own]))
+        encoder = self.int8_modules.get("vehicle.encoder")
+        if weights:
+            layers = encoder.INT8_LAYERS if encoder is not None else ()
+            expected = [f"vehicle.encoder.{n}.{part}" for n in layers for part in ("weight", "bias")]
+            if encoder is None or not encoder.calibrated or sorted(weights) != sorted(expected):
+                raise Co3sopError(
+                    f"{self.cfg.name}: int8 weights are a calibrated SSCNet-style encoder's "
+                    f"{', '.join(expected) or '(it has none)'}; got {', '.join(sorted(weights))}"
+                )
+            try:
+                encoder.set_int8_weights(
+                    {n: (weights[f"vehicle.encoder.{n}.weight"], weights[f"vehicle.encoder.{n}.bias"]) for n in layers}
+                )
+            except ValueError as exc:
+                raise Co3sopError(f"{self.cfg.name}: {exc}") from None
+        elif encoder is not None:
+            encoder.set_int8_weights(None)
         return self
+
+    def int8_tuned_weights(self) -> dict[str, torch.Tensor]:
+        """The int8 layers' own folded weights and biases by name (`vehicle.encoder.<layer>.weight` / `.bias`), as
+        a checkpoint's int8 entry carries them; empty where they are the float layers'."""
+        encoder = self.int8_modules.get("vehicle.encoder")
+        if encoder is None or encoder.int8_weights is None:
+            return {}
+        return {
+            f"vehicle.encoder.{n}.{part}": t
+            for n, pair in encoder.int8_weights.items()
+            for part, t in zip(("weight", "bias"), pair)
+        }
 
     def forward(
         self,

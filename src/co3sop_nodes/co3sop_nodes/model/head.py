@@ -71,10 +71,10 @@ class OccupancyHead(nn.Module):
             # rows (dz, dx, dy, C1) as in `parents`: a coarse voxel's 8 octants, z-outer
             weight = (conv.weight * scale[:, None, None, None]).permute(0, 4, 2, 3, 1).flatten(1)  # (C0, 8*C1)
             layers = (
-                quantized.Int8ConvReLU(self.stage0[0][0], self.stage0[0][1], s[0], s[1], in_zero=128),
-                quantized.Int8ConvReLU(self.stage0[1][0], self.stage0[1][1], s[1], s[2]),
+                quantized.Int8ConvReLU.folded(self.stage0[0][0], self.stage0[0][1], s[0], s[1], in_zero=128),
+                quantized.Int8ConvReLU.folded(self.stage0[1][0], self.stage0[1][1], s[1], s[2]),
                 quantized.Int8LinearReLU(weight.t(), shift.repeat(8), s[2], s[3]),
-                quantized.Int8ConvReLU(self.up1[3][0], self.up1[3][1], s[3], s[4]),
+                quantized.Int8ConvReLU.folded(self.up1[3][0], self.up1[3][1], s[3], s[4]),
             )
             self._int8 = (layers, s)
         return self._int8 is not None

@@ -7,7 +7,9 @@ ego fuses either modality.
   bird's-eye view, folded back into (C, Z/4) at 1/4 resolution.
 - SSCNet style: 3D convolutions, two stride-2 reductions, then dilated 3D
   residual blocks for a large receptive field; on an int8 path, with a
-  calibration, every 3D layer after the first computes in int8 (quantized.py).
+  calibration, every 3D layer after the first computes in int8 (quantized.py),
+  on weights of its own where the calibration carries them (fine-tuned through
+  the int8 arithmetic: train/quantization_aware.py).
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ class SSCNetEncoder(nn.Module):
     # the activations an int8 path quantizes, each after a ReLU: the output of each 3x3x3 layer and each residual sum
     ACTIVATIONS = ("down.0", "down.1", "dilated.0", "sum.0", "dilated.1", "sum.1", "dilated.2", "sum.2")
     STEPS = (255.0,) * len(ACTIVATIONS)  # the quantization steps of each one's range (uint8, zero point 0)
+    INT8_LAYERS = ("down.1", "dilated.0", "dilated.1", "dilated.2")  # the layers an int8 path computes in int8
 
     def __init__(self, dims: int, channels: int):
         super().__init__()
@@ -68,6 +71,9 @@ class SSCNetEncoder(nn.Module):
         self.path = InferencePath()  # set by Co3SOP.use
         # each ACTIVATIONS' calibrated range (0: none), loaded from a checkpoint's int8 entry (`Co3SOP.calibrate`)
         self.register_buffer("int8_ranges", torch.zeros(len(self.ACTIVATIONS)), persistent=False)
+        # the int8 layers' own folded weights and biases by INT8_LAYERS' names (fine-tuned for the int8 arithmetic;
+        # None: the float layers', folded), loaded from a checkpoint's int8 entry (`Co3SOP.calibrate`)
+        self.int8_weights: dict[str, tuple[torch.Tensor, torch.Tensor]] | None = None
         self._int8: list[quantized.Int8ConvReLU] | None = None  # made by `quantize`
         self._offsets: list[torch.Tensor] = []  # the int8 layers' background corrections (`quantize`)
         self._scales: list[float] = []  # each ACTIVATIONS' quantization step on the int8 path (`quantize`)
@@ -76,19 +82,72 @@ class SSCNetEncoder(nn.Module):
     def calibrated(self) -> bool:
         return bool((self.int8_ranges > 0).all())
 
+    def int8_layers(self) -> list[tuple[nn.Conv3d, torch.Tensor, torch.Tensor]]:
+        """Each of INT8_LAYERS: its convolution (the geometry) and the folded weights (Cout, Cin, 3, 3, 3) and bias
+        (Cout,) the int8 path computes it with: its own (`int8_weights`) or the float layers', folded."""
+        layers = [self.down[1], *self.dilated]
+        if self.int8_weights is None:
+            return [(m[0], *quantized.folded_conv(m[0], m[1])) for m in layers]
+        return [(m[0], *self.int8_weights[name]) for m, name in zip(layers, self.INT8_LAYERS)]
+
+    def set_int8_weights(self, weights: dict[str, tuple[torch.Tensor, torch.Tensor]] | None) -> None:
+        """The int8 layers' own folded (weight, bias) by INT8_LAYERS' names, each shaped as its layer's (None: the
+        float layers', folded); made into int8 layers at the next `quantize`."""
+        if weights is not None:
+            layers = [self.down[1], *self.dilated]
+            if sorted(weights) != sorted(self.INT8_LAYERS):
+                raise ValueError(f"int8 weights of each of {', '.join(self.INT8_LAYERS)}, not {', '.join(weights)}")
+            for m, name in zip(layers, self.INT8_LAYERS):
+                weight, bias = weights[name]
+                if tuple(weight.shape) != tuple(m[0].weight.shape) or tuple(bias.shape) != (m[0].out_channels,):
+                    raise ValueError(
+                        f"int8 weights of {name}: {tuple(weight.shape)} and {tuple(bias.shape)}, the layer's are "
+                        f"{tuple(m[0].weight.shape)} and ({m[0].out_channels},)"
+                    )
+            weights = {n: (w.detach().float().clone(), b.detach().float().clone()) for n, (w, b) in weights.items()}
+        self.int8_weights = weights
+
     def quantize(self, height: int) -> bool:
         """Make the int8 layers from the weights and ranges as they are now, for scans `height` voxels high (or none,
-        where the model has no calibration or the machine cannot run them); whether there are some."""
+        where the model has no calibration or the machine cannot run them); whether there are some. Fine-tuned
+        int8 weights learnt the background's rounding themselves: the background corrections are then zero."""
         c = self.down[0][0].out_channels
         self._int8 = None
         if self.calibrated and quantized.available(2 * c) and occupancy_kernel.available(c, torch.uint8):
-            self._scales = s = (self.int8_ranges / 255).tolist()
-            layers = [self.down[1], *self.dilated]
+            self._scales = s = self._step_sizes()
             ins = [s[0], s[1], s[3], s[5]]  # each layer's input: the first layer's, down.1's, then the sums
             outs = [s[1], s[2], s[4], s[6]]
-            self._int8 = [quantized.Int8ConvReLU(m[0], m[1], a, b) for m, a, b in zip(layers, ins, outs)]
-            self._offsets = self._background_offsets(height)
+            self._int8 = [quantized.Int8ConvReLU(*m, a, b) for m, a, b in zip(self.int8_layers(), ins, outs)]
+            zero = [torch.zeros(2 * c, height // 4) for _ in range(len(self.dilated) + 1)]  # (C, Z/4) each
+            self._offsets = zero if self.int8_weights is not None else self._background_offsets(height)
         return self._int8 is not None
+
+    def int8_emulated(self, occupancy, layers: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+        """The int8 path's forward emulated in float32 on folded (weight, bias) of each of INT8_LAYERS: weights
+        and activations rounded to its int8 and uint8 steps, straight through for the gradients (no background
+        corrections), (B, C, X/4, Y/4, Z/4). What quantization-aware fine-tuning trains `layers` through."""
+        s = self._step_sizes()
+        convs = [self.down[1][0], *(m[0] for m in self.dilated)]
+
+        def layer(i, x):
+            conv, (weight, bias) = convs[i], layers[i]
+            return F.relu(
+                F.conv3d(x, quantized.fake_int8_weight(weight), bias, conv.stride, conv.padding, conv.dilation)
+            )
+
+        with torch.no_grad():  # the first layer stays the float model's (the compiled kernel rounds its output)
+            first = quantized.fake_quantized(self.down[0](occupancy.float()), s[0])
+        f = quantized.fake_quantized(layer(0, first), s[1])
+        for i in range(len(self.dilated)):
+            y = quantized.fake_quantized(layer(1 + i, f), s[2 + 2 * i])
+            f = quantized.fake_quantized(F.relu(f + y), s[3 + 2 * i])
+        return F.conv3d(f, self.out.weight.detach(), self.out.bias.detach())  # the float model's output layer
+
+    def _step_sizes(self) -> list[float]:
+        """Each of ACTIVATIONS' quantization step: its calibrated range / 255."""
+        if not self.calibrated:
+            raise ValueError("the int8 path needs a calibration: this encoder has none")
+        return (self.int8_ranges / 255).tolist()
 
     @torch.no_grad()
     def _background_offsets(self, height: int) -> list[torch.Tensor]:

@@ -15,7 +15,10 @@ residual sum adds an offset per z-layer and channel that gives the float32 sum's
 rounding), and the dequantized output another that gives it exactly (measured on an empty grid when the int8 layers
 are made: `lidar.SSCNetEncoder.quantize`).
 
-The packed weights are made when a model is put on an int8 path (`Co3SOP.use`) from the weights it has then.
+The packed weights are made when a model is put on an int8 path (`Co3SOP.use`) from the weights it has then: the
+float layers' folded, or the int8 layers' own where a calibration carries them (fine-tuned through this arithmetic,
+emulated by `fake_quantized` and `fake_int8_weight`: train/quantization_aware.py), which learnt the background's
+rounding themselves and take no corrections.
 """
 
 from __future__ import annotations
@@ -60,9 +63,41 @@ def available(channels: int) -> bool:
 def int8_weight(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """weight (Cout, ...) float -> its int8 values (contiguous, as the prepacks read them) and their scale per output
     channel (max |w| / 127), (Cout,)."""
-    scale = weight.abs().flatten(1).amax(dim=1).clamp_min(1e-12) / 127
-    shape = (-1,) + (1,) * (weight.dim() - 1)
-    return torch.round(weight / scale.view(shape)).clamp_(-127, 127).to(torch.int8).contiguous(), scale
+    scale = _weight_scale(weight)
+    return torch.round(weight / _per_row(scale, weight)).clamp_(-127, 127).to(torch.int8).contiguous(), scale
+
+
+def _weight_scale(weight: torch.Tensor) -> torch.Tensor:
+    """(Cout,) the int8 step of each output channel's weights: max |w| / 127."""
+    return weight.detach().abs().flatten(1).amax(dim=1).clamp_min(1e-12) / 127
+
+
+def _per_row(scale: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    return scale.view((-1,) + (1,) * (weight.dim() - 1))
+
+
+def folded_conv(conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm) -> tuple[torch.Tensor, torch.Tensor]:
+    """A Conv3d and its eval-mode batch norm as one convolution's float32 weights (Cout, Cin, kx, ky, kz) and bias
+    (Cout,), detached."""
+    factor, bias = folded_norm(norm, conv.bias)  # (Cout,) each
+    weight = conv.weight * factor.view(-1, 1, 1, 1, 1)
+    return weight.detach().float().contiguous(), bias.detach().float()
+
+
+def fake_quantized(x: torch.Tensor, scale: float, levels: int = 255) -> torch.Tensor:
+    """x rounded to uint8 steps of `scale` (zero point 0, clamped to [0, levels]) and back, as an int8 layer's output
+    is: the emulation quantization-aware fine-tuning trains through, whose gradient passes the rounding unchanged
+    (straight through) and stops where the clamp does."""
+    q = x / scale
+    return torch.clamp(q + (torch.round(q) - q).detach(), 0, levels) * scale
+
+
+def fake_int8_weight(weight: torch.Tensor) -> torch.Tensor:
+    """weight (Cout, ...) rounded as `int8_weight` rounds it (per output channel, max |w| / 127) and back, with the
+    rounding straight through for the gradient (the scale is taken as a constant)."""
+    scale = _per_row(_weight_scale(weight), weight)
+    q = weight / scale
+    return torch.clamp(q + (torch.round(q) - q).detach(), -127, 127) * scale
 
 
 def _zxy(t: tuple[int, ...]) -> list[int]:
@@ -70,16 +105,21 @@ def _zxy(t: tuple[int, ...]) -> list[int]:
 
 
 class Int8ConvReLU:
-    """relu(norm(conv(x))) of a Conv3d and its eval-mode batch norm on Int8Volumes, the output quantized with
-    `scale` (its calibrated range / 255); the input's zero point `in_zero` (0 after a ReLU). Not an nn.Module: its
-    state is derived from the layers it was made of."""
+    """relu(conv(x) + bias) of a Conv3d's geometry with the float weights (Cout, Cin, kx, ky, kz) and bias (Cout,)
+    given, on Int8Volumes: the output quantized with `scale` (its calibrated range / 255); the input's zero point
+    `in_zero` (0 after a ReLU). `folded` makes one of a Conv3d and its eval-mode batch norm. Not an nn.Module: its
+    state is derived from the weights it was made of."""
 
     def __init__(
-        self, conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, in_scale: float, scale: float, in_zero: int = 0
+        self,
+        conv: nn.Conv3d,
+        weight: torch.Tensor,
+        bias: torch.Tensor,
+        in_scale: float,
+        scale: float,
+        in_zero: int = 0,
     ):
-        factor, bias = folded_norm(norm, conv.bias)  # (Cout,) each
-        weight = (conv.weight * factor.view(-1, 1, 1, 1, 1)).detach().float()  # (Cout, Cin, kx, ky, kz)
-        weight = weight.permute(0, 1, 4, 2, 3).contiguous()  # (Cout, Cin, kz, kx, ky): the (z, x, y) views'
+        weight = weight.detach().float().permute(0, 1, 4, 2, 3).contiguous()  # (Cout, Cin, kz, kx, ky): the views'
         q, self.w_scale = int8_weight(weight)
         self.stride, self.padding, self.dilation = _zxy(conv.stride), _zxy(conv.padding), _zxy(conv.dilation)
         self.groups, self.in_scale, self.in_zero, self.scale = conv.groups, in_scale, in_zero, scale
@@ -88,6 +128,13 @@ class Int8ConvReLU:
         self.packed = torch.ops.onednn.qconv_prepack(
             q, self.w_scale, in_scale, in_zero, self.stride, self.padding, self.dilation, self.groups, None
         )
+
+    @classmethod
+    def folded(
+        cls, conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm, in_scale: float, scale: float, in_zero: int = 0
+    ) -> Int8ConvReLU:
+        """The layer of a Conv3d and its eval-mode batch norm, folded into one convolution (`folded_conv`)."""
+        return cls(conv, *folded_conv(conv, norm), in_scale, scale, in_zero)
 
     def __call__(self, x: Int8Volume) -> Int8Volume:
         if x.scale != self.in_scale:
