@@ -408,7 +408,10 @@ def test_demo_through_a_lossy_channel(scenario, tmp_path):
     out = proc.communicate(timeout=300)[0]
     assert proc.returncode == 0, out
     dropped = dict(re.findall(r"(\w+) (\d+)", out.split("packets dropped by the channel:")[1].splitlines()[0]))
-    assert len(dropped) == 3 and all(int(n) > 0 for n in dropped.values()), out
+    # the neighbours' features are hundreds of packets: each loses some; the ego sends only a few dozen (control
+    # traffic), which may all get through
+    assert sorted(dropped) == ["cav637", "cav660", "ego"], out
+    assert int(dropped["cav637"]) > 0 and int(dropped["cav660"]) > 0, out
     used, late = fused_per_frame(out)
     assert len(used) == FRAMES and sum(used) >= 2 * FRAMES - 2, out
     assert ours(proc.pid) == []
