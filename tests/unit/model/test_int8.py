@@ -98,6 +98,10 @@ def test_the_calibration_travels_in_the_checkpoint(tmp_path):
     ranges_in = torch.cat([loaded.vehicle.encoder.int8_ranges, loaded.ego.head.int8_ranges])  # int8_activations'
     torch.testing.assert_close(ranges_in, torch.tensor(list(ranges.values())))
     assert loaded.use(InferencePath(precision="int8")).path.int8
+    # calibrated again: the new step replaces the one whose ranges it replaced, training's steps stay
+    save_calibrated(out, out, ranges, {"command": "calibrate again", "splits": ["validate"]})
+    history = load_model(out)[1]["meta"]["history"]
+    assert [(h["stage"], h.get("command")) for h in history] == [("ego", None), ("int8 calibration", "calibrate again")]
 
     data["int8"] = {"ranges": {**ranges, "vehicle.encoder.sum.2": float("nan")}}
     torch.save(data, tmp_path / "nan.pt")

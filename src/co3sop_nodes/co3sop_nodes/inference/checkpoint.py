@@ -17,6 +17,8 @@ from co3sop_nodes.model.config import ModelConfig, config_from_dict
 # the model every node, launch file, `demo` and `evaluate` use unless told otherwise: the best collaborative
 # model shipped (how it was trained: checkpoints/tiny-lidar.md); `tiny` and `small` are the camera models
 DEFAULT_MODEL = "tiny-lidar"
+# the history step of an int8 calibration (`save_calibrated`)
+CALIBRATION_STAGE = "int8 calibration"
 
 
 def shipped_checkpoint(name: str = f"{DEFAULT_MODEL}.pt") -> Path:
@@ -157,13 +159,15 @@ def save_calibrated(
 ) -> None:
     """`source`'s checkpoint with the int8 calibration `ranges` and the int8 layers' own `weights` where given
     (`Co3SOP.int8_tuned_weights`; replacing any it had), `made` (the command, data and splits) added to its
-    history, written atomically to `out` (which may be `source`)."""
+    history, written atomically to `out` (which may be `source`). The int8 entry is replaced whole, so an earlier
+    calibration's step leaves the history: it made nothing the file still holds."""
     data = read_checkpoint(source)
     data["int8"] = {"ranges": dict(ranges), **made}
     if weights:
         data["int8"]["weights"] = {k: v.detach().float().contiguous() for k, v in weights.items()}
     meta = data.setdefault("meta", {})
-    meta["history"] = [*meta.get("history", []), {"stage": "int8 calibration", **made}]
+    kept = [step for step in meta.get("history", []) if step.get("stage") != CALIBRATION_STAGE]
+    meta["history"] = [*kept, {"stage": CALIBRATION_STAGE, **made}]
     _atomic_save(data, out)
 
 
