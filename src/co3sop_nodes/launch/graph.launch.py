@@ -45,6 +45,7 @@ def nodes(context) -> list[Node]:
         return Node(
             package="co3sop_nodes",
             executable=spec.executable,
+            prefix=" ".join(spec.prefix) or None,
             name=spec.name,
             namespace=spec.namespace or None,
             output="screen",

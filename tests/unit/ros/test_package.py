@@ -253,6 +253,9 @@ def test_the_described_graph_runs_existing_executables_with_declared_parameters(
     assert not any(answers_requests(v) for v in graph.vehicles)  # dense: no request maps subscribed
     assert graph.player.arguments[:3] == (str(tmp_path / "bag"), "--rate", "0.5")
     assert "/cav_8/lidar/points" in graph.player.arguments and "/cav_8/camera0/image_raw" not in graph.player.arguments
+    # the recorder, off the critical path, yields the CPU to the rest
+    assert graph.recorder.prefix == ["nice", "-n", str(graph.recorder.niceness)] and graph.recorder.niceness > 0
+    assert all(s.prefix == [] for s in (*graph.egos, *graph.vehicles, graph.player))
 
 
 def test_every_cav_an_ego_gets_its_own_features_on_board_and_the_others_over_v2x(tmp_path):

@@ -353,7 +353,7 @@ def _graph(
 
     def start(spec: NodeSpec, label: str) -> Process:
         """A node started in its car: on a channel, in that car's namespace with its DDS profile."""
-        argv = [executable(spec.executable), *spec.ros_arguments()]
+        argv = [*spec.prefix, executable(spec.executable), *spec.ros_arguments()]
         if channel and spec.car is not None:
             return Process(label, channel.wrap(spec.car, argv), echo, channel_environment(spec.car, profiles))
         return Process(label, argv, echo)

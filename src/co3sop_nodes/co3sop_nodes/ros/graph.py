@@ -21,6 +21,7 @@ from co3sop_nodes.viz.foxglove import CAMERAS
 LOSSLESS = {"codec.dtype": "float32", "codec.selection": "dense", "codec.compression": "none"}
 # which CAVs run an ego: the first only, or every one (each then also a collaborator of the others)
 EGOS = ("first", "all")
+RECORDER_NICENESS = 10
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,12 @@ class NodeSpec:
     arguments: tuple[str, ...] = ()
     parameters: dict = field(default_factory=dict)
     remappings: tuple[tuple[str, str], ...] = ()
+    niceness: int = 0  # nice(1): above 0, the process takes the CPU only when the others leave it some
+
+    @property
+    def prefix(self) -> list[str]:
+        """What the command line starts with, before the executable (a launch_ros Node's `prefix`)."""
+        return ["nice", "-n", str(self.niceness)] if self.niceness else []
 
     @property
     def node(self) -> str:
@@ -135,6 +142,9 @@ def describe(
         None,
         # lz4: the recording keeps pace with the sensors on a small machine (zstd takes twice its CPU)
         arguments=("--out", str(recording), "--compression", "lz4", "--topics", *DEFAULT_TOPICS, *outputs, *shown),
+        # off the critical path: on a machine the graph keeps busy, the recorder takes what the perception nodes
+        # leave and catches up from its deep queues, rather than delaying their frames
+        niceness=RECORDER_NICENESS,
     )
 
     def ego(c: int) -> NodeSpec:
