@@ -52,6 +52,7 @@ from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
+from co3sop_nodes.ros.demo import vehicle_model
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS
 
 # The neighbours' codecs, the lossless reference first: dense, top-k by the sender's own confidence, and request maps
@@ -258,10 +259,12 @@ def against_pace(opts, demo_output: str, frames: int, used: list[tuple[float, in
     bag = Path(re.search(r"bag (\S+): \d+ frames", demo_output).group(1))
     vehicles = len(re.search(r"vehicles \[([^\]]*)\]", demo_output).group(1).split(","))
     keep_freed_memory()  # as the demo measures
-    model, _ = load_graph_model(resolve_checkpoint(opts.model, "--model"))
+    checkpoint = resolve_checkpoint(opts.model, "--model")
+    model, _ = load_graph_model(checkpoint)
     model.use(inference_path(opts.device, opts.precision, what="--"))
+    precision = dict(p.partition(":=")[::2] for p in opts.params).get("precision", opts.precision)
     scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None
-    cost = pace.frame_cost(model, scan=scan)
+    cost = pace.frame_cost(model, scan=scan, vehicles=vehicle_model(model, checkpoint, opts.device, precision))
     work_ms = 1e3 * pace.graph_work(cost, vehicles)[0]
     cores = pace.cores()
     rows = [

@@ -24,7 +24,7 @@ from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
-from co3sop_nodes.model.path import InferencePath
+from co3sop_nodes.model.path import InferencePath, inference_path
 from co3sop_nodes.train.dataset import OccupancyDataset
 
 
@@ -479,6 +479,22 @@ def test_evaluate_takes_every_agents_features_from_the_vehicle_model_given(stree
     want = predict_frame(net, ego, sample.ego.world_from_lidar, candidates).labels
     assert np.array_equal(split[0], want)
     assert not np.array_equal(own[0], want)  # the int8 features moved some labels: the copy's were used
+
+
+def test_evaluate_on_auto_runs_the_vehicle_halves_as_vehicle_nodes_take_auto(street_split, tmp_path):
+    """`--precision auto`: the ego's path as an ego node takes auto, the vehicle halves' as a vehicle node does (int8
+    for tiny-lidar's, tuned for it, on a CPU with an int8 unit); the table names both."""
+    ego, vehicles = (inference_path("cpu", "auto", tuned_int8=t).precision for t in (False, True))
+    result = tool(
+        "evaluate", "--model", str(shipped_checkpoint("tiny-lidar.pt")), "--data", str(street_split), "--splits",
+        "test", "--device", "cpu", "--precision", "auto", "--ablation", "precision", "--out", str(tmp_path),
+    )  # fmt: skip
+    if ego == vehicles == "float32":  # nothing reduced on this CPU: the ablation has nothing to compare, and says so
+        assert result.returncode != 0 and "name one of them" in result.stderr, result.stderr
+        return
+    assert result.returncode == 0, result.stderr
+    runs = json.loads(next(tmp_path.glob("*_precision.json")).read_text())
+    assert (ego if ego == vehicles else f"{ego} (vehicle halves {vehicles})") in runs, sorted(runs)
 
 
 def trained_parameters(run: Path) -> dict[str, torch.Tensor]:

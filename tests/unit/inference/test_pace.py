@@ -40,6 +40,7 @@ def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
         # fused every frame of 100 in bench_graph's runs (BENCHMARKS.md)
         (pace.FrameCost(0.016, 0.047, 0.004), 1.0),  # AVX-512 BF16, family 26: 1.0 in most runs
         (pace.FrameCost(0.026, 0.076, 0.005), 0.67),  # AVX-512 BF16, family 25: 0.67 in two of three, 0.8 in none
+        (pace.FrameCost(0.020, 0.068, 0.003), 0.8),  # family 25, the vehicles on int8 (auto): 0.8, 1.0 in none
     ],
 )
 def test_the_rate_stays_within_what_the_measured_graphs_sustained(measured, sustained):
@@ -82,3 +83,17 @@ def test_warm_up_runs_both_halves_on_the_cpu(monkeypatch):
 def test_warm_up_on_a_gpu_runs_both_halves():
     model = build_model(preset("tiny", **MICRO)).eval().use(inference_path("cuda", "float32"))
     assert pace.warm_up(model, ego=True) > 0
+
+
+def test_the_vehicle_is_measured_on_the_vehicle_nodes_own_model(monkeypatch):
+    """Vehicle nodes on a path of their own (auto: int8 for a vehicle half tuned for it) run a copy on it: the
+    vehicle's cost is that copy's, the ego's the model's."""
+    model, vehicles = (build_model(preset("tiny-lidar", **MICRO)).eval() for _ in range(2))
+    calls = {"model": 0, "vehicles": 0}
+    for name, m in (("model", model), ("vehicles", vehicles)):
+        original = m.vehicle.forward
+        monkeypatch.setattr(
+            m.vehicle, "forward", lambda *a, n=name, f=original, **kw: calls.update({n: calls[n] + 1}) or f(*a, **kw)
+        )
+    pace.frame_cost(model, repeats=3, vehicles=vehicles)
+    assert calls["model"] == 1 and calls["vehicles"] >= 3  # the model: the ego's own features, untimed

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
 from co3sop_nodes.inference.pace import shaped_inputs
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model import path as path_module
@@ -21,6 +22,23 @@ def test_auto_takes_bfloat16_only_where_the_cpu_computes_it(monkeypatch):
     monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: "AMX")
     assert inference_path("cpu", "auto") == InferencePath("cpu", "bfloat16")
     assert inference_path("cpu", "float32", compiled=False) == InferencePath("cpu", "float32", False)
+
+
+def test_auto_takes_int8_only_for_a_vehicle_half_tuned_for_it_on_a_cpu_with_an_int8_unit(monkeypatch):
+    monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: "AVX-512 BF16")
+    monkeypatch.setattr(path_module, "cpu_int8_unit", lambda: "AVX-512 VNNI")
+    assert inference_path("cpu", "auto", tuned_int8=True) == InferencePath("cpu", "int8")
+    assert inference_path("cpu", "auto") == InferencePath("cpu", "bfloat16")  # an ego's, or a half not tuned
+    assert inference_path("cpu", "bfloat16", tuned_int8=True) == InferencePath("cpu", "bfloat16")  # asked for
+    monkeypatch.setattr(path_module, "cpu_int8_unit", lambda: None)
+    assert inference_path("cpu", "auto", tuned_int8=True) == InferencePath("cpu", "bfloat16")
+
+
+def test_a_shipped_vehicle_half_is_tuned_for_int8_where_its_checkpoint_carries_int8_weights():
+    for name in ("tiny-lidar.pt", "tiny-lidar-76.8m.pt", "tiny.pt"):
+        model, data = load_model(shipped_checkpoint(name))
+        assert model.vehicle_int8_tuned == bool(data.get("int8", {}).get("weights")), name
+    assert load_model(shipped_checkpoint("tiny-lidar.pt"))[0].vehicle_int8_tuned  # the demo's vehicles: int8 by auto
 
 
 @pytest.mark.parametrize(

@@ -566,14 +566,8 @@ def evaluate_models(opts) -> int:
     torch.set_num_threads(opts.threads)
     opts.data_origin = data_origin(opts.data)
     opts.inference = inference_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
-    opts.vehicle_inference = None
-    if opts.vehicle_precision is not None:
-        if opts.vehicle_precision == "int8" and opts.inference.torch_device.type != "cpu":
-            raise Co3sopError(
-                f"--vehicle-precision int8 with --device {opts.inference.device}: int8 runs on the CPU only"
-            )
-        device, compiled = opts.inference.device, not opts.reference_paths
-        opts.vehicle_inference = inference_path(device, opts.vehicle_precision, compiled=compiled, what="--vehicle-")
+    if opts.vehicle_precision == "int8" and opts.inference.torch_device.type != "cpu":
+        raise Co3sopError(f"--vehicle-precision int8 with --device {opts.inference.device}: int8 runs on the CPU only")
     table: dict[str, dict] = {}
     for path in [resolve_checkpoint(m, "--model") for m in opts.model] if opts.model else [shipped_checkpoint()]:
         model, checkpoint = load_model(path)
@@ -583,10 +577,20 @@ def evaluate_models(opts) -> int:
         model.use(opts.inference)
         if opts.inference.int8 and not model.path.int8:
             raise Co3sopError(f"--precision int8: {path}: {model.int8_missing()}")
+        # the vehicle halves' path, as a vehicle node takes its precision (auto: int8 where they are tuned for it)
+        own = opts.vehicle_precision is not None
+        vehicles = inference_path(
+            opts.inference.device,
+            opts.vehicle_precision if own else opts.precision,
+            compiled=not opts.reference_paths,
+            what="--vehicle-" if own else "--",
+            tuned_int8=model.vehicle_int8_tuned,
+        )
+        opts.vehicle_inference = vehicles if vehicles != opts.inference else None
         opts.vehicles = None
         if opts.vehicle_inference is not None:  # the vehicle halves on a path of their own: a copy of the model
             opts.vehicles = load_model(path)[0].use(opts.vehicle_inference)
-            if opts.vehicle_inference.int8 and not opts.vehicles.path.int8:
+            if opts.vehicle_precision == "int8" and not opts.vehicles.path.int8:  # asked for, not taken by auto
                 raise Co3sopError(f"--vehicle-precision int8: {path}: {opts.vehicles.int8_missing()}")
         cfg = model.cfg
         dataset = OccupancyDataset(opts.data, opts.splits, cfg, cache=opts.cache)

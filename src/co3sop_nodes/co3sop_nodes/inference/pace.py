@@ -104,19 +104,22 @@ def _median_cpu(fn, repeats: int) -> tuple[float, object]:
 
 
 @torch.inference_mode()
-def frame_cost(model: Co3SOP, repeats: int = 9, scan: np.ndarray | None = None) -> FrameCost:
+def frame_cost(
+    model: Co3SOP, repeats: int = 9, scan: np.ndarray | None = None, vehicles: Co3SOP | None = None
+) -> FrameCost:
     """CPU seconds per frame of a vehicle and of the ego with 2 neighbours 10 m away, on one thread, as the nodes
     compute them (the nodes' conversions of messages excepted); a LiDAR model's vehicle on `scan` where given (a
-    scan of the bag to be played: see shaped_inputs). Medians of `repeats` calls: on a shared machine single calls
-    vary by 10 % and more, and a median of few lets one slow spell set the demo's rate (under a second at the
-    default)."""
+    scan of the bag to be played: see shaped_inputs), on `vehicles` where the vehicle nodes run a path of their own
+    (the same model on it), else on `model`. Medians of `repeats` calls: on a shared machine single calls vary by
+    10 % and more, and a median of few lets one slow spell set the demo's rate (under a second at the default)."""
     cfg = model.cfg
+    vehicles = model if vehicles is None else vehicles
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         inputs = shaped_inputs(model, scan=scan)
         vehicle_s, _ = _median_cpu(
-            lambda: encode_output(model.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats
+            lambda: encode_output(vehicles.vehicle(**inputs), cfg.feature_grid, FeatureCodecConfig()), repeats
         )
         ego = model.vehicle(**inputs)
         others = shaped_neighbours(ego)

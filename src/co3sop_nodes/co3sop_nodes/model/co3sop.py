@@ -315,6 +315,12 @@ class Co3SOP(nn.Module):
             encoder.set_int8_weights(None)
         return self
 
+    @property
+    def vehicle_int8_tuned(self) -> bool:
+        """Whether the vehicle half's int8 layers carry weights fine-tuned for int8 (`calibrate --fine-tune`), the
+        case `auto` takes int8 for (`inference_path`'s `tuned_int8`)."""
+        return bool(self.int8_tuned_weights())
+
     def int8_tuned_weights(self) -> dict[str, torch.Tensor]:
         """The int8 layers' own folded weights and biases by name (`vehicle.encoder.<layer>.weight` / `.bias`), as
         a checkpoint's int8 entry carries them; empty where they are the float layers'."""

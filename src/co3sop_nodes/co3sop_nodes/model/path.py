@@ -13,7 +13,10 @@ the GPU has it, else float16.
 `int8` (the CPU only) computes a model's calibrated layers in int8 (`model/quantized.py`: the LiDAR vehicle
 half's 3D convolutions after its first and the head's layers up to 1/2, with activation ranges measured by
 `calibrate` and shipped in the checkpoint) and the rest as `auto` would on this CPU (bfloat16 where the CPU
-computes it, else float32). A model without a calibration runs that rest only (`Co3SOP.use`).
+computes it, else float32). A model without a calibration runs that rest only (`Co3SOP.use`). `auto` takes int8
+only for a LiDAR vehicle half whose int8 layers carry weights fine-tuned for int8 (`calibrate --fine-tune`: the
+shipped `tiny-lidar`'s keep the mIoU within 0.2 points of float32's, its interval too, on `validate` and `test`), on
+a CPU with an int8 unit; never for an ego, whose int8 head costs more (results.md, "Inference precision").
 """
 
 from __future__ import annotations
@@ -131,6 +134,16 @@ def cpu_bfloat16_unit() -> str | None:
     return "AVX-512 BF16" if "avx512_bf16" in flags else None
 
 
+@cache
+def cpu_int8_unit() -> str | None:
+    """The CPU's int8 dot-product hardware oneDNN's int8 primitives use, from its feature flags: "AMX",
+    "AVX-512 VNNI", or None (no int8 unit: int8 gains nothing there)."""
+    flags = set(kernels.cpu_flags())
+    if "amx_int8" in flags and "amx_tile" in flags:
+        return "AMX"
+    return "AVX-512 VNNI" if "avx512_vnni" in flags else None
+
+
 def resolve_device(name: str, what: str = "device") -> torch.device:
     """The torch device `name` names (auto: the first CUDA GPU if torch sees one, else cpu), checked against
     what this torch build can use; `what` names the option or parameter in errors."""
@@ -153,18 +166,21 @@ def resolve_device(name: str, what: str = "device") -> torch.device:
 
 
 def inference_path(
-    device: str = "auto", precision: str = "auto", compiled: bool = True, what: str = ""
+    device: str = "auto", precision: str = "auto", compiled: bool = True, what: str = "", tuned_int8: bool = False
 ) -> InferencePath:
     """The path for `device` (auto | cpu | cuda | cuda:N) and `precision` (auto | float32 | bfloat16 |
     float16 | int8) on this machine, `auto` resolved to what it has; a device it lacks is refused, and int8 off the
     CPU. `what`: how the caller spells its options in errors ("--" for a command line, "parameter " for a
-    node)."""
+    node). `tuned_int8`: the path runs a vehicle half whose int8 layers are fine-tuned for int8
+    (`Co3SOP.vehicle_int8_tuned`), which `auto` then takes on a CPU with an int8 unit."""
     dev = resolve_device(device, f"{what}device")
     if precision not in PRECISIONS:
         raise Co3sopError(f"{what}precision {precision!r}: one of {', '.join(PRECISIONS)}")
     if precision == "auto":
         if dev.type == "cuda":
             precision = "bfloat16" if torch.cuda.is_bf16_supported() else "float16"
+        elif tuned_int8 and cpu_int8_unit():  # a build without int8 layers runs them in `floats` (Co3SOP.use)
+            precision = "int8"
         else:
             precision = "bfloat16" if cpu_bfloat16_unit() else "float32"
     if precision == "int8" and dev.type != "cpu":

@@ -119,12 +119,18 @@ def bag_period(bag: Path, frames: int) -> float:
 
 
 def measured_rate(
-    model, vehicles: int, period: float, egos: int = 1, scans: bool = False, scan: np.ndarray | None = None
+    model,
+    vehicles: int,
+    period: float,
+    egos: int = 1,
+    scans: bool = False,
+    scan: np.ndarray | None = None,
+    vehicle_model=None,
 ) -> float:
     """The playback rate this machine keeps up with for `vehicles` vehicles and `egos` egos (model.pace; with
-    `scans`, each ego also encoding its neighbours' scans; a LiDAR model's vehicle measured on `scan`), to 2
-    digits."""
-    cost = pace.frame_cost(model, scan=scan)
+    `scans`, each ego also encoding its neighbours' scans; a LiDAR model's vehicle measured on `scan`, on
+    `vehicle_model` where the vehicle nodes run a path of their own), to 2 digits."""
+    cost = pace.frame_cost(model, scan=scan, vehicles=vehicle_model)
     n = pace.cores()
     rate = math.floor(100 * pace.sustainable_rate(cost, vehicles, period, n, egos=egos, scans=scans)) / 100
     say(
@@ -135,6 +141,14 @@ def measured_rate(
         f"(a frame every {period / max(rate, 0.01):.2f} s)"
     )
     return max(rate, 0.01)
+
+
+def vehicle_model(model, checkpoint: Path, device: str, precision: str, what: str = "--"):
+    """The model as the vehicle nodes run it, on `precision` (auto: as a vehicle takes it, int8 where its int8 layers
+    are tuned for it): `model` itself where that is the path it holds, else a copy of it on the vehicles' path.
+    `what`: how the option is spelt in errors."""
+    path = inference_path(device, precision, what=what, tuned_int8=model.vehicle_int8_tuned)
+    return model if path == model.path else load_graph_model(checkpoint)[0].use(path)
 
 
 def ensure_scenario(opts) -> Path:
@@ -202,11 +216,17 @@ def run_demo(opts: DemoOptions) -> int:
     say(f"bag {bag}: {frames} frames; vehicles {cavs}, ego{'s' if len(egos) > 1 else ''} {egos}; recording to {mcap}")
     model.use(path)
     missing = f" ({model.int8_missing()})" if path.int8 and not model.path.int8 else ""
-    say(f"model {checkpoint} ({sensors}); inference on {model.path.describe()}{missing}")
+    # the vehicle nodes' precision: the ego's or their own, from --params
+    own = "precision" in opts.params
+    vehicles = vehicle_model(
+        model, checkpoint, opts.device, opts.params.get("precision", opts.precision), "--params " if own else "--"
+    )
+    on_own = f"; the vehicles on {vehicles.path.describe()}" if vehicles is not model else ""
+    say(f"model {checkpoint} ({sensors}); inference on {model.path.describe()}{missing}{on_own}")
     if opts.rate is None:
         scans = opts.params.get("send") == "scan"
         scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None
-        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans, scan)
+        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans, scan, vehicles)
     channel, profiles = (
         _open_channel(opts, bag, frames, cavs, egos, sensors) if opts.channel_rate is not None else (None, None)
     )

@@ -124,9 +124,10 @@ PARAMS = (
     Param(
         "precision",
         str,
-        "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
-        "float16 on other GPUs, else float32), float32, bfloat16, float16, int8 (the CPU: a calibrated LiDAR "
-        "vehicle half's 3D layers in int8, the rest as auto)",
+        "inference precision: auto (int8 for a vehicle half with int8 weights fine-tuned for it on a CPU with "
+        "AVX-512 VNNI or AMX; bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, float16 on other "
+        "GPUs, else float32), float32, bfloat16, float16, int8 (the CPU: a calibrated LiDAR vehicle half's 3D "
+        "layers in int8, the rest as auto)",
         "auto",
         choices=PRECISIONS,
     ),
@@ -306,7 +307,8 @@ class Vehicle(ManagedNode):
         p = self.params
         checkpoint = p["checkpoint"]
         model, _ = load_graph_model(resolve_checkpoint(checkpoint, "parameter checkpoint"))
-        self.model = model.use(inference_path(p["device"], p["precision"], what="parameter "))
+        path = inference_path(p["device"], p["precision"], what="parameter ", tuned_int8=model.vehicle_int8_tuned)
+        self.model = model.use(path)
         if p["precision"] == "int8" and not self.model.path.int8:
             self.get_logger().warning(f"parameter precision=int8: {self.model.int8_missing()}")
         self.cfg = cfg = self.model.cfg
