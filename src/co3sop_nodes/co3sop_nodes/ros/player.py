@@ -4,8 +4,8 @@
 
 Messages go out raw (the bag's CDR bytes, never deserialised) at their
 recorded times scaled by --rate, after skipping the first --start seconds;
-/clock carries the bag time of each message, so nodes with use_sim_time
-follow the bag. Each topic keeps the QoS it was recorded with (latched
+/clock carries the bag time as the messages reach it (once per time: a frame's
+messages share one), so nodes with use_sim_time follow the bag. Each topic keeps the QoS it was recorded with (latched
 /tf_static stays latched). At the end of the bag the player exits, or starts
 over with --loop (the clock then continues past the bag's end, so time never
 runs backwards).
@@ -84,15 +84,19 @@ class Player(Node):
             time.sleep(0.05)
 
     def play(self) -> None:
-        """Publishes the bag (once, or forever with --loop) in real time scaled by --rate."""
+        """Publishes the bag (once, or forever with --loop) in real time scaled by --rate; /clock once per bag time
+        (a frame's messages share theirs: one clock message, not one per message)."""
+        clock = None
         while True:
             wall0 = time.monotonic()
             for conn, stamp, raw in self._reader.messages(connections=self._conns, start=self._start_ns):
                 delay = (stamp - self._start_ns) / 1e9 / self._opts.rate - (time.monotonic() - wall0)
                 if delay > 0:
                     time.sleep(delay)
-                offset = self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
-                self._clock.publish(Clock(clock=time_msg(RCLPY, stamp + offset)))
+                now = stamp + self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
+                if now != clock:
+                    self._clock.publish(Clock(clock=time_msg(RCLPY, now)))
+                    clock = now
                 self._pubs[conn.id].publish(bytes(raw))
                 self.published += 1
             if not self._opts.loop:
