@@ -63,6 +63,22 @@ def test_the_residual_sum_is_requantized_as_pytorch_rounds():
         quantized_add.quantized_add(a, 1.0, b, 1.0, 1.0, offset[:, :5], threads=1)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_a_quantized_volume_dequantizes_to_its_values_times_its_scale_plus_the_offset(dtype):
+    torch.manual_seed(0)
+    values = torch.randint(0, 256, (1, 6, 8, 8, 32), dtype=torch.uint8).permute(0, 4, 1, 2, 3)  # (B, C, Z, X, Y) view
+    offset = torch.randn(32, 6)
+    volume = quantized.Int8Volume(values, 0.0371)
+    want = values.permute(0, 1, 3, 4, 2).to(dtype) * volume.scale  # (B, C, X, Y, Z), as rounded in `dtype`
+    for got, add in (
+        (volume.dequantize(dtype), 0),
+        (volume.dequantize(dtype, offset), offset.to(dtype)[:, None, None]),
+    ):
+        assert got.dtype == dtype and got.shape == (1, 32, 8, 8, 6)
+        assert got.is_contiguous(memory_format=torch.channels_last_3d)  # as the 1x1 output layer reads it
+        assert torch.equal(got, want + add)
+
+
 @torch.inference_mode()
 def test_a_calibrated_encoder_computes_in_int8_near_float32(monkeypatch):
     model = lidar_model()

@@ -196,8 +196,8 @@ class SSCNetEncoder(nn.Module):
         """forward on the int8 layers: (B, C, X/4, Y/4, Z/4) in the path's float precision (the 1x1 output layer's)."""
         f = self._int8_layers(occupancy, self._offsets)
         dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else torch.float32
-        f = f.dequantize(dtype, self._offsets[-1]).contiguous(memory_format=torch.channels_last_3d)
-        return self.out(f)  # (B, C, X/4, Y/4, Z/4)
+        tuned = self.int8_weights is not None  # its background correction is zero: not added
+        return self.out(f.dequantize(dtype, None if tuned else self._offsets[-1]))  # (B, C, X/4, Y/4, Z/4)
 
     @torch.no_grad()
     def activations(self, occupancy) -> list[torch.Tensor]:
