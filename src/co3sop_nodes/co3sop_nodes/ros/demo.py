@@ -226,7 +226,9 @@ def run_demo(opts: DemoOptions) -> int:
     if opts.rate is None:
         scans = opts.params.get("send") == "scan"
         scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None
-        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans, scan, vehicles)
+        # sending scans, the vehicle halves run in the egos, on theirs
+        on = model if scans else vehicles
+        opts.rate = measured_rate(model, len(cavs), bag_period(bag, frames), len(egos), scans, scan, on)
     channel, profiles = (
         _open_channel(opts, bag, frames, cavs, egos, sensors) if opts.channel_rate is not None else (None, None)
     )
