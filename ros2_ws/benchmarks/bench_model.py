@@ -322,7 +322,7 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
     gen = torch.Generator().manual_seed(0)
     a, b = (torch.randint(-128, 128, (1024, 1024), generator=gen, dtype=torch.int8) for _ in range(2))
     conv3d, norm = torch.nn.Conv3d(32, 32, 3, padding=1), torch.nn.BatchNorm3d(32).eval()  # norm: the identity
-    layer = quantized.Int8ConvReLU(conv3d, norm, 1 / 255, 0.1)
+    layer = quantized.Int8ConvReLU.folded(conv3d, norm, 1 / 255, 0.1)
     values = torch.randint(0, 256, (1, 32, 128, 128, 12), generator=gen, dtype=torch.uint8)  # (B, C, X, Y, Z)
 
     def conv(z_outer_views: bool):
