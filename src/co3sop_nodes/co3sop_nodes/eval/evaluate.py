@@ -579,12 +579,11 @@ def evaluate_models(opts) -> int:
             raise Co3sopError(f"--precision int8: {path}: {model.int8_missing()}")
         # the vehicle halves' path, as a vehicle node takes its precision (auto: int8 where they are tuned for it)
         own = opts.vehicle_precision is not None
-        vehicles = inference_path(
+        vehicles = model.vehicle_path(
             opts.inference.device,
             opts.vehicle_precision if own else opts.precision,
             compiled=not opts.reference_paths,
             what="--vehicle-" if own else "--",
-            tuned_int8=model.vehicle_int8_tuned,
         )
         opts.vehicle_inference = vehicles if vehicles != opts.inference else None
         opts.vehicles = None

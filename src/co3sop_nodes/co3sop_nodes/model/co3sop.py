@@ -27,7 +27,7 @@ from co3sop_nodes.model.head import OccupancyHead
 from co3sop_nodes.model.lidar import LMSCNetEncoder, SSCNetEncoder
 from co3sop_nodes.model.lifting import LiftingLayer, project, voxel_centres
 from co3sop_nodes.model.occformer import OccFormerHead
-from co3sop_nodes.model.path import InferencePath
+from co3sop_nodes.model.path import InferencePath, inference_path
 from co3sop_nodes.model.wire import WireDecoder, WireEncoder
 
 # ImageNet-style normalisation of uint8 RGB inputs
@@ -320,6 +320,11 @@ class Co3SOP(nn.Module):
         """Whether the vehicle half's int8 layers carry weights fine-tuned for int8 (`calibrate --fine-tune`), the
         case `auto` takes int8 for (`inference_path`'s `tuned_int8`)."""
         return bool(self.int8_tuned_weights())
+
+    def vehicle_path(self, device: str, precision: str, compiled: bool = True, what: str = "") -> InferencePath:
+        """`inference_path` for this model's vehicle half alone, as a vehicle node runs it (auto: int8 where its int8
+        layers are fine-tuned for it)."""
+        return inference_path(device, precision, compiled, what, tuned_int8=self.vehicle_int8_tuned)
 
     def int8_tuned_weights(self) -> dict[str, torch.Tensor]:
         """The int8 layers' own folded weights and biases by name (`vehicle.encoder.<layer>.weight` / `.bias`), as

@@ -147,7 +147,7 @@ def vehicle_model(model, checkpoint: Path, device: str, precision: str, what: st
     """The model as the vehicle nodes run it, on `precision` (auto: as a vehicle takes it, int8 where its int8 layers
     are tuned for it): `model` itself where that is the path it holds, else a copy of it on the vehicles' path.
     `what`: how the option is spelt in errors."""
-    path = inference_path(device, precision, what=what, tuned_int8=model.vehicle_int8_tuned)
+    path = model.vehicle_path(device, precision, what=what)
     return model if path == model.path else load_graph_model(checkpoint)[0].use(path)
 
 

@@ -5,8 +5,8 @@
 Messages go out raw (the bag's CDR bytes, never deserialised) at their
 recorded times scaled by --rate, after skipping the first --start seconds;
 /clock carries the bag time as the messages reach it (once per time: a frame's
-messages share one), so nodes with use_sim_time follow the bag. Each topic keeps the QoS it was recorded with (latched
-/tf_static stays latched). At the end of the bag the player exits, or starts
+messages share one), so nodes with use_sim_time follow the bag. Each topic
+keeps the QoS it was recorded with (latched /tf_static stays latched). At the end of the bag the player exits, or starts
 over with --loop (the clock then continues past the bag's end, so time never
 runs backwards).
 """

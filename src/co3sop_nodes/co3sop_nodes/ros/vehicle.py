@@ -55,7 +55,7 @@ from co3sop_nodes.messages import (
     transforms_of,
     xyz_of,
 )
-from co3sop_nodes.model.path import PRECISIONS, inference_path
+from co3sop_nodes.model.path import PRECISIONS
 from co3sop_nodes.ros.dds import (
     DIAGNOSTICS_QOS,
     RELIABILITIES,
@@ -307,8 +307,7 @@ class Vehicle(ManagedNode):
         p = self.params
         checkpoint = p["checkpoint"]
         model, _ = load_graph_model(resolve_checkpoint(checkpoint, "parameter checkpoint"))
-        path = inference_path(p["device"], p["precision"], what="parameter ", tuned_int8=model.vehicle_int8_tuned)
-        self.model = model.use(path)
+        self.model = model.use(model.vehicle_path(p["device"], p["precision"], what="parameter "))
         if p["precision"] == "int8" and not self.model.path.int8:
             self.get_logger().warning(f"parameter precision=int8: {self.model.int8_missing()}")
         self.cfg = cfg = self.model.cfg
