@@ -582,16 +582,35 @@ def test_calibrate_writes_a_checkpoint_that_runs_int8_and_refuses_what_it_should
     args = ["--model", str(out), "--data", data, "--splits", "train", "--fine-tune", "train", "--steps", "2"]
     done = tool("calibrate", *args, "--out", str(tuned))
     assert done.returncode == 0, done.stderr
-    assert "the int8 layers fine-tuned on train (2 steps)" in done.stdout and "fine-tune int8" in done.stderr
+    for prefix in ("vehicle.encoder", "ego.head"):
+        assert f"{prefix}'s int8 layers fine-tuned on train (2 steps)" in done.stdout
+        assert f"fine-tune {prefix}" in done.stderr
     model, checkpoint = load_model(tuned)
-    assert checkpoint["int8"]["fine_tune"] == {"splits": ["train"], "steps": 2, "lr": 1e-4, "seed": 0}
+    how = {"splits": ["train"], "steps": 2, "lr": 1e-4, "seed": 0}
+    assert checkpoint["int8"]["fine_tune"] == {"vehicle.encoder": how, "ego.head": how}
     assert sorted(model.int8_tuned_weights()) == sorted(checkpoint["int8"]["weights"])
+    assert model.int8_tuned("vehicle.encoder") and model.int8_tuned("ego.head")
     assert model.use(InferencePath("cpu", "int8")).path.int8
-    assert not (tmp_path / "tuned.pt.int8-tuning").exists()
+    assert not list(tmp_path.glob("tuned.pt.int8-tuning*"))
+    # the head alone, again: the vehicle half keeps its weights and how they were made
+    again = tmp_path / "again.pt"
+    args = ["--model", str(tuned), "--data", data, "--splits", "train", "--fine-tune", "train", "--steps", "1"]
+    done = tool("calibrate", *args, "--modules", "ego.head", "--out", str(again))
+    assert done.returncode == 0, done.stderr
+    assert (
+        "ego.head's int8 layers fine-tuned on train (1 steps)" in done.stdout and "fine-tune vehicle" not in done.stderr
+    )
+    model_again, checkpoint = load_model(again)
+    assert checkpoint["int8"]["fine_tune"] == {"vehicle.encoder": how, "ego.head": {**how, "steps": 1}}
+    for name, value in model.int8_tuned_weights().items():
+        assert torch.equal(model_again.int8_tuned_weights()[name], value) == name.startswith("vehicle."), name
     refused = {
         "--splits test": ["--model", "tiny-lidar", "--data", data, "--splits", "test"],
         "--fine-tune test": ["--model", "tiny-lidar", "--data", data, "--fine-tune", "test"],
         "tiny is not a LiDAR model with int8 layers": ["--model", "tiny", "--data", data],
+        "--modules ego.fusion: tiny-lidar's int8 modules are vehicle.encoder, ego.head": [
+            *("--model", "tiny-lidar", "--data", data, "--fine-tune", "train", "--modules", "ego.fusion")
+        ],
         "no OPV2V split folders": ["--model", "tiny-lidar", "--data", str(tmp_path)],
     }
     for message, args in refused.items():

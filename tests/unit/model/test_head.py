@@ -270,3 +270,21 @@ def test_a_head_with_an_odd_channel_count_at_half_resolution_takes_the_pytorch_l
     want_labels, want_conf = reference(head, x)
     assert_labels_equal(labels.numpy(), want_labels, head, x)
     assert np.abs(conf.numpy().astype(int) - want_conf).max() <= 1
+
+
+@torch.no_grad()
+def test_the_octants_logits_of_chosen_voxels_are_the_full_resolution_logits_there():
+    """octant_logits (what the head's int8 fine-tuning weighs) gives, for voxels at 1/2, the dense pass's logits of
+    their 8 fine voxels, octants in the transposed convolution's kernel order."""
+    torch.manual_seed(0)
+    head = OccupancyHead(32, (32, 16, 8), 24).eval()
+    f1 = torch.randn(1, 16, 6, 5, 4)
+    dense = head.full(f1)  # (1, K, 12, 10, 8)
+    parents = torch.tensor([[0, 7, 33, 119]])
+    got = head.octant_logits(f1, parents)  # (1, 8, K, 4)
+    x1, y1, z1 = f1.shape[2:]
+    for n, flat in enumerate(parents[0].tolist()):
+        i, j, k = flat // (y1 * z1), (flat // z1) % y1, flat % z1
+        for o in range(8):
+            dx, dy, dz = o // 4, (o // 2) % 2, o % 2
+            torch.testing.assert_close(got[0, o, :, n], dense[0, :, 2 * i + dx, 2 * j + dy, 2 * k + dz])

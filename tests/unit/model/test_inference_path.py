@@ -34,11 +34,29 @@ def test_auto_takes_int8_only_for_a_vehicle_half_tuned_for_it_on_a_cpu_with_an_i
     assert inference_path("cpu", "auto", tuned_int8=True) == InferencePath("cpu", "bfloat16")
 
 
-def test_a_shipped_vehicle_half_is_tuned_for_int8_where_its_checkpoint_carries_int8_weights():
+def test_a_shipped_module_is_tuned_for_int8_where_its_checkpoint_carries_its_int8_weights():
     for name in ("tiny-lidar.pt", "tiny-lidar-76.8m.pt", "tiny.pt"):
         model, data = load_model(shipped_checkpoint(name))
-        assert model.vehicle_int8_tuned == bool(data.get("int8", {}).get("weights")), name
-    assert load_model(shipped_checkpoint("tiny-lidar.pt"))[0].vehicle_int8_tuned  # the demo's vehicles: int8 by auto
+        weights = data.get("int8", {}).get("weights", {})
+        for prefix in ("vehicle.encoder", "ego.head"):
+            assert model.int8_tuned(prefix) == any(n.startswith(f"{prefix}.") for n in weights), (name, prefix)
+    assert load_model(shipped_checkpoint("tiny-lidar.pt"))[0].int8_tuned("vehicle.encoder")  # the demo's vehicles
+    assert load_model(shipped_checkpoint("tiny-lidar.pt"))[0].int8_tuned("ego.head")  # and its ego
+
+
+def test_each_half_takes_int8_by_auto_where_its_own_int8_layers_are_tuned(monkeypatch):
+    monkeypatch.setattr(path_module, "cpu_bfloat16_unit", lambda: "AVX-512 BF16")
+    monkeypatch.setattr(path_module, "cpu_int8_unit", lambda: "AVX-512 VNNI")
+    model = load_model(shipped_checkpoint("tiny-lidar.pt"))[0]
+    assert model.vehicle_path("cpu", "auto").int8 and model.ego_path("cpu", "auto").int8
+    weights = {n: t for n, t in model.int8_tuned_weights().items() if n.startswith("vehicle.")}
+    ranges = {
+        n: float(r)
+        for n, r in zip(model.int8_activations(), torch.cat([m.int8_ranges for m in model.int8_modules.values()]))
+    }
+    model.calibrate(ranges, weights)  # the vehicle half's int8 weights alone
+    assert model.vehicle_path("cpu", "auto").int8 and model.ego_path("cpu", "auto").precision == "bfloat16"
+    assert model.ego_path("cpu", "int8").int8  # asked for
 
 
 @pytest.mark.parametrize(

@@ -6,9 +6,11 @@
 With them, `precision int8` (the nodes' parameter, `evaluate`'s and `demo`'s option) computes the model's
 SSCNet-style vehicle half and its head's layers up to 1/2 in int8 on the CPU. The ranges minimise each activation's
 squared quantization error over every CAV's scan of the splits (the head's on each scan's own features:
-inference/calibration.py); calibrate on train or validate, never on test. With --fine-tune, the vehicle half's int8
-layers then get weights of their own, fine-tuned through the int8 arithmetic on those splits' scans toward the float
-layers' features (train/quantization_aware.py; resumable: run the same command again after an interruption).
+inference/calibration.py); calibrate on train or validate, never on test. With --fine-tune, the int8 layers then get
+weights of their own, fine-tuned through the int8 arithmetic on those splits toward the float model
+(train/quantization_aware.py): the vehicle half's on scans, then the head's on the features the int8 vehicles and
+the ego's fusion make (--modules: only some; the others keep --model's). Resumable: run the same command again
+after an interruption.
 """
 
 from __future__ import annotations
@@ -24,9 +26,10 @@ from co3sop_nodes.cli.common import run
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.common.progress import progress
 from co3sop_nodes.inference.calibration import calibrate
-from co3sop_nodes.inference.checkpoint import load_model, resolve_checkpoint, save_calibrated
+from co3sop_nodes.inference.checkpoint import load_model, read_checkpoint, resolve_checkpoint, save_calibrated
+from co3sop_nodes.model.path import InferencePath
 from co3sop_nodes.train.dataset import OccupancyDataset
-from co3sop_nodes.train.quantization_aware import fine_tune_int8
+from co3sop_nodes.train.quantization_aware import fine_tune_int8, head_example
 
 
 def main(args: list[str] | None = None) -> int:
@@ -37,9 +40,12 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="the calibrated checkpoint (may be --model's file)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument(
-        "--fine-tune", nargs="+", default=[], metavar="SPLIT", help="fine-tune the vehicle half's int8 layers on these"
+        "--fine-tune", nargs="+", default=[], metavar="SPLIT", help="fine-tune the int8 layers on these"
     )
-    parser.add_argument("--steps", type=int, default=1500, help="fine-tuning steps (one scan each)")
+    parser.add_argument(
+        "--modules", nargs="+", metavar="MODULE", help="fine-tune these int8 modules only (vehicle.encoder, ego.head)"
+    )
+    parser.add_argument("--steps", type=int, default=1500, help="fine-tuning steps of each module (one sample each)")
     parser.add_argument("--lr", type=float, default=1e-4, help="fine-tuning learning rate (Adam)")
     parser.add_argument("--seed", type=int, default=0, help="fine-tuning: the order of the scans")
     opts = parser.parse_args(args)
@@ -58,6 +64,11 @@ def main(args: list[str] | None = None) -> int:
             f"--model {opts.model}: {model.cfg.name} is not a LiDAR model with int8 layers (calibrate measures on "
             "scans: an SSCNet-style vehicle half, a convolutional head)"
         )
+    unknown = sorted(set(opts.modules or ()) - set(model.int8_modules))
+    if unknown:
+        raise Co3sopError(
+            f"--modules {' '.join(unknown)}: {model.cfg.name}'s int8 modules are {', '.join(model.int8_modules)}"
+        )
     dataset = OccupancyDataset(opts.data, opts.splits, model.cfg)
     agents = [(f, j) for f, frame in enumerate(dataset.frames) for j in range(len(frame.cavs))]
     bar = progress(len(agents), "calibrate", "scan")
@@ -73,36 +84,69 @@ def main(args: list[str] | None = None) -> int:
     made = {"command": command, "data": str(opts.data), "splits": list(opts.splits), "scans": len(agents)}
     weights = {}
     if opts.fine_tune:
-        weights = fine_tune(model.calibrate(ranges), opts)
-        made["fine_tune"] = {"splits": list(opts.fine_tune), "steps": opts.steps, "lr": opts.lr, "seed": opts.seed}
+        weights, made["fine_tune"] = fine_tune(model, ranges, opts, source)
     save_calibrated(source, opts.out, ranges, made, weights)
+    for state in opts.out.parent.glob(f"{opts.out.name}.int8-tuning.*"):
+        state.unlink()  # the checkpoint holds what they made
     for name, value in ranges.items():
         print(f"{name}: {value:.4g}")
-    tuned = f"; the int8 layers fine-tuned on {'+'.join(opts.fine_tune)} ({opts.steps} steps)" if weights else ""
-    print(f"calibrate: {len(agents)} scans of {'+'.join(opts.splits)}{tuned}; wrote {opts.out}")
+    for prefix, how in made.get("fine_tune", {}).items():
+        print(f"calibrate: {prefix}'s int8 layers fine-tuned on {'+'.join(how['splits'])} ({how['steps']} steps)")
+    print(f"calibrate: {len(agents)} scans of {'+'.join(opts.splits)}; wrote {opts.out}")
     return 0
 
 
-def fine_tune(model, opts) -> dict[str, torch.Tensor]:
-    """The vehicle half's int8 layers fine-tuned on --fine-tune's scans (resumable from a state beside --out)."""
-    if "vehicle.encoder" not in model.int8_modules:
-        raise Co3sopError(f"--fine-tune: {model.cfg.name} has no SSCNet-style vehicle half with int8 layers")
+def fine_tune(model, ranges: dict[str, float], opts, source: Path) -> tuple[dict[str, torch.Tensor], dict]:
+    """The int8 modules of --modules (default: all) fine-tuned on --fine-tune's splits, the vehicle half first
+    (the head learns on the features its int8 path makes), each resumable from a state beside --out; any other
+    keeps the int8 weights --model has for it where it has them, tuned for the same ranges. The int8 weights, and
+    how each module's were made."""
+    modules = list(opts.modules or model.int8_modules)
+    previous = read_checkpoint(source).get("int8", {})
+    made = previous.get("fine_tune", {})
+    if "splits" in made:  # written when only a vehicle half's int8 layers were fine-tuned
+        made = {"vehicle.encoder": made}
+    made = {p: how for p, how in made.items() if p in model.int8_modules}
+    weights = {}
+    for prefix, module in model.int8_modules.items():
+        own = {n: t for n, t in model.int8_tuned_weights().items() if n.startswith(f"{prefix}.")}
+        if prefix in modules or not own:
+            continue
+        names = [f"{prefix}.{n}" for n in module.ACTIVATIONS]
+        if any(previous.get("ranges", {}).get(n) != ranges[n] for n in names):
+            raise Co3sopError(
+                f"--modules {' '.join(modules)}: --model's int8 weights of {prefix} were fine-tuned for ranges other "
+                "than those measured now: fine-tune it too"
+            )
+        weights.update(own)
+    model.calibrate(ranges, weights)
     dataset = OccupancyDataset(opts.data, opts.fine_tune, model.cfg)
-    agents = [(f, j) for f, frame in enumerate(dataset.frames) for j in range(len(frame.cavs))]
+    for prefix in [m for m in model.int8_modules if m in modules]:
+        if prefix == "vehicle.encoder":
+            agents = [(f, j) for f, frame in enumerate(dataset.frames) for j in range(len(frame.cavs))]
 
-    def scan(i: int) -> torch.Tensor:
-        return torch.from_numpy(dataset.agent(*agents[i]).inputs["occupancy"])[None]
+            def example(i: int) -> torch.Tensor:
+                return torch.from_numpy(dataset.agent(*agents[i]).inputs["occupancy"])[None]
 
-    bar = progress(opts.steps, "fine-tune int8", "step")
-    state = opts.out.with_name(opts.out.name + ".int8-tuning")
+            count = len(agents)
+        else:  # on the features the int8 vehicles (as tuned so far) and the int8 ego's fusion make
+            deployed = load_model(source)[0].calibrate(ranges, weights).use(InferencePath(precision="int8"))
 
-    def on_step(step: int, loss: float) -> None:
-        bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
-        bar.update(step + 1 - bar.n)  # a resumed run starts past 0
+            def example(i: int) -> tuple[torch.Tensor, torch.Tensor]:
+                return head_example(model, deployed, dataset.sample(i))
 
-    weights = fine_tune_int8(model, scan, len(agents), opts.steps, opts.lr, opts.seed, state, on_step)
-    bar.close()
-    return weights
+            count = len(dataset)
+        bar = progress(opts.steps, f"fine-tune {prefix}", "step")
+
+        def on_step(step: int, loss: float) -> None:
+            bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
+            bar.update(step + 1 - bar.n)  # a resumed run starts past 0
+
+        state = opts.out.with_name(f"{opts.out.name}.int8-tuning.{prefix}")
+        weights.update(fine_tune_int8(model, prefix, example, count, opts.steps, opts.lr, opts.seed, state, on_step))
+        bar.close()
+        made[prefix] = {"splits": list(opts.fine_tune), "steps": opts.steps, "lr": opts.lr, "seed": opts.seed}
+    return weights, made
 
 
 entry = run(main)

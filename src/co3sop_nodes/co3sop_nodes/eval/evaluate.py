@@ -574,6 +574,8 @@ def evaluate_models(opts) -> int:
         opts.trained = checkpoint.get("meta", checkpoint).get(
             "history", []
         )  # the train commands behind the weights, in the JSON
+        # the ego's path, as an ego node takes its precision (auto: int8 where its head is tuned for it)
+        opts.inference = model.ego_path(opts.device, opts.precision, compiled=not opts.reference_paths, what="--")
         model.use(opts.inference)
         if opts.inference.int8 and not model.path.int8:
             raise Co3sopError(f"--precision int8: {path}: {model.int8_missing()}")

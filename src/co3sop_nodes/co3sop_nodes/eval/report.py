@@ -698,13 +698,13 @@ def precision_section(results: Path) -> list[str]:
         lines += [
             "",
             "int8: a calibrated LiDAR vehicle half's 3D layers after its first and the head's layers up to 1/2 in",
-            "int8 (`calibrate`'s ranges, measured on `validate`; the vehicle half's layers on weights fine-tuned for",
-            "int8 on `train` where the checkpoint carries them, `calibrate --fine-tune`), the rest in bfloat16 where",
-            "the CPU computes it. int8 (vehicle halves bfloat16): the head's layers alone in int8, the features made",
-            "in bfloat16, as an ego node on int8 fuses those of vehicle nodes on bfloat16; bfloat16 (vehicle halves",
-            "int8): the vehicle halves alone in int8, as vehicle nodes on int8 beside an ego on bfloat16",
-            "(`evaluate --vehicle-precision`): what `auto` takes for vehicle halves with fine-tuned int8 weights on a",
-            "CPU with an int8 unit; an ego's `auto` never takes int8.",
+            "int8 (`calibrate`'s ranges, measured on `validate`; each half's int8 layers on weights fine-tuned for",
+            "int8 on `train` where the checkpoint carries them, `calibrate --fine-tune`: the head's on the features",
+            "the int8 vehicle halves make), the rest in bfloat16 where the CPU computes it: what `auto` takes for",
+            "halves with fine-tuned int8 weights on a CPU with an int8 unit. int8 (vehicle halves bfloat16): the",
+            "head's layers alone in int8, the features made in bfloat16, as an ego node on int8 fuses those of",
+            "vehicle nodes on bfloat16; bfloat16 (vehicle halves int8): the vehicle halves alone in int8, as vehicle",
+            "nodes on int8 beside an ego on bfloat16 (`evaluate --vehicle-precision`).",
         ]
     return [*lines, "", "Made by:", "", *commands, ""]
 

@@ -296,45 +296,53 @@ class Co3SOP(nn.Module):
                 raise Co3sopError(f"{self.cfg.name}: an int8 calibration of {prefix} lacks {missing}")
             if given:
                 module.int8_ranges.copy_(torch.tensor([float(ranges[n]) for n in own]))
-        encoder = self.int8_modules.get("vehicle.encoder")
-        if weights:
-            layers = encoder.INT8_LAYERS if encoder is not None else ()
-            expected = [f"vehicle.encoder.{n}.{part}" for n in layers for part in ("weight", "bias")]
-            if encoder is None or not encoder.calibrated or sorted(weights) != sorted(expected):
-                raise Co3sopError(
-                    f"{self.cfg.name}: int8 weights are a calibrated SSCNet-style encoder's "
-                    f"{', '.join(expected) or '(it has none)'}; got {', '.join(sorted(weights))}"
-                )
+        weights = weights or {}
+        tuned = {prefix for name in weights for prefix in self.int8_modules if name.startswith(f"{prefix}.")}
+        expected = [
+            f"{prefix}.{n}.{part}" for prefix in tuned for n in self.int8_modules[prefix].INT8_LAYERS
+            for part in ("weight", "bias")
+        ]  # fmt: skip
+        if sorted(weights) != sorted(expected) or not all(self.int8_modules[p].calibrated for p in tuned):
+            layers = ", ".join(f"{p}.<{'|'.join(m.INT8_LAYERS)}>.<weight|bias>" for p, m in self.int8_modules.items())
+            raise Co3sopError(
+                f"{self.cfg.name}: int8 weights are each of a calibrated module's int8 layers ({layers}); "
+                f"got {', '.join(sorted(weights))}"
+            )
+        for prefix, module in self.int8_modules.items():
+            own = None
+            if prefix in tuned:
+                own = {n: (weights[f"{prefix}.{n}.weight"], weights[f"{prefix}.{n}.bias"]) for n in module.INT8_LAYERS}
             try:
-                encoder.set_int8_weights(
-                    {n: (weights[f"vehicle.encoder.{n}.weight"], weights[f"vehicle.encoder.{n}.bias"]) for n in layers}
-                )
+                module.set_int8_weights(own)
             except ValueError as exc:
-                raise Co3sopError(f"{self.cfg.name}: {exc}") from None
-        elif encoder is not None:
-            encoder.set_int8_weights(None)
+                raise Co3sopError(f"{self.cfg.name}: {prefix}: {exc}") from None
         return self
 
-    @property
-    def vehicle_int8_tuned(self) -> bool:
-        """Whether the vehicle half's int8 layers carry weights fine-tuned for int8 (`calibrate --fine-tune`), the
-        case `auto` takes int8 for (`inference_path`'s `tuned_int8`)."""
-        return bool(self.int8_tuned_weights())
+    def int8_tuned(self, prefix: str) -> bool:
+        """Whether the int8 module `prefix` (of `int8_modules`) carries int8 weights fine-tuned for int8
+        (`calibrate --fine-tune`), the case `auto` takes int8 for (`inference_path`'s `tuned_int8`)."""
+        module = self.int8_modules.get(prefix)
+        return module is not None and module.int8_weights is not None
 
     def vehicle_path(self, device: str, precision: str, compiled: bool = True, what: str = "") -> InferencePath:
         """`inference_path` for this model's vehicle half alone, as a vehicle node runs it (auto: int8 where its int8
         layers are fine-tuned for it)."""
-        return inference_path(device, precision, compiled, what, tuned_int8=self.vehicle_int8_tuned)
+        return inference_path(device, precision, compiled, what, tuned_int8=self.int8_tuned("vehicle.encoder"))
+
+    def ego_path(self, device: str, precision: str, compiled: bool = True, what: str = "") -> InferencePath:
+        """`inference_path` for this model's ego half, as an ego node runs it (auto: int8 where its head's int8
+        layers are fine-tuned for it)."""
+        return inference_path(device, precision, compiled, what, tuned_int8=self.int8_tuned("ego.head"))
 
     def int8_tuned_weights(self) -> dict[str, torch.Tensor]:
-        """The int8 layers' own folded weights and biases by name (`vehicle.encoder.<layer>.weight` / `.bias`), as
-        a checkpoint's int8 entry carries them; empty where they are the float layers'."""
-        encoder = self.int8_modules.get("vehicle.encoder")
-        if encoder is None or encoder.int8_weights is None:
-            return {}
+        """The int8 layers' own folded weights and biases by name (`<module>.<layer>.weight` / `.bias`, e.g.
+        `vehicle.encoder.down.1.weight`), as a checkpoint's int8 entry carries them; none of a module whose int8
+        layers are the float layers'."""
         return {
-            f"vehicle.encoder.{n}.{part}": t
-            for n, pair in encoder.int8_weights.items()
+            f"{prefix}.{n}.{part}": t
+            for prefix, module in self.int8_modules.items()
+            if module.int8_weights is not None
+            for n, pair in module.int8_weights.items()
             for part, t in zip(("weight", "bias"), pair)
         }
 

@@ -14,7 +14,10 @@ compiler is available, about 10x faster than its PyTorch loop, tested equal.
 On an int8 path, once calibrated, the layers up to the 1/2 features compute in int8 (quantized.py): the fused
 features quantized symmetrically (zero point 128: they are signed), the 3x3x3 layers and the transposed
 convolution to 1/2 (one matrix product per coarse voxel) on oneDNN's int8 primitives, each output uint8 after its
-ReLU; the last stage reads those uint8 features as they are. Those layers are 80 % of the head's operations.
+ReLU; the last stage reads those uint8 features as they are. Those layers are 80 % of the head's operations. Their
+weights are the float layers', folded, or their own where a calibration carries them (`calibrate --fine-tune`:
+trained through the emulated int8 arithmetic, `int8_emulated`, on the features int8 vehicles send, toward the float
+model's labels: train/quantization_aware.py).
 """
 
 from __future__ import annotations
@@ -34,11 +37,12 @@ def _block(cin: int, cout: int) -> ConvNorm:
     return ConvNorm(nn.Conv3d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm3d(cout), nn.ReLU(inplace=True))
 
 
-class OccupancyHead(nn.Module):
+class OccupancyHead(quantized.Int8Weights, nn.Module):
     # the activations an int8 path quantizes: the fused features (signed), then each layer's output after its ReLU
     ACTIVATIONS = ("input", "stage0.0", "stage0.1", "up1", "up1.3")
     # the quantization steps of each activation's range: the input's spans [-range, range]
     STEPS = (127.5, 255.0, 255.0, 255.0, 255.0)
+    INT8_LAYERS = ("stage0.0", "stage0.1", "up1.0", "up1.3")  # the layers an int8 path computes in int8
 
     def __init__(self, dims: int, channels: tuple[int, int, int], classes: int):
         super().__init__()
@@ -65,19 +69,74 @@ class OccupancyHead(nn.Module):
         self._int8 = None
         c1, c2, k = self.up2.in_channels, self.up2.out_channels, self.classify[2].out_channels
         if self.calibrated and quantized.onednn_int8() and octant_kernel.available(c1, c2, k, "int8"):
-            s = [r / n for r, n in zip(self.int8_ranges.tolist(), self.STEPS)]
-            conv, norm = self.up1[0], self.up1[1]
-            scale, shift = folded_norm(norm, conv.bias)  # (C1,)
+            s = self._step_sizes()
+            (first, w0, b0), (second, w1, b1), (_, w2, b2), (block, w3, b3) = self.int8_layers()
             # rows (dz, dx, dy, C1) as in `parents`: a coarse voxel's 8 octants, z-outer
-            weight = (conv.weight * scale[:, None, None, None]).permute(0, 4, 2, 3, 1).flatten(1)  # (C0, 8*C1)
+            up = w2.permute(0, 4, 2, 3, 1).flatten(1)  # (C0, 8*C1)
             layers = (
-                quantized.Int8ConvReLU.folded(self.stage0[0][0], self.stage0[0][1], s[0], s[1], in_zero=128),
-                quantized.Int8ConvReLU.folded(self.stage0[1][0], self.stage0[1][1], s[1], s[2]),
-                quantized.Int8LinearReLU(weight.t(), shift.repeat(8), s[2], s[3]),
-                quantized.Int8ConvReLU.folded(self.up1[3][0], self.up1[3][1], s[3], s[4]),
+                quantized.Int8ConvReLU(first, w0, b0, s[0], s[1], in_zero=128),
+                quantized.Int8ConvReLU(second, w1, b1, s[1], s[2]),
+                quantized.Int8LinearReLU(up.t(), b2.repeat(8), s[2], s[3]),
+                quantized.Int8ConvReLU(block, w3, b3, s[3], s[4]),
             )
             self._int8 = (layers, s)
         return self._int8 is not None
+
+    def folded_int8_layers(self) -> list[tuple[nn.Module, torch.Tensor, torch.Tensor]]:
+        """Each of INT8_LAYERS: its layer and the float layer's weights and bias (Cout,) with its batch norm folded
+        in; the transposed convolution's (C0, C1, 2, 2, 2)."""
+        conv, norm = self.up1[0], self.up1[1]
+        scale, shift = folded_norm(norm, conv.bias)  # (C1,)
+        up = (conv.weight * scale[:, None, None, None]).detach().float(), shift.detach().float()
+        return [
+            (self.stage0[0][0], *quantized.folded_conv(self.stage0[0][0], self.stage0[0][1])),
+            (self.stage0[1][0], *quantized.folded_conv(self.stage0[1][0], self.stage0[1][1])),
+            (conv, *up),
+            (self.up1[3][0], *quantized.folded_conv(self.up1[3][0], self.up1[3][1])),
+        ]
+
+    def int8_emulated(self, x, layers: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+        """The int8 path's layers up to 1/2 emulated in float32 on folded (weight, bias) of each of INT8_LAYERS:
+        weights and activations rounded to its int8 and uint8 steps, straight through for the gradients: x
+        (B, C, X/4, Y/4, Z/4) -> the 1/2 features (B, C1, X/2, Y/2, Z/2) the last stage reads. What
+        quantization-aware fine-tuning trains `layers` through."""
+        s = self._step_sizes()
+        (first, _, _), (second, _, _), (up, _, _), (block, _, _) = self.folded_int8_layers()
+
+        def conv(m, i, f):
+            weight, bias = layers[i]
+            return F.relu(F.conv3d(f, quantized.fake_int8_weight(weight), bias, m.stride, m.padding, m.dilation))
+
+        f = quantized.fake_quantized(x.float(), s[0], zero=128)
+        f = quantized.fake_quantized(conv(first, 0, f), s[1])
+        f = quantized.fake_quantized(conv(second, 1, f), s[2])
+        weight, bias = layers[2]  # (C0, C1, 2, 2, 2): int8 per output row, a (C1, octant) pair, as `quantize` has it
+        rows = quantized.fake_int8_weight(weight.permute(1, 2, 3, 4, 0).flatten(0, 3))  # (C1*8, C0)
+        weight = rows.view(*weight.shape[1:], weight.shape[0]).permute(4, 0, 1, 2, 3)
+        f = quantized.fake_quantized(F.relu(F.conv_transpose3d(f, weight, bias, up.stride)), s[3])
+        return quantized.fake_quantized(conv(block, 3, f), s[4])
+
+    def _step_sizes(self) -> list[float]:
+        """Each of ACTIVATIONS' quantization step: its calibrated range / its STEPS."""
+        if not self.calibrated:
+            raise ValueError("the int8 path needs a calibration: this head has none")
+        return [r / n for r, n in zip(self.int8_ranges.tolist(), self.STEPS)]
+
+    def full(self, f1) -> torch.Tensor:
+        """The 1/2 features (B, C1, X/2, Y/2, Z/2) -> the full-resolution logits (B, K, X, Y, Z)."""
+        return self.classify[2](F.relu(self.point2(F.relu(self.up2(f1)))))
+
+    def octant_logits(self, f1, parents: torch.Tensor) -> torch.Tensor:
+        """`full`'s logits of the 8 octants of chosen voxels at 1/2: f1 (B, C1, X/2, Y/2, Z/2), parents (B, N) flat
+        indices into it -> (B, 8, K, N), octants in the transposed convolution's kernel order."""
+        b, c1 = f1.shape[:2]
+        feat = torch.gather(f1.flatten(2), 2, parents[:, None].expand(b, c1, -1))  # (B, C1, N)
+        h = torch.einsum("bcn,cdo->bodn", feat, self.up2.weight.flatten(2)) + self.up2.bias[:, None]  # (B, 8, C2, N)
+        h = F.relu(
+            torch.einsum("bocn,dc->bodn", F.relu(h), self.point2.weight[:, :, 0, 0, 0]) + self.point2.bias[:, None]
+        )
+        cls = self.classify[2]
+        return torch.einsum("bocn,kc->bokn", h, cls.weight[:, :, 0, 0, 0]) + cls.bias[:, None]
 
     @torch.no_grad()
     def activations(self, x) -> list[torch.Tensor]:
@@ -144,8 +203,7 @@ class OccupancyHead(nn.Module):
 
     def forward(self, x):
         f0, f1 = self.coarse(x)
-        f2 = F.relu(self.point2(F.relu(self.up2(f1))))
-        return [cls(f) for cls, f in zip(self.classify, (f0, f1, f2))]  # logits (B, K, X/s, Y/s, Z/s), s = 4, 2, 1
+        return [self.classify[0](f0), self.classify[1](f1), self.full(f1)]  # logits (B, K, X/s, Y/s, Z/s), s = 4, 2, 1
 
     @torch.no_grad()
     def labels(self, x, chunk: int = 8192, compiled: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:

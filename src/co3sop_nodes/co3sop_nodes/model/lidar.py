@@ -50,7 +50,7 @@ class LMSCNetEncoder(nn.Module):
         return f.view(b, self.dims, self.z, x // 4, y // 4).permute(0, 1, 3, 4, 2)  # (B, C, X/4, Y/4, Z/4)
 
 
-class SSCNetEncoder(nn.Module):
+class SSCNetEncoder(quantized.Int8Weights, nn.Module):
     # the activations an int8 path quantizes, each after a ReLU: the output of each 3x3x3 layer and each residual sum
     ACTIVATIONS = ("down.0", "down.1", "dilated.0", "sum.0", "dilated.1", "sum.1", "dilated.2", "sum.2")
     STEPS = (255.0,) * len(ACTIVATIONS)  # the quantization steps of each one's range (uint8, zero point 0)
@@ -71,9 +71,6 @@ class SSCNetEncoder(nn.Module):
         self.path = InferencePath()  # set by Co3SOP.use
         # each ACTIVATIONS' calibrated range (0: none), loaded from a checkpoint's int8 entry (`Co3SOP.calibrate`)
         self.register_buffer("int8_ranges", torch.zeros(len(self.ACTIVATIONS)), persistent=False)
-        # the int8 layers' own folded weights and biases by INT8_LAYERS' names (fine-tuned for the int8 arithmetic;
-        # None: the float layers', folded), loaded from a checkpoint's int8 entry (`Co3SOP.calibrate`)
-        self.int8_weights: dict[str, tuple[torch.Tensor, torch.Tensor]] | None = None
         self._int8: list[quantized.Int8ConvReLU] | None = None  # made by `quantize`
         self._offsets: list[torch.Tensor] = []  # the int8 layers' background corrections (`quantize`)
         self._scales: list[float] = []  # each ACTIVATIONS' quantization step on the int8 path (`quantize`)
@@ -82,30 +79,10 @@ class SSCNetEncoder(nn.Module):
     def calibrated(self) -> bool:
         return bool((self.int8_ranges > 0).all())
 
-    def int8_layers(self) -> list[tuple[nn.Conv3d, torch.Tensor, torch.Tensor]]:
-        """Each of INT8_LAYERS: its convolution (the geometry) and the folded weights (Cout, Cin, 3, 3, 3) and bias
-        (Cout,) the int8 path computes it with: its own (`int8_weights`) or the float layers', folded."""
-        layers = [self.down[1], *self.dilated]
-        if self.int8_weights is None:
-            return [(m[0], *quantized.folded_conv(m[0], m[1])) for m in layers]
-        return [(m[0], *self.int8_weights[name]) for m, name in zip(layers, self.INT8_LAYERS)]
-
-    def set_int8_weights(self, weights: dict[str, tuple[torch.Tensor, torch.Tensor]] | None) -> None:
-        """The int8 layers' own folded (weight, bias) by INT8_LAYERS' names, each shaped as its layer's (None: the
-        float layers', folded); made into int8 layers at the next `quantize`."""
-        if weights is not None:
-            layers = [self.down[1], *self.dilated]
-            if sorted(weights) != sorted(self.INT8_LAYERS):
-                raise ValueError(f"int8 weights of each of {', '.join(self.INT8_LAYERS)}, not {', '.join(weights)}")
-            for m, name in zip(layers, self.INT8_LAYERS):
-                weight, bias = weights[name]
-                if tuple(weight.shape) != tuple(m[0].weight.shape) or tuple(bias.shape) != (m[0].out_channels,):
-                    raise ValueError(
-                        f"int8 weights of {name}: {tuple(weight.shape)} and {tuple(bias.shape)}, the layer's are "
-                        f"{tuple(m[0].weight.shape)} and ({m[0].out_channels},)"
-                    )
-            weights = {n: (w.detach().float().clone(), b.detach().float().clone()) for n, (w, b) in weights.items()}
-        self.int8_weights = weights
+    def folded_int8_layers(self) -> list[tuple[nn.Conv3d, torch.Tensor, torch.Tensor]]:
+        """Each of INT8_LAYERS: its convolution and the float layer's weights (Cout, Cin, 3, 3, 3) and bias (Cout,)
+        with its batch norm folded in."""
+        return [(m[0], *quantized.folded_conv(m[0], m[1])) for m in (self.down[1], *self.dilated)]
 
     def quantize(self, height: int) -> bool:
         """Make the int8 layers from the weights and ranges as they are now, for scans `height` voxels high (or none,

@@ -13,10 +13,11 @@ the GPU has it, else float16.
 `int8` (the CPU only) computes a model's calibrated layers in int8 (`model/quantized.py`: the LiDAR vehicle
 half's 3D convolutions after its first and the head's layers up to 1/2, with activation ranges measured by
 `calibrate` and shipped in the checkpoint) and the rest as `auto` would on this CPU (bfloat16 where the CPU
-computes it, else float32). A model without a calibration runs that rest only (`Co3SOP.use`). `auto` takes int8
-only for a LiDAR vehicle half whose int8 layers carry weights fine-tuned for int8 (`calibrate --fine-tune`: the
-shipped `tiny-lidar`'s keep the mIoU within 0.2 points of float32's, its interval too, on `validate` and `test`), on
-a CPU with an int8 unit; never for an ego, whose int8 head costs more (results.md, "Inference precision").
+computes it, else float32). A model without a calibration runs that rest only (`Co3SOP.use`). `auto` takes int8,
+on a CPU with an int8 unit, only for a half whose int8 layers carry weights fine-tuned for int8 (`calibrate
+--fine-tune`; `Co3SOP.vehicle_path` and `ego_path` say which): a LiDAR vehicle half's (the shipped `tiny-lidar`'s
+keep the mIoU within 0.2 points of float32's, its interval too, on `validate` and `test`: results.md, "Inference
+precision"), or an ego's head's.
 """
 
 from __future__ import annotations
@@ -171,8 +172,8 @@ def inference_path(
     """The path for `device` (auto | cpu | cuda | cuda:N) and `precision` (auto | float32 | bfloat16 |
     float16 | int8) on this machine, `auto` resolved to what it has; a device it lacks is refused, and int8 off the
     CPU. `what`: how the caller spells its options in errors ("--" for a command line, "parameter " for a
-    node). `tuned_int8`: the path runs a vehicle half whose int8 layers are fine-tuned for int8
-    (`Co3SOP.vehicle_int8_tuned`), which `auto` then takes on a CPU with an int8 unit."""
+    node). `tuned_int8`: the path runs a half whose int8 layers are fine-tuned for int8 (`Co3SOP.int8_tuned`),
+    which `auto` then takes on a CPU with an int8 unit."""
     dev = resolve_device(device, f"{what}device")
     if precision not in PRECISIONS:
         raise Co3sopError(f"{what}precision {precision!r}: one of {', '.join(PRECISIONS)}")

@@ -88,12 +88,13 @@ def folded_conv(conv: nn.Conv3d, norm: nn.modules.batchnorm._BatchNorm) -> tuple
     return weight.detach().float().contiguous(), bias.detach().float()
 
 
-def fake_quantized(x: torch.Tensor, scale: float, levels: int = 255) -> torch.Tensor:
-    """x rounded to uint8 steps of `scale` (zero point 0, clamped to [0, levels]) and back, as an int8 layer's output
-    is: the emulation quantization-aware fine-tuning trains through, whose gradient passes the rounding unchanged
-    (straight through) and stops where the clamp does."""
+def fake_quantized(x: torch.Tensor, scale: float, zero: int = 0) -> torch.Tensor:
+    """x rounded to uint8 steps of `scale` around the zero point `zero` (clamped to [-zero, 255 - zero] steps) and
+    back, as an int8 layer's output (zero 0) or the head's signed input (zero 128) is: the emulation
+    quantization-aware fine-tuning trains through, whose gradient passes the rounding unchanged (straight through)
+    and stops where the clamp does."""
     q = x / scale
-    return torch.clamp(q + (torch.round(q) - q).detach(), 0, levels) * scale
+    return torch.clamp(q + (torch.round(q) - q).detach(), -zero, 255 - zero) * scale
 
 
 def fake_int8_weight(weight: torch.Tensor) -> torch.Tensor:
@@ -102,6 +103,44 @@ def fake_int8_weight(weight: torch.Tensor) -> torch.Tensor:
     scale = _per_row(_weight_scale(weight), weight)
     q = weight / scale
     return torch.clamp(q + (torch.round(q) - q).detach(), -127, 127) * scale
+
+
+class Int8Weights:
+    """The int8 layers' own folded weights of a module an int8 path computes partly in int8, by its INT8_LAYERS'
+    names: fine-tuned for the int8 arithmetic (train/quantization_aware.py), or None, the float layers' folded
+    (`folded_int8_layers`, each module's own). A mixin of such an nn.Module; a checkpoint's int8 entry carries them
+    (`Co3SOP.calibrate`)."""
+
+    INT8_LAYERS: tuple[str, ...] = ()
+    int8_weights: dict[str, tuple[torch.Tensor, torch.Tensor]] | None = None
+
+    def folded_int8_layers(self) -> list[tuple[nn.Module, torch.Tensor, torch.Tensor]]:
+        """Each of INT8_LAYERS: its layer (the geometry) and the float layers' weight and bias (Cout,) folded."""
+        raise NotImplementedError
+
+    def int8_layers(self) -> list[tuple[nn.Module, torch.Tensor, torch.Tensor]]:
+        """Each of INT8_LAYERS: its layer (the geometry) and the folded weight, shaped as the layer's, and bias
+        (Cout,) the int8 path computes it with: its own (`int8_weights`) or the float layers', folded."""
+        folded = self.folded_int8_layers()
+        if self.int8_weights is None:
+            return folded
+        return [(m, *self.int8_weights[name]) for (m, _, _), name in zip(folded, self.INT8_LAYERS)]
+
+    def set_int8_weights(self, weights: dict[str, tuple[torch.Tensor, torch.Tensor]] | None) -> None:
+        """The int8 layers' own folded (weight, bias) by INT8_LAYERS' names, each shaped as `folded_int8_layers`'
+        (None: the float layers', folded); made into int8 layers at the next `quantize`."""
+        if weights is not None:
+            if sorted(weights) != sorted(self.INT8_LAYERS):
+                raise ValueError(f"int8 weights of each of {', '.join(self.INT8_LAYERS)}, not {', '.join(weights)}")
+            for (_, w, b), name in zip(self.folded_int8_layers(), self.INT8_LAYERS):
+                weight, bias = weights[name]
+                if weight.shape != w.shape or bias.shape != b.shape:
+                    raise ValueError(
+                        f"int8 weights of {name}: {tuple(weight.shape)} and {tuple(bias.shape)}, the layer's are "
+                        f"{tuple(w.shape)} and {tuple(b.shape)}"
+                    )
+            weights = {n: (w.detach().float().clone(), b.detach().float().clone()) for n, (w, b) in weights.items()}
+        self.int8_weights = weights
 
 
 def _zxy(t: tuple[int, ...]) -> list[int]:

@@ -25,7 +25,6 @@ from co3sop_nodes.data.bags import open_reader, read_scans
 from co3sop_nodes.eval.scoring import message_counts, score_recording
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
-from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import channel_environment, channel_profiles, v2x_priority_port
 from co3sop_nodes.ros.graph import NodeSpec, answers_requests, bag_contents, car_of, describe, played_topics
@@ -203,8 +202,8 @@ def run_demo(opts: DemoOptions) -> int:
     )  # SIGTERM unwinds like Ctrl-C: the children are stopped, namespaces removed
     t0 = time.monotonic()
     checkpoint = resolve_checkpoint(opts.model, "--model")
-    path = inference_path(opts.device, opts.precision, what="--")  # refused here if the machine lacks the device
     model, _ = load_graph_model(checkpoint)  # refused here, before any node starts, if the graph cannot run it
+    path = model.ego_path(opts.device, opts.precision, what="--")  # refused here if the machine lacks the device
     sensors = model.cfg.modality
     bag = ensure_scenario(opts)
     cavs, frames = bag_contents(bag)

@@ -59,7 +59,7 @@ from co3sop_nodes.messages import (
     stamp_ns,
 )
 from co3sop_nodes.model.co3sop import VehicleOutput
-from co3sop_nodes.model.path import PRECISIONS, inference_path
+from co3sop_nodes.model.path import PRECISIONS
 from co3sop_nodes.ros.dds import (
     DIAGNOSTICS_QOS,
     OCCUPANCY_QOS,
@@ -288,7 +288,7 @@ class Ego(ManagedNode):
         # the reference paths (PyTorch warp and sampling, dense head, cloud by index arrays): the same outputs, slower;
         # for bench_graph's same-run ratios
         self.reference_paths = p["reference_paths"]
-        path = inference_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter ")
+        path = model.ego_path(p["device"], p["precision"], compiled=not self.reference_paths, what="parameter ")
         self.model = model.use(path)
         if path.int8 and not self.model.path.int8 and self.model.cfg.modality == "lidar":  # it may encode scans
             self.get_logger().warning(f"parameter precision=int8: {self.model.int8_missing()}")
