@@ -261,7 +261,7 @@ def against_pace(opts, demo_output: str, frames: int, used: list[tuple[float, in
     keep_freed_memory()  # as the demo measures
     checkpoint = resolve_checkpoint(opts.model, "--model")
     model, _ = load_graph_model(checkpoint)
-    model.use(inference_path(opts.device, opts.precision, what="--"))
+    model.use(model.ego_path(opts.device, opts.precision, what="--"))
     precision = dict(p.partition(":=")[::2] for p in opts.params).get("precision", opts.precision)
     scan = next(iter(read_scans(bag, 1)), None) if model.cfg.modality == "lidar" else None
     cost = pace.frame_cost(model, scan=scan, vehicles=vehicle_model(model, checkpoint, opts.device, precision))
