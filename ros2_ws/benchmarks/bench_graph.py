@@ -50,7 +50,6 @@ from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, export_model, load_graph_model, resolve_checkpoint
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
-from co3sop_nodes.model.path import inference_path
 from co3sop_nodes.ros import links
 from co3sop_nodes.ros.demo import vehicle_model
 from co3sop_nodes.ros.vehicle import CODEC_FIELDS

@@ -483,8 +483,8 @@ def test_evaluate_takes_every_agents_features_from_the_vehicle_model_given(stree
 
 def test_evaluate_on_auto_runs_the_vehicle_halves_as_vehicle_nodes_take_auto(street_split, tmp_path):
     """`--precision auto`: the ego's path as an ego node takes auto, the vehicle halves' as a vehicle node does (int8
-    for tiny-lidar's, tuned for it, on a CPU with an int8 unit); the table names both."""
-    ego, vehicles = (inference_path("cpu", "auto", tuned_int8=t).precision for t in (False, True))
+    for tiny-lidar's halves, both tuned for it, on a CPU with an int8 unit); the table names both."""
+    ego = vehicles = inference_path("cpu", "auto", tuned_int8=True).precision
     result = tool(
         "evaluate", "--model", str(shipped_checkpoint("tiny-lidar.pt")), "--data", str(street_split), "--splits",
         "test", "--device", "cpu", "--precision", "auto", "--ablation", "precision", "--out", str(tmp_path),

@@ -187,7 +187,8 @@ PARAMS = (
     Param(
         "precision",
         str,
-        "inference precision: auto (bfloat16 on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
+        "inference precision: auto (int8 for a head fine-tuned for it on a CPU with AVX-512 VNNI or AMX; bfloat16 "
+        "on CPUs with AMX or AVX-512 BF16 and on GPUs that have it, "
         "float16 on other GPUs, else float32), float32, bfloat16, float16, int8 (the CPU: a calibrated LiDAR "
         "model's head up to 1/2 in int8, and the vehicle halves it runs on neighbours' scans; the rest as auto)",
         "auto",
