@@ -101,7 +101,7 @@ class OccupancyHead(quantized.Int8Weights, nn.Module):
         (B, C, X/4, Y/4, Z/4) -> the 1/2 features (B, C1, X/2, Y/2, Z/2) the last stage reads. What
         quantization-aware fine-tuning trains `layers` through."""
         s = self._step_sizes()
-        (first, _, _), (second, _, _), (up, _, _), (block, _, _) = self.folded_int8_layers()
+        first, second, up, block = self.stage0[0][0], self.stage0[1][0], self.up1[0], self.up1[3][0]
 
         def conv(m, i, f):
             weight, bias = layers[i]
@@ -129,14 +129,19 @@ class OccupancyHead(quantized.Int8Weights, nn.Module):
     def octant_logits(self, f1, parents: torch.Tensor) -> torch.Tensor:
         """`full`'s logits of the 8 octants of chosen voxels at 1/2: f1 (B, C1, X/2, Y/2, Z/2), parents (B, N) flat
         indices into it -> (B, 8, K, N), octants in the transposed convolution's kernel order."""
-        b, c1 = f1.shape[:2]
-        feat = torch.gather(f1.flatten(2), 2, parents[:, None].expand(b, c1, -1))  # (B, C1, N)
-        h = torch.einsum("bcn,cdo->bodn", feat, self.up2.weight.flatten(2)) + self.up2.bias[:, None]  # (B, 8, C2, N)
+        h = self._octants(f1, parents) + self.up2.bias[:, None]  # (B, 8, C2, N)
         h = F.relu(
             torch.einsum("bocn,dc->bodn", F.relu(h), self.point2.weight[:, :, 0, 0, 0]) + self.point2.bias[:, None]
         )
         cls = self.classify[2]
         return torch.einsum("bocn,kc->bokn", h, cls.weight[:, :, 0, 0, 0]) + cls.bias[:, None]
+
+    def _octants(self, f1, parents: torch.Tensor) -> torch.Tensor:
+        """The transposed convolution to full resolution, before its bias, at the 8 octants of chosen voxels at 1/2:
+        f1 (B, C1, X/2, Y/2, Z/2), parents (B, N) flat indices into it -> (B, 8, C2, N)."""
+        b, c1 = f1.shape[:2]
+        feat = torch.gather(f1.flatten(2), 2, parents[:, None].expand(b, c1, -1))  # (B, C1, N)
+        return torch.einsum("bcn,cdo->bodn", feat, self.up2.weight.flatten(2))
 
     @torch.no_grad()
     def activations(self, x) -> list[torch.Tensor]:
@@ -266,15 +271,14 @@ class OccupancyHead(quantized.Int8Weights, nn.Module):
     def forward_at(self, x, index: torch.Tensor):
         """Logits at 1/4 and 1/2 (dense) and at full resolution for flat voxel indices (B, N) -> (B, K, N)."""
         f0, f1 = self.coarse(x)
-        b, c1, x1, y1, z1 = f1.shape
+        b, _, x1, y1, z1 = f1.shape
         fy, fz = 2 * y1, 2 * z1
         i, j, k = index // (fy * fz), (index // fz) % fy, index % fz
         parent = ((i // 2) * y1 + j // 2) * z1 + k // 2  # (B, N) flat index at 1/2
-        feat = torch.gather(f1.flatten(2), 2, parent[:, None].expand(b, c1, -1))  # (B, C1, N)
         # all 8 octants of the parent, then the voxel's own: gathering a kernel slice per voxel instead
         # makes the backward pass scatter N kernel slices into the kernel one by one
         c2 = self.up2.out_channels
-        octants = torch.einsum("bcn,cdo->bodn", feat, self.up2.weight.flatten(2))  # (B, 8, C2, N)
+        octants = self._octants(f1, parent)  # (B, 8, C2, N)
         octant = ((i % 2) * 4 + (j % 2) * 2 + k % 2)[:, None, None].expand(b, 1, c2, -1)  # (B, 1, C2, N)
         f2 = torch.gather(octants, 1, octant)[:, 0] + self.up2.bias[None, :, None]  # (B, C2, N)
         f2 = F.relu(
