@@ -16,7 +16,7 @@
  */
 #include <stdint.h>
 #include <string.h>
-#if DOT_BF16
+#if DOT_BF16 || (REDUCED && defined(__AVX512DQ__))
 #include <immintrin.h>
 #endif
 
@@ -148,16 +148,28 @@ UNROLLED
 #endif
 
 #if REDUCED
-/* 2^d for d <= 0 (logits in base 2), within 3e-6 relative: 2^d = 2^n 2^f with n = round(d) (adding 1.5 * 2^23
- * rounds d and leaves n in the sum's low mantissa bits, which a shift by 23 moves into the exponent), |f| <= 1/2,
- * 2^f by its degree-4 minimax polynomial; below 2^-126 it is clamped (negligible in the sum) */
+/* 2^f for |f| <= 1/2 by its degree-4 minimax polynomial, within 3e-6 relative */
+static inline f16 exp2_fraction(f16 f) {
+  return 0.99999928f + f * (0.69312191f + f * (0.24024744f + f * (0.05591722f + f * 0.00956987f)));
+}
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+/* 2^d for d <= 0 (logits in base 2): 2^n 2^f with n = round(d), f = d - n taken by one instruction (vreduceps) and
+ * 2^n applied by another (vscalefps, which goes to zero below the smallest float, negligible in the sum) */
+static inline f16 exp_nonpositive(f16 d) {
+  const __m512 f = _mm512_reduce_ps((__m512)d, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  return (f16)_mm512_scalef_ps((__m512)exp2_fraction((f16)f), _mm512_sub_ps((__m512)d, f));
+}
+#else
+/* 2^d for d <= 0 (logits in base 2): 2^n 2^f with n = round(d) (adding 1.5 * 2^23 rounds d and leaves n in the
+ * sum's low mantissa bits, which a shift by 23 moves into the exponent), |f| <= 1/2; below 2^-126 it is clamped
+ * (negligible in the sum) */
 static inline f16 exp_nonpositive(f16 d) {
   const f16 x = select(gt(d, (f16){0} - 126.0f), d, (f16){0} - 126.0f);
   const f16 shifted = x + 12582912.0f;
   const f16 f = x - (shifted - 12582912.0f);
-  const f16 p = 0.99999928f + f * (0.69312191f + f * (0.24024744f + f * (0.05591722f + f * 0.00956987f)));
-  return p * (f16)(((i16)shifted << 23) + 0x3F800000);
+  return exp2_fraction(f) * (f16)(((i16)shifted << 23) + 0x3F800000);
 }
+#endif
 #else
 /* exp(d) for d <= 0 within ~2e-5 relative (the confidence needs 1/255): 2^(d log2 e) = 2^i 2^f with
  * i = floor, 2^f by its Taylor series to degree 6; below 2^-126 it is clamped (negligible in the sum) */
