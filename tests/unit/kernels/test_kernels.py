@@ -13,10 +13,11 @@ from co3sop_nodes import kernels
 from co3sop_nodes.inference import pace
 from co3sop_nodes.kernels import deform as deform_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
-from co3sop_nodes.kernels.warp import compiled_available
+from co3sop_nodes.kernels.warp import compiled_available, warp_compiled
 from co3sop_nodes.model.co3sop import VehicleOutput, build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.deform_attn import DeformableAttention3d, sample_2d
+from co3sop_nodes.model.path import InferencePath
 
 
 @pytest.mark.parametrize("channels_per_head, threads", [(8, 1), (16, 1), (8, 3), (12, 1), (4, 2)])
@@ -152,6 +153,36 @@ def test_the_compiled_warp_equals_grid_sample(yaw, shift):
     torch.testing.assert_close(fast[0], ref[0].detach(), rtol=1e-5, atol=5e-5)  # features
     torch.testing.assert_close(fast[1], ref[1].detach(), rtol=1e-5, atol=1e-5)  # confidences
     assert 0.1 < ref[2].float().mean() < 0.9 and torch.equal(fast[2], ref[2])  # hybrid masks
+
+
+@torch.no_grad()
+def test_a_bfloat16_path_warps_into_bfloat16_the_float32_warp_rounded():
+    """The warp writes a bfloat16 path's features as the attention reads them: the float32 warp's values rounded to
+    nearest even, bit for bit; confidences and masks as on the float32 path."""
+    torch.manual_seed(2)
+    cfg = preset("tiny-lidar")
+    model = build_model(cfg).eval()
+    grid = cfg.feature_grid
+    ego = VehicleOutput(torch.randn(1, cfg.embed_dims, *grid.dims), torch.rand(1, 1, *grid.dims))
+    others = [VehicleOutput(torch.randn(1, cfg.embed_dims, *grid.dims), torch.rand(1, 1, *grid.dims)) for _ in range(2)]
+    rel = torch.eye(4).repeat(1, 2, 1, 1)
+    rel[0, 0, :3, 3] = torch.tensor([7.3, -4.1, 0.2])
+    rel[0, 1, :2, :2] = torch.tensor([[0.6, -0.8], [0.8, 0.6]])
+    want = model.ego.align(ego, others, rel)
+    model.use(InferencePath(precision="bfloat16"))
+    got = model.ego.align(ego, others, rel)
+    assert want[0].dtype == torch.float32 and got[0].dtype == torch.bfloat16 and got[0].shape == want[0].shape
+    assert torch.equal(got[0], want[0].bfloat16()) and got[0].abs().sum() > 0
+    assert torch.equal(got[1], want[1]) and torch.equal(got[2], want[2])
+    with pytest.raises(ValueError, match="float32 or bfloat16 features, not torch.float16"):
+        warp_compiled(
+            others[0].features,
+            others[0].confidence,
+            rel[:, 0],
+            grid,
+            1,
+            (torch.empty(*grid.dims, 32, dtype=torch.float16), torch.empty(*grid.dims)),
+        )
 
 
 def test_disabled_kernels_leave_the_pytorch_paths(monkeypatch):

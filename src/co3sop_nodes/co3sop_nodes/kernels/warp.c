@@ -3,21 +3,29 @@
  * align_corners=False) on a grid from affine_grid. Each output voxel's sampling point is affine_grid's: theta
  * applied to the voxel centre in normalised coordinates. Channels-last, a voxel's channels are contiguous: each
  * output voxel is 8 corners x C multiply-adds, accumulated in registers. Also the sum of the in-bounds corners'
- * weights: the warp of a volume of ones, from which the warp mask is read.
+ * weights: the warp of a volume of ones, from which the warp mask is read. The features are written in float32, or
+ * for a bfloat16 path rounded to bfloat16 (to nearest even, as PyTorch converts) by warp_trilinear_bf16: the
+ * attention reads them so, and one pass over them is saved.
  */
 #include <math.h>
 #include <stdint.h>
 
 #define MAX_FEATURES 256
 
-/* Output voxels [start, end): their cf feature channels into dst, the confidence into last and the in-bounds
- * weight into filled. Inlined with cf a constant where the caller's is one (the presets' 32, 48 and 128), so that a
- * voxel's accumulators live in registers. */
+static inline uint16_t to_bf16(float f) {
+  union { float f; uint32_t u; } x = {f};
+  return (uint16_t)((x.u + 0x7FFFu + ((x.u >> 16) & 1u)) >> 16);  /* finite inputs: round to nearest even */
+}
+
+/* Output voxels [start, end): their cf feature channels into dst (float32, or bfloat16 where `bf16`), the confidence
+ * into last and the in-bounds weight into filled. Inlined with cf and bf16 constants where the caller's are (the
+ * presets' 32, 48 and 128 channels), so that a voxel's accumulators live in registers. */
 static inline __attribute__((always_inline)) void warp_voxels(const float *restrict src, const float *restrict conf_src,
                                                                int64_t nx, int64_t ny, int64_t nz, const int64_t cf,
                                                                const float *restrict theta, const float *restrict base,
-                                                               float *restrict dst, float *restrict last,
-                                                               float *restrict filled, int64_t start, int64_t end) {
+                                                               void *restrict dst, const int bf16,
+                                                               float *restrict last, float *restrict filled,
+                                                               int64_t start, int64_t end) {
   for (int64_t v = start; v < end; ++v) {
     const int64_t i = v / (ny * nz), j = v / nz % ny, l = v % nz;
     const float bx = base[i], by = base[nx + j], bz = base[nx + ny + l];
@@ -44,11 +52,25 @@ static inline __attribute__((always_inline)) void warp_voxels(const float *restr
         sum += w;
       }
     }
-    for (int64_t k = 0; k < cf; ++k) dst[v * cf + k] = acc[k];
+    if (bf16)
+      for (int64_t k = 0; k < cf; ++k) ((uint16_t *)dst)[v * cf + k] = to_bf16(acc[k]);
+    else
+      for (int64_t k = 0; k < cf; ++k) ((float *)dst)[v * cf + k] = acc[k];
     last[v] = conf;
     filled[v] = sum;
   }
 }
+
+/* the cases compiled apart: the presets' channel counts, then any C */
+#define WARP_CASES(bf16)                                                                           \
+  if (c == 32)                                                                                     \
+    warp_voxels(src, conf_src, nx, ny, nz, 32, theta, base, dst, bf16, last, filled, start, end);  \
+  else if (c == 48)                                                                                \
+    warp_voxels(src, conf_src, nx, ny, nz, 48, theta, base, dst, bf16, last, filled, start, end);  \
+  else if (c == 128)                                                                               \
+    warp_voxels(src, conf_src, nx, ny, nz, 128, theta, base, dst, bf16, last, filled, start, end); \
+  else                                                                                             \
+    warp_voxels(src, conf_src, nx, ny, nz, c, theta, base, dst, bf16, last, filled, start, end);
 
 /* src: (X, Y, Z, C) the features, channels-last, and conf_src (X, Y, Z) the confidence; theta: (3, 4) affine_grid's
  * matrix, rows and columns in grid_sample's (w, h, d) = (z, y, x) order; base: affine_grid's voxel centres in
@@ -57,12 +79,13 @@ static inline __attribute__((always_inline)) void warp_voxels(const float *restr
 void warp_trilinear(const float *restrict src, const float *restrict conf_src, int64_t nx, int64_t ny, int64_t nz,
                     int64_t c, const float *restrict theta, const float *restrict base, float *restrict dst,
                     float *restrict last, float *restrict filled, int64_t start, int64_t end) {
-  if (c == 32)
-    warp_voxels(src, conf_src, nx, ny, nz, 32, theta, base, dst, last, filled, start, end);
-  else if (c == 48)
-    warp_voxels(src, conf_src, nx, ny, nz, 48, theta, base, dst, last, filled, start, end);
-  else if (c == 128)
-    warp_voxels(src, conf_src, nx, ny, nz, 128, theta, base, dst, last, filled, start, end);
-  else
-    warp_voxels(src, conf_src, nx, ny, nz, c, theta, base, dst, last, filled, start, end);
+  WARP_CASES(0)
+}
+
+/* warp_trilinear with dst (V, C) bfloat16 */
+void warp_trilinear_bf16(const float *restrict src, const float *restrict conf_src, int64_t nx, int64_t ny,
+                         int64_t nz, int64_t c, const float *restrict theta, const float *restrict base,
+                         uint16_t *restrict dst, float *restrict last, float *restrict filled, int64_t start,
+                         int64_t end) {
+  WARP_CASES(1)
 }

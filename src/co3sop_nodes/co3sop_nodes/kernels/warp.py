@@ -66,11 +66,12 @@ def _base_grid(*dims: int) -> np.ndarray:
 
 
 @cache
-def _kernel():
+def _kernel(bfloat16: bool = False):
+    """The warp writing its features in float32, or with `bfloat16` rounded to bfloat16."""
     lib = kernels.load("warp")
     if lib is None:
         return None
-    fn = lib.warp_trilinear
+    fn = lib.warp_trilinear_bf16 if bfloat16 else lib.warp_trilinear
     fn.argtypes, fn.restype = (
         [*[ctypes.c_void_p] * 2, *[ctypes.c_int64] * 4, *[ctypes.c_void_p] * 5, ctypes.c_int64, ctypes.c_int64],
         None,
@@ -92,8 +93,10 @@ def warp_compiled(
     out: tuple[torch.Tensor, torch.Tensor] | None = None,
 ):
     """`warp_with_mask` of one CPU volume's features (1, C, X, Y, Z) and confidence (1, 1, X, Y, Z), channels-last
-    out: warped features (X, Y, Z, C), confidence (X, Y, Z) and warp mask (X, Y, Z). `out`: contiguous float32 tensors
-    of those shapes to write the features and confidence into (a fusion's stack of neighbours), fresh ones otherwise."""
+    out: warped features (X, Y, Z, C), confidence (X, Y, Z) and warp mask (X, Y, Z). `out`: contiguous tensors of
+    those shapes to write the features and confidence into (a fusion's stack of neighbours), fresh float32 ones
+    otherwise; features in float32, or bfloat16 (the float32 warp rounded to nearest even, as `.bfloat16()` rounds
+    it), the confidence in float32."""
     _, c, nx, ny, nz = features.shape
     if c > MAX_FEATURES:
         raise ValueError(f"warp_compiled: {c} channels, above the kernel's {MAX_FEATURES}")
@@ -102,8 +105,10 @@ def warp_compiled(
     src = kernels.array(transposed(features[0].reshape(c, -1), threads))  # (X*Y*Z, C): channels-last
     conf_src = kernels.array(confidence.reshape(-1))  # (X*Y*Z,)
     warped, conf = out if out is not None else (torch.empty(nx, ny, nz, c), torch.empty(nx, ny, nz))
+    if warped.dtype not in (torch.float32, torch.bfloat16) or conf.dtype != torch.float32:
+        raise ValueError(f"warp_compiled: writes float32 or bfloat16 features, not {warped.dtype}")
     filled = np.empty((nx, ny, nz), np.float32)
-    fn = _kernel()
+    fn = _kernel(warped.dtype == torch.bfloat16)
     kernels.parallel(
         fn,
         (

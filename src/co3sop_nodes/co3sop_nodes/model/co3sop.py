@@ -148,13 +148,15 @@ class EgoHalf(nn.Module):
         return VehicleOutput(features, confidence)
 
     def align(self, ego: VehicleOutput, others: list[VehicleOutput], neighbour_from_ego: torch.Tensor):
-        """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z)."""
+        """Warped features (B, A, C, X, Y, Z), confidences (B, A, X, Y, Z) and hybrid masks (B, A, X, Y, Z); the
+        features in bfloat16 where the compiled warp serves a bfloat16 path, else float32."""
         fg = self.cfg.feature_grid
         if self.path.kernels(ego.features) and len(ego.features) == 1 and compiled_available():
-            # inference on the CPU: the compiled warp, channels-last (the attention reads the features so), each
-            # neighbour written in place into the stack
+            # inference on the CPU: the compiled warp, channels-last (the attention reads the features so) and on a
+            # bfloat16 path in bfloat16 (as the attention reads them), each neighbour written in place into the stack
             threads, a = torch.get_num_threads(), len(others)
-            feats = torch.empty(1, a, *fg.dims, self.cfg.embed_dims)  # (1, A, X, Y, Z, C)
+            dtype = torch.bfloat16 if self.path.float_dtype == torch.bfloat16 else torch.float32
+            feats = torch.empty(1, a, *fg.dims, self.cfg.embed_dims, dtype=dtype)  # (1, A, X, Y, Z, C)
             confs = torch.empty(1, a, *fg.dims)
             filled = torch.stack(
                 [
