@@ -16,7 +16,7 @@
  */
 #include <stdint.h>
 #include <string.h>
-#if DOT_BF16 || (REDUCED && defined(__AVX512DQ__))
+#if defined(__AVX512F__)
 #include <immintrin.h>
 #endif
 
@@ -92,6 +92,13 @@ static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]
 static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]) {
   for (int k = 0; k < 2; ++k) out[k] = select(HALF0, (f16){0} + a[k], (f16){0} + b[k]);
 }
+#endif
+
+/* the larger of a and b per lane (either, where equal) */
+#if defined(__AVX512F__)
+static inline f16 vmax(f16 a, f16 b) { return (f16)_mm512_max_ps((__m512)a, (__m512)b); }
+#else
+static inline f16 vmax(f16 a, f16 b) { return select(gt(b, a), b, a); }
 #endif
 
 static inline f16 relu(f16 v) { return (f16)((i16)v & gt(v, (f16){0})); }
@@ -286,7 +293,7 @@ UNROLLED
 UNROLLED
       for (int q = 0; q + width < K; q += 2 * width) {
         const i16 later = gt(val[q + width], val[q]);
-        val[q] = select(later, val[q + width], val[q]);
+        val[q] = vmax(val[q], val[q + width]);
         idx[q] = (later & idx[q + width]) | (~later & idx[q]);
       }
     f16 part[4] = {{0}, {0}, {0}, {0}};
