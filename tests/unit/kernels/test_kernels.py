@@ -130,9 +130,10 @@ def test_the_3d_sampler_reads_bfloat16_values_and_projections_as_their_float32_w
     assert got.any() and torch.equal(got, want)
 
 
-@pytest.mark.parametrize("yaw, shift", [(0.3, (7.3, -4.1, 0.2)), (-2.0, (-20.5, 13.7, -0.4))])
-def test_the_compiled_warp_equals_grid_sample(yaw, shift):
-    torch.manual_seed(1)
+def warp_scene(seed: int, yaw: float, shift: tuple[float, float, float]):
+    """tiny-lidar's model, random ego and 2 neighbours' outputs, the first neighbour turned by `yaw` and moved by
+    `shift`, the second moved back by it: (model, ego, others, neighbour_from_ego (1, 2, 4, 4))."""
+    torch.manual_seed(seed)
     cfg = preset("tiny-lidar")
     model = build_model(cfg).eval()
     grid = cfg.feature_grid
@@ -143,6 +144,12 @@ def test_the_compiled_warp_equals_grid_sample(yaw, shift):
     rel[0, 0, :2, :2] = torch.tensor([[c, -s], [s, c]])
     rel[0, 0, :3, 3] = torch.tensor(shift)
     rel[0, 1, :3, 3] = -torch.tensor(shift)
+    return model, ego, others, rel
+
+
+@pytest.mark.parametrize("yaw, shift", [(0.3, (7.3, -4.1, 0.2)), (-2.0, (-20.5, 13.7, -0.4))])
+def test_the_compiled_warp_equals_grid_sample(yaw, shift):
+    model, ego, others, rel = warp_scene(1, yaw, shift)
     with torch.no_grad():
         fast = model.ego.align(ego, others, rel)
     with torch.enable_grad():
@@ -159,15 +166,8 @@ def test_the_compiled_warp_equals_grid_sample(yaw, shift):
 def test_a_bfloat16_path_warps_into_bfloat16_the_float32_warp_rounded():
     """The warp writes a bfloat16 path's features as the attention reads them: the float32 warp's values rounded to
     nearest even, bit for bit; confidences and masks as on the float32 path."""
-    torch.manual_seed(2)
-    cfg = preset("tiny-lidar")
-    model = build_model(cfg).eval()
-    grid = cfg.feature_grid
-    ego = VehicleOutput(torch.randn(1, cfg.embed_dims, *grid.dims), torch.rand(1, 1, *grid.dims))
-    others = [VehicleOutput(torch.randn(1, cfg.embed_dims, *grid.dims), torch.rand(1, 1, *grid.dims)) for _ in range(2)]
-    rel = torch.eye(4).repeat(1, 2, 1, 1)
-    rel[0, 0, :3, 3] = torch.tensor([7.3, -4.1, 0.2])
-    rel[0, 1, :2, :2] = torch.tensor([[0.6, -0.8], [0.8, 0.6]])
+    model, ego, others, rel = warp_scene(2, 0.9, (7.3, -4.1, 0.2))
+    grid = model.cfg.feature_grid
     want = model.ego.align(ego, others, rel)
     model.use(InferencePath(precision="bfloat16"))
     got = model.ego.align(ego, others, rel)
