@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.kernels.transpose import channels_first_float32
 from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
 from co3sop_nodes.model.backbone import ResNet
 from co3sop_nodes.model.config import ModelConfig, WireConfig
@@ -85,7 +86,7 @@ class VehicleHalf(nn.Module):
             out = self._forward(images, lidar2img, occupancy)
         # one copy each (widened and made contiguous together) where the path computed another layout or precision
         features, confidence = (
-            t.to(torch.float32, memory_format=torch.contiguous_format) for t in (out.features, out.confidence)
+            channels_first_float32(t, torch.get_num_threads()) for t in (out.features, out.confidence)
         )
         return VehicleOutput(features, confidence, self.encode(features, confidence))
 
