@@ -11,13 +11,9 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "bfloat16.h"
 #include "nonzero.h"
 #include "quantize.h"
-
-static inline uint16_t to_bf16(float f) {
-  union { float f; uint32_t u; } x = {f};
-  return (uint16_t)((x.u + 0x7FFFu + ((x.u >> 16) & 1u)) >> 16);  /* finite inputs: round to nearest even */
-}
 
 /* occupancy (X, Y, Z) uint8, nonzero = occupied; w (3, 3, 3, C) taps, bias (C,) -> out (X2, Y2, Z2, C) for output
  * x-slabs [start, end), X2 = ceil(X / 2) and so on, output voxel (x, y, z) at element x sx + y sy + z sz (its C

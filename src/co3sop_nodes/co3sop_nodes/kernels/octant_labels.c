@@ -16,6 +16,8 @@
  */
 #include <stdint.h>
 #include <string.h>
+
+#include "bfloat16.h"
 #if defined(__AVX512F__)
 #include <immintrin.h>
 #endif
@@ -107,13 +109,7 @@ static inline f16 relu(f16 v) { return (f16)((i16)v & gt(v, (f16){0})); }
 #if !(PARENTS_BF16 || PARENTS_U8) || C2 % 2
 #error "DOT_BF16 needs bfloat16 or uint8 parents and an even C2"
 #endif
-/* x rounded to bfloat16 (to nearest, ties to even, as the hardware's conversions): its bits */
-static inline uint32_t bf16_bits(float x) {
-  uint32_t b;
-  memcpy(&b, &x, 4);
-  return (b + 0x7FFF + ((b >> 16) & 1)) >> 16;
-}
-static inline uint32_t bf16_pair(float lo, float hi) { return bf16_bits(lo) | bf16_bits(hi) << 16; }
+static inline uint32_t bf16_pair(float lo, float hi) { return to_bf16(lo) | (uint32_t)to_bf16(hi) << 16; }
 
 /* relu(a) and relu(b) as lanes of bfloat16 pairs, a's in the low halves: the conversion puts a's 16 lanes in the
  * low half of the vector and b's in the high half, the permutation interleaves them */
@@ -236,7 +232,7 @@ void octant_labels(const parent_t *restrict parents, int64_t sx, int64_t sy, int
   }
 #if PARENTS_U8
   uint16_t u8_bf16[256];
-  for (int v = 0; v < 256; ++v) u8_bf16[v] = (uint16_t)bf16_bits((float)v);
+  for (int v = 0; v < 256; ++v) u8_bf16[v] = to_bf16((float)v);
 #endif
 #endif
   int64_t px = start / (y1 * z1), py = (start / z1) % y1, pz = start % z1;

@@ -10,12 +10,9 @@
 #include <math.h>
 #include <stdint.h>
 
-#define MAX_FEATURES 256
+#include "bfloat16.h"
 
-static inline uint16_t to_bf16(float f) {
-  union { float f; uint32_t u; } x = {f};
-  return (uint16_t)((x.u + 0x7FFFu + ((x.u >> 16) & 1u)) >> 16);  /* finite inputs: round to nearest even */
-}
+#define MAX_FEATURES 256
 
 /* Output voxels [start, end): their cf feature channels into dst (float32, or bfloat16 where `bf16`), the confidence
  * into last and the in-bounds weight into filled. Inlined with cf and bf16 constants where the caller's are (the
