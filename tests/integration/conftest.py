@@ -6,9 +6,18 @@ import os
 
 import pytest
 import rclpy
-from executables import Processes
+from executables import CALL_FAILED, Processes
 
 from co3sop_nodes.ros.supervisor import Supervisor
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Whether the test itself failed, for fixtures that say more at teardown (`call_failed`)."""
+    report = yield
+    if report.when == "call":
+        item.stash[CALL_FAILED] = report.failed
+    return report
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -10,9 +10,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from ament_index_python.packages import get_package_prefix
 
 HERE = Path(__file__).resolve().parent
+CALL_FAILED = pytest.StashKey[bool]()  # set by conftest.py's report hook
+
+
+def call_failed(request: pytest.FixtureRequest) -> bool:
+    """In a fixture's teardown: whether its test failed (to say more about it, e.g. the nodes' logs)."""
+    return request.node.stash.get(CALL_FAILED, False)
 
 
 def executable(name: str) -> str:

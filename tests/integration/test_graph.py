@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 from ament_index_python.packages import get_package_share_directory
-from executables import executable
+from executables import call_failed, executable
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
@@ -44,6 +44,9 @@ FRAMES = 4
 # the ego fuses (and vehicles encode) every frame, waiting for every neighbour, whatever the machine keeps up with:
 # the offline comparisons need them all
 EVERY_FRAME = ("-p", "stay_current:=false", "-p", "max_pending:=1000")
+# an ego of those waits for each neighbour's frame however late it comes (a neighbour slow to send its first frame
+# on a starved CPU would be silent after neighbour_timeout, and the bag's frames fused without it)
+EGO_WAITS = ("-p", "max_wait:=60.0", "-p", "neighbour_timeout:=60.0")
 # a vehicle's frame waits this long for the ego's map of it: long enough for a starved CPU (the map comes as soon as
 # the ego has its own frame; a wait that ran out would answer an older map)
 REQUEST_WAIT_S = 30.0
@@ -108,12 +111,20 @@ class Graph:
                 proc.kill()
         self.supervisor.close()
 
+    def print_logs(self, lines: int = 40) -> None:
+        """The last `lines` of every node's log (with the test's report: what a failure in CI leaves to go by)."""
+        for name in self.procs:
+            tail = self.log(name).splitlines()[-lines:]
+            print(f"--- {name} (exit {self.procs[name].returncode}), its last {len(tail)} lines:", *tail, sep="\n")
+
 
 @pytest.fixture
-def graph(tmp_path):
+def graph(tmp_path, request):
     g = Graph(tmp_path)
     yield g
     g.close()
+    if call_failed(request):
+        g.print_logs()
 
 
 @pytest.fixture(scope="module")
@@ -171,8 +182,7 @@ def run_graph(
         "--ros-args",
         "-p",
         f"ego_id:={cavs[0]}",
-        "-p",
-        "max_wait:=60.0",
+        *EGO_WAITS,
         *EVERY_FRAME,
         *CAMERA,
         *FLOAT32,
@@ -332,9 +342,7 @@ def test_lidar_scans_cross_dds_and_the_ego_encodes_them_as_their_senders(graph, 
     scans, mcap = "/cav_.*/voxel_scan", graph.folder / "run.mcap"
     recorded = (scans, re.escape(topics.EGO_OCCUPANCY), re.escape(topics.DIAGNOSTICS), r"/cav_\d+/ground_truth/\w+")
     graph.start("recorder", executable("recorder"), "--out", str(mcap), "--topics", *recorded)
-    graph.start(
-        "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar
-    )
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *EGO_WAITS, *EVERY_FRAME, *lidar)
     for c in cavs:
         send = ("codec.dtype:=float32", "codec.compression:=none") if c == ego else ("send:=scan",)
         args = [x for p in send for x in ("-p", p)]
@@ -506,17 +514,14 @@ def test_two_egos_each_get_answers_to_their_own_requests(graph, scenario):
     checkpoint = Path(get_package_share_directory("co3sop_nodes"), "checkpoints", "tiny-lidar.pt")
     lidar = ["-p", f"checkpoint:={checkpoint}"]
     dense = ["-p", "codec.dtype:=float32", "-p", "codec.compression:=none"]
-    graph.start(
-        "ego_a", executable("ego"), "--ros-args", "-p", f"ego_id:={a}", "-p", "max_wait:=60.0", *EVERY_FRAME, *lidar
-    )
+    graph.start("ego_a", executable("ego"), "--ros-args", "-p", f"ego_id:={a}", *EGO_WAITS, *EVERY_FRAME, *lidar)
     graph.start(
         "ego_b",
         executable("ego"),
         "--ros-args",
         "-p",
         f"ego_id:={b}",
-        "-p",
-        "max_wait:=60.0",
+        *EGO_WAITS,
         *EVERY_FRAME,
         *lidar,
         "-r",
@@ -641,9 +646,7 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
     lidar = tmp_path / "lidar.pt"
     torch.manual_seed(0)
     export_model(lidar, build_model(preset("tiny-lmscnet")), {"made_by": "test: random weights"})
-    graph.start(
-        "ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", "-p", "max_wait:=60.0", *EVERY_FRAME, *CAMERA
-    )
+    graph.start("ego", executable("ego"), "--ros-args", "-p", f"ego_id:={ego}", *EGO_WAITS, *EVERY_FRAME, *CAMERA)
     graph.start("camera", executable("vehicle"), "--id", str(ego), "--ros-args", *EVERY_FRAME, *CAMERA)
     graph.start(
         "lidar",
@@ -686,8 +689,7 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
         "--ros-args",
         "-p",
         f"ego_id:={ego}",
-        "-p",
-        "max_wait:=60.0",
+        *EGO_WAITS,
         *EVERY_FRAME,
         *manual,
         *CAMERA,
@@ -833,8 +835,7 @@ def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
         "--ros-args",
         "-p",
         f"ego_id:={ego}",
-        "-p",
-        "max_wait:=60.0",
+        *EGO_WAITS,
         *EVERY_FRAME,
         *lidar,
         "-r",

@@ -84,14 +84,15 @@ class Supervisor:
 
     # --- waiting ---
 
-    def wait(self, what: str, ready: Callable[[], bool], timeout: float) -> None:
-        """Until `ready()`; Co3sopError naming `what` after `timeout` s or as soon as the graph cannot go on."""
+    def wait(self, what: str, ready: Callable[[], bool], timeout: float, seen: Callable[[], str] | None = None) -> None:
+        """Until `ready()`; Co3sopError naming `what` after `timeout` s (and what came instead: `seen()`) or as soon
+        as the graph cannot go on."""
         deadline = time.monotonic() + timeout
         while not ready():
             if (why := self._alive()) is not None:
                 raise Co3sopError(f"{why} (while waiting for {what})")
             if time.monotonic() > deadline:
-                raise Co3sopError(f"waited {timeout:g} s for {what}, in vain")
+                raise Co3sopError(f"waited {timeout:g} s for {what}, in vain" + (f": {seen()}" if seen else ""))
             time.sleep(0.05)
 
     def _call(self, service_type, service: str, request, timeout: float, resend: float | None = None):
@@ -174,8 +175,18 @@ class Supervisor:
     def wait_reports(
         self, status: str, n: int, timeout: float, where: Callable[[dict[str, str]], bool] = lambda r: True
     ) -> list[dict]:
-        """At least `n` reports of `status` satisfying `where`; returns all of them."""
+        """At least `n` reports of `status` satisfying `where`; returns all of them. The error of a wait in vain says
+        how many came, how many of them would do, and the last one's values."""
+
+        def seen() -> str:
+            got = self.reports(status)
+            last = ", ".join(f"{k}={v}" for k, v in got[-1].items()) if got else ""
+            return f"{len(got)} came, {sum(map(where, got))} of them as wanted" + (f"; the last: {last}" if got else "")
+
         self.wait(
-            f"{n} /diagnostics reports of {status!r}", lambda: sum(map(where, self.reports(status))) >= n, timeout
+            f"{n} /diagnostics reports of {status!r}",
+            lambda: sum(map(where, self.reports(status))) >= n,
+            timeout,
+            seen,
         )
         return self.reports(status)
