@@ -114,9 +114,8 @@ class DeformableAttention3d(nn.Module):
             voxels = values.to(self.path.float_dtype).permute(0, 1, 3, 4, 5, 2)  # (B, A, X, Y, Z, C)
             v = self.path.linear(voxels, self.value.weight, self.value.bias)
         threads = torch.get_num_threads()
-        return torch.stack(
-            [deform_kernel.sample_3d(v[i], reference[i], offsets[i], logits[i], mask[i], threads) for i in range(b)]
-        )
+        out = [deform_kernel.sample_3d(v[i], reference[i], offsets[i], logits[i], mask[i], threads) for i in range(b)]
+        return out[0][None] if b == 1 else torch.stack(out)  # a batch of one (a node's frame): a view, not a copy
 
     def _present(self, linear: nn.Linear, x: torch.Tensor, a: int) -> torch.Tensor:
         """`linear` (outputs ordered by head, slot, then within a slot) of x (..., C) for the first `a` slots only:

@@ -37,6 +37,13 @@ def _block(cin: int, cout: int) -> ConvNorm:
     return ConvNorm(nn.Conv3d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm3d(cout), nn.ReLU(inplace=True))
 
 
+def _batched(pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample (labels, confidence) as (B, ...) batches: a batch of one (a node's frame) as views, not copies."""
+    if len(pairs) == 1:
+        return pairs[0][0][None], pairs[0][1][None]
+    return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
+
+
 class OccupancyHead(quantized.Int8Weights, nn.Module):
     # the activations an int8 path quantizes: the fused features (signed), then each layer's output after its ReLU
     ACTIVATIONS = ("input", "stage0.0", "stage0.1", "up1", "up1.3")
@@ -228,7 +235,7 @@ class OccupancyHead(quantized.Int8Weights, nn.Module):
                 octant_kernel.octant_labels(p, self.up2, self.point2, self.classify[2], threads, "int8", scale)
                 for p in parents
             ]
-            return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
+            return _batched(pairs)
         with self.path.autocast():
             parents = self.parents(x)  # (B, X1, Y1, Z1, C1)
         b, x1, y1, z1 = parents.shape[:4]
@@ -245,7 +252,7 @@ class OccupancyHead(quantized.Int8Weights, nn.Module):
                 )
                 for p in parents
             ]
-            return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
+            return _batched(pairs)
         parents = parents.float().reshape(b, -1, c1)  # (B, P, C1), flat (x, y, z) order
         up_w = self.up2.weight.flatten(2).permute(0, 2, 1).reshape(c1, 8 * c2)  # (C1, 8*C2): octant-major
         up_b = self.up2.bias.repeat(8)  # (8*C2,)
