@@ -84,11 +84,17 @@ class Graph:
         for node in nodes:
             self.supervisor.wait_state(node, "active", timeout=180)
 
-    def wait_discovered(self, neighbours: list[int], topic=topics.voxel_features) -> None:
-        """The ego subscribes to every neighbour's `topic` (as the demo waits before playing): otherwise it fuses a
-        first frame alone."""
-        for c in neighbours:
-            self.supervisor.wait_subscribed("/ego", topic(c))
+    def wait_linked(self, cavs: list[int], topic=topics.voxel_features, ego: str = "ego") -> None:
+        """Every CAV's `topic` linked at both ends by the nodes' own account (their links status, as the demo waits
+        before playing): the ego matched to the vehicle's publisher (or it fuses a first frame without it) and the
+        vehicle's publisher to the ego's reader (a frame it sends before that is lost)."""
+        sup = self.supervisor
+        for c in cavs:
+            sup.wait(
+                f"{topic(c)} linked from vehicle cav_{c} to {ego}",
+                lambda t=topic(c), c=c: sup.linked(ego, receives=[t]) and sup.linked(f"vehicle cav_{c}", sends=[t]),
+                60,
+            )
 
     def wait_fused(self, n: int, where=lambda report: True, timeout: float = 180, ego: str = "ego") -> list[dict]:
         """The /diagnostics reports of the ego whose status is `ego` (its node's name) once `n` satisfy `where`."""
@@ -201,7 +207,7 @@ def run_graph(
             *[x for p in vehicle_params for x in ("-p", p)],
         )
     graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
-    graph.wait_discovered(cavs[1:])
+    graph.wait_linked(cavs)
     # every topic of the nodes' that the recorder records, taken before the first frame: the recorder subscribes as
     # it discovers a publisher, and a topic it takes late has lost its first messages (volatile)
     patterns = [re.compile(f"^{t}$") for t in (recorded or DEFAULT_TOPICS)]
@@ -348,7 +354,8 @@ def test_lidar_scans_cross_dds_and_the_ego_encodes_them_as_their_senders(graph, 
         args = [x for p in send for x in ("-p", p)]
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *EVERY_FRAME, *lidar, *args)
     graph.wait_active("/ego", *map(topics.vehicle_node, cavs))
-    graph.wait_discovered(cavs[1:], topics.voxel_scan)
+    graph.wait_linked([ego])
+    graph.wait_linked(cavs[1:], topics.voxel_scan)
     assert "scans 256x256x24 -> /cav_" in graph.log(f"vehicle{cavs[1]}")
     graph.supervisor.wait_subscribed("/recorder", topics.EGO_OCCUPANCY)
     played = ["/tf_static"] + [
@@ -616,7 +623,7 @@ def test_ego_keeps_publishing_when_a_vehicle_dies(graph, scenario):
     for c in (ego, neighbour):
         graph.start(f"vehicle{c}", executable("vehicle"), "--id", str(c), "--ros-args", *CAMERA)
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
-    graph.wait_discovered([neighbour])
+    graph.wait_linked([ego, neighbour])
     for topic in ("/diagnostics", "/ego/occupancy"):  # recorded from the first frame on, as the demo makes sure
         graph.supervisor.wait_subscribed("/recorder", topic)
     played = ["/tf_static"] + [
@@ -661,7 +668,7 @@ def test_ego_fuses_a_lidar_vehicle_beside_a_camera_one(graph, scenario, tmp_path
         "modality:=lidar",
     )
     graph.wait_active("/ego", topics.vehicle_node(ego), topics.vehicle_node(neighbour))
-    graph.wait_discovered([neighbour])
+    graph.wait_linked([ego, neighbour])
     assert "tiny-lmscnet (lidar" in graph.log("lidar")
     played = [
         "/tf_static",
@@ -731,7 +738,7 @@ def test_vehicle_and_ego_follow_the_node_lifecycle(graph, scenario):
 
     for node in nodes:
         assert sup.change(node, "activate") and sup.state(node) == "active"
-    graph.wait_discovered([ego, neighbour])
+    graph.wait_linked([ego, neighbour])
     played = ["/tf_static"] + [
         f"/cav_{c}/{s}"
         for c in (ego, neighbour)
@@ -871,8 +878,14 @@ def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
     )
     graph.wait_active("/fleet/ego", "/fleet/car_a/vehicle", topics.vehicle_node(neighbour))
     sup = graph.supervisor
-    for topic in ("/fleet/car_a/voxel_features", "/v2x/any_name"):
-        sup.wait_subscribed("/fleet/ego", topic)
+    for topic, vehicle in (("/fleet/car_a/voxel_features", ego), ("/v2x/any_name", neighbour)):
+        sup.wait(
+            f"{topic} linked",
+            lambda t=topic, v=vehicle: (
+                sup.linked("fleet/ego", receives=[t]) and sup.linked(f"vehicle cav_{v}", sends=[t])
+            ),
+            60,
+        )
     assert (
         sup.node.count_publishers("/fleet/ego/occupancy") == 1 and sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
     )

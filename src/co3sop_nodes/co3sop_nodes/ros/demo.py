@@ -25,7 +25,6 @@ from co3sop_nodes.data.bags import open_reader, read_scans
 from co3sop_nodes.eval.scoring import message_counts, score_recording
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import DEFAULT_MODEL, load_graph_model, resolve_checkpoint
-from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import channel_environment, channel_profiles, v2x_priority_port
 from co3sop_nodes.ros.graph import NodeSpec, answers_requests, bag_contents, car_of, describe, played_topics
 from co3sop_nodes.ros.supervisor import Supervisor
@@ -299,12 +298,6 @@ def frames_accounted(supervisor: Supervisor, ego: NodeSpec) -> int:
     )
 
 
-def links_up(supervisor: Supervisor, status: str, wanted: list[str]) -> bool:
-    """The node whose status is `status` has matched a publisher on every topic of `wanted` (its links status)."""
-    reports = supervisor.reports(status + links.SUFFIX)
-    return bool(reports) and all(links.matched_publishers(reports[-1]).get(t, 0) > 0 for t in wanted)
-
-
 class QuietMedium:
     """Callable for Supervisor.wait: the shared medium carried less than `share` of its rate over the last `window`
     s. What the nodes send as they start crosses the medium too (among it ROS's graph information, the user data
@@ -398,8 +391,9 @@ def _graph(
     try:
         say("configuring the nodes (each loads the model), then activating them")
         supervisor.bring_up(list(nodes))
-        # every link up as its receiver sees it: each ego matched to every vehicle's features or scans (or it fuses
-        # that neighbour's first frames without it), each vehicle that answers request maps to every other car's ego's
+        # every link up as each end sees it: each ego matched to every vehicle's features or scans (or it fuses that
+        # neighbour's first frames without it) and each vehicle's to a reader (what it sends before is lost), each
+        # vehicle that answers request maps to every other car's ego's
         sent = {
             v.parameters["id"]: topics.voxel_scan if v.parameters.get("send") == "scan" else topics.voxel_features
             for v in graph.vehicles
@@ -416,10 +410,14 @@ def _graph(
             for v in graph.vehicles:
                 if v.parameters["id"] != own and answers_requests(v):
                     needs.setdefault(f"vehicle cav_{v.parameters['id']}", []).append(request)
+        sends = {
+            f"vehicle cav_{c}": [sent[c](c), *([topics.local_features(c)] if every else [])]
+            for c in (v.parameters["id"] for v in graph.vehicles)
+        }
         supervisor.wait_subscribed("/recorder", topics.DIAGNOSTICS)
         supervisor.wait(
             "every V2X link up (each ego matched to every vehicle, each vehicle to every other ego)",
-            lambda: all(links_up(supervisor, status, wanted) for status, wanted in needs.items()),
+            lambda: all(supervisor.linked(s, needs.get(s, ()), sends.get(s, ())) for s in {*needs, *sends}),
             timeout=120,
         )
         if channel and opts.channel_shared:

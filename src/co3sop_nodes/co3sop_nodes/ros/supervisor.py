@@ -21,6 +21,7 @@ from rclpy.executors import SingleThreadedExecutor
 
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.ros import links
 from co3sop_nodes.ros.dds import DIAGNOSTICS_QOS, configure_environment
 
 
@@ -164,6 +165,16 @@ class Supervisor:
 
     def wait_published(self, node: str, topic: str, timeout: float = 60) -> None:
         self.wait(f"{node} publishing on {topic}", lambda: self.publishes(node, topic), timeout)
+
+    def linked(self, status: str, receives: list[str] = (), sends: list[str] = ()) -> bool:
+        """By the node's own account (its latest links status, ros/links.py; `status`: its /diagnostics status name):
+        it has matched a publisher on every topic of `receives` and a subscriber on every topic of `sends`. This
+        supervisor's own view of the graph says an endpoint exists, not that the node's participant has matched it."""
+        reports = self.reports(status + links.SUFFIX)
+        if not reports:
+            return False
+        pubs, subs = links.matched_publishers(reports[-1]), links.matched_subscribers(reports[-1])
+        return all(pubs.get(t, 0) > 0 for t in receives) and all(subs.get(t, 0) > 0 for t in sends)
 
     # --- what the nodes report ---
 

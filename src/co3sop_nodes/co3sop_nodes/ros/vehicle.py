@@ -424,7 +424,8 @@ class Vehicle(ManagedNode):
             self._request_subs[name] = subscribe_foreign(
                 self, RequestMap, name, lambda msg, t=name: self._on_request(t, msg), REQUEST_QOS, self.drops
             )
-        publish_links(self, self._diag, f"vehicle cav_{self.agent_id}", self.lidar_frame, self._request_subs)
+        sent = {p.topic_name: p for p in (self._pub, self._local) if p is not None}
+        publish_links(self, self._diag, f"vehicle cav_{self.agent_id}", self.lidar_frame, self._request_subs, sent)
 
     def _release_request(self, topic: str) -> None:
         """`topic`'s request maps no longer subscribed."""
