@@ -15,7 +15,7 @@ import torch
 
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
-from co3sop_nodes.kernels import half_float, quantized_add, visible_voxels
+from co3sop_nodes.kernels import half_float, point_occupancy, quantized_add, visible_voxels
 from co3sop_nodes.kernels import layer_norm as layer_norm_kernel
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
@@ -76,9 +76,9 @@ def predict_frame(
 
 
 def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
-    """Compile (or load from the cache) the CPU kernels `model`'s inference and the feature codec use, and with
-    `points` the point cloud's (an ego's picture of its prediction), so that no frame waits for a compiler: nodes
-    call it before they say they are ready. The kernels that compiled, by name."""
+    """Compile (or load from the cache) the CPU kernels `model`'s inputs (a LiDAR scan's binning), its inference and
+    the feature codec use, and with `points` the point cloud's (an ego's picture of its prediction), so that no frame
+    waits for a compiler: nodes call it before they say they are ready. The kernels that compiled, by name."""
     cfg = model.cfg
     _, c1, c2 = cfg.head_channels  # the last stage: 1/2 -> full resolution
     precision = model.path.floats
@@ -87,7 +87,9 @@ def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
     )
     if cfg.modality == "camera":
         kernels["image sampling"] = lambda: deform_kernel.available(cfg.embed_dims // cfg.image_attention.heads)
-    elif cfg.lidar.kind == "sscnet" and model.path.reduced:
+    else:
+        kernels["scan binning"] = point_occupancy.available
+    if cfg.modality == "lidar" and cfg.lidar.kind == "sscnet" and model.path.reduced:
         encoder = model.vehicle.encoder
         kernels["scan's first layer"] = lambda: occupancy_kernel.available(cfg.lidar.channels // 2, encoder.first_dtype)
         if model.path.int8:
