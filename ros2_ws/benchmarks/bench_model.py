@@ -36,7 +36,7 @@ from co3sop_nodes.common.allocation import keep_freed_memory
 from co3sop_nodes.data.bags import read_scans
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import load_model, shipped_checkpoint
-from co3sop_nodes.inference.inputs import lidar_occupancy
+from co3sop_nodes.inference.inputs import lidar_occupancy, lidar_occupancy_reference
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.kernels.warp import warp_compiled, warp_with_mask
@@ -175,6 +175,31 @@ def bag_scans(bag: Path, grid, count: int = 12) -> list[torch.Tensor]:
     if not scans:
         raise SystemExit(f"bench_model: error: {bag} holds no PointCloud2 scan")
     return scans
+
+
+def binning_table(bag: Path, repeats: int) -> str:
+    """A LiDAR vehicle's first step: the bag's first 12 scans binned into `tiny-lidar`'s grid, one a call in turn, by
+    NumPy's definition and by the compiled kernel (the same voxels, checked), alternating."""
+    grid = preset("tiny-lidar").grid
+    scans = read_scans(bag, 12)
+    if not scans:
+        raise SystemExit(f"bench_model: error: {bag} holds no PointCloud2 scan")
+    for points in scans:
+        assert np.array_equal(lidar_occupancy(points, grid), lidar_occupancy_reference(points, grid))
+    groups = {
+        name: {"bin": lambda fn=fn, turn=itertools.cycle(scans): fn(next(turn), grid)}
+        for name, fn in (("NumPy", lidar_occupancy_reference), ("compiled", lidar_occupancy))
+    }
+    times = alternated(groups, repeats)
+    numpy_s, compiled_s = times["NumPy", "bin"], times["compiled", "bin"]
+    return "\n".join(
+        [
+            "| points a scan (mean) | grid | NumPy ms | compiled ms | NumPy / compiled |",
+            "|---:|---|---:|---:|---:|",
+            f"| {np.mean([len(s) for s in scans]):.0f} | {'x'.join(map(str, grid.dims))} | {1e3 * numpy_s:.3f} | "
+            f"{1e3 * compiled_s:.3f} | {numpy_s / compiled_s:.1f}x |",
+        ]
+    )
 
 
 @torch.no_grad()
@@ -522,6 +547,9 @@ def main() -> None:
         "--head", action="store_true", help="only the head to labels: dense reference, PyTorch loop, compiled kernel"
     )
     parser.add_argument(
+        "--binning", action="store_true", help="only a LiDAR scan's binning into the grid (--bag's scans), one thread"
+    )
+    parser.add_argument(
         "--roofline",
         action="store_true",
         help="only this CPU's measured peak (one thread), each shipped model's FLOPs and GFLOP/s per stage against "
@@ -547,6 +575,13 @@ def main() -> None:
         parts = [
             "### The fusion's queries padded to a multiple of query_rows against none (tiny-lidar, one thread)",
             query_rows_table(opts.bag, opts.query_rows),
+        ]
+    elif opts.binning:
+        if opts.bag is None:
+            parser.error("--binning needs --bag (its scans)")
+        parts = [
+            f"### A LiDAR scan binned into its grid (median of {opts.repeats}, one call a scan)",
+            binning_table(opts.bag, opts.repeats),
         ]
     elif opts.head:
         parts = [
