@@ -1,6 +1,7 @@
 """Foundation benchmark: payload codecs and DDS one-way latency.
 
     ros2_ws/benchmarks/bench_codec_dds.py [--repeats 5] [--messages 100] [--out FILE.md]
+    ros2_ws/benchmarks/bench_codec_dds.py --tables BAG [--repeats 30]
 
 Run with the workspace environment (`. ros2_ws/env.sh`). Prints markdown tables:
 
@@ -12,6 +13,10 @@ Run with the workspace environment (`. ros2_ws/env.sh`). Prints markdown tables:
 2. DDS one-way latency p50 / p95 between two processes for 64 KB, 1 MB and 4 MB
    messages, Fast DDS defaults vs the shipped profile, and their ratio (measured
    in the same run, since these machines are noisy).
+
+With --tables BAG, only the payloads the demo's nodes compress each frame, made by the shipped models on the bag's
+first LiDAR scan (one thread): zstd's own tables for the payload's size against the shipped setting's (at most
+2^TABLE_LOG entries, `v2x/codec.py`), bytes and compression time alternating.
 """
 
 from __future__ import annotations
@@ -25,13 +30,28 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from timing import timed
+import torch
+import zstandard
+from timing import alternated, timed
 
 from co3sop_nodes.common.classes import NUM_CLASSES
 from co3sop_nodes.common.grid import BENCHMARK_RANGES, GridSpec
 from co3sop_nodes.data import synthetic
+from co3sop_nodes.data.bags import read_scans
 from co3sop_nodes.eval.codec_settings import STANDARD_FEATURE_SETTINGS
-from co3sop_nodes.v2x.codec import decode_features, decode_labels, encode_features, encode_labels
+from co3sop_nodes.inference import pace
+from co3sop_nodes.inference.checkpoint import load_graph_model, shipped_checkpoint
+from co3sop_nodes.inference.predict import predict_frame
+from co3sop_nodes.v2x.codec import (
+    TABLE_LOG,
+    FeatureCodecConfig,
+    compress_payload,
+    decode_features,
+    decode_labels,
+    encode_features,
+    encode_labels,
+)
+from co3sop_nodes.v2x.scan import ScanCodecConfig
 
 HERE = Path(__file__).resolve().parent
 FEATURE_GRID = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))
@@ -79,6 +99,63 @@ def codec_tables(repeats: int) -> str:
     return "\n".join(rows)
 
 
+def real_payloads(bag: Path) -> dict[str, tuple[bytes, int]]:
+    """name -> (raw bytes, zstd level) of what the demo's nodes compress each frame, from the shipped models on the
+    bag's first scan: a LiDAR vehicle's features and confidence (float16, dense: the default codec), the ego's
+    labels and confidence, a scan as a vehicle sends it (its bits), a camera vehicle's features."""
+    scans = read_scans(bag, 1)
+    if not scans:
+        raise SystemExit(f"bench_codec_dds: error: {bag} holds no PointCloud2 scan")
+    lidar, _ = load_graph_model(shipped_checkpoint("tiny-lidar.pt"))
+    lidar.use(lidar.ego_path("auto", "auto"))
+    camera, _ = load_graph_model(shipped_checkpoint("tiny.pt"))
+    camera.use(camera.vehicle_path("auto", "auto"))
+    inputs = pace.shaped_inputs(lidar, scan=scans[0])
+    with torch.inference_mode():
+        out = lidar.vehicle(**inputs)
+        pred = predict_frame(lidar, out, np.eye(4), pace.shaped_neighbours(out))
+        seen = camera.vehicle(**pace.shaped_inputs(camera))
+    occupied = inputs["occupancy"][0, 0].cpu().numpy().astype(bool)
+    level, labels = FeatureCodecConfig().level, 1  # encode_labels' default level
+    return {
+        "tiny-lidar features": (out.features.numpy().astype(np.float16).tobytes(), level),
+        "tiny-lidar confidence": (out.confidence.numpy().astype(np.float16).tobytes(), level),
+        "ego labels": (np.ascontiguousarray(pred.labels).tobytes(), labels),
+        "ego confidence": (np.ascontiguousarray(pred.confidence).tobytes(), labels),
+        "scan": (
+            np.packbits(occupied.transpose(2, 0, 1).reshape(-1), bitorder="little").tobytes(),
+            ScanCodecConfig().level,
+        ),
+        "tiny features": (seen.features.numpy().astype(np.float16).tobytes(), level),
+    }
+
+
+def tables_table(bag: Path, repeats: int) -> str:
+    torch.set_num_threads(1)
+    rows = [
+        f"| payload | raw KB | level | zstd's tables: KB | ms | tables of 2^{TABLE_LOG} (shipped): KB | ms | "
+        "bytes: shipped / zstd's | time: zstd's / shipped |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, (raw, level) in real_payloads(bag).items():
+
+        def zstd_tables(raw=raw, level=level):
+            return zstandard.ZstdCompressor(level=level, write_checksum=True, write_content_size=True).compress(raw)
+
+        def shipped(raw=raw, level=level):
+            return compress_payload(raw, "zstd", level)
+
+        sizes = {k: len(fn()) for k, fn in (("zstd", zstd_tables), ("shipped", shipped))}
+        times = alternated({"zstd": {"c": zstd_tables}, "shipped": {"c": shipped}}, repeats)
+        t_zstd, t_shipped = times["zstd", "c"], times["shipped", "c"]
+        rows.append(
+            f"| {name} | {len(raw) / 1024:.0f} | {level} | {sizes['zstd'] / 1024:.1f} | {1e3 * t_zstd:.2f} | "
+            f"{sizes['shipped'] / 1024:.1f} | {1e3 * t_shipped:.2f} | {sizes['shipped'] / sizes['zstd']:.4f} | "
+            f"{t_zstd / t_shipped:.2f}x |"
+        )
+    return "\n".join(rows)
+
+
 def dds_latency(size: int, count: int, profile: str) -> list[float]:
     peer = str(HERE / "dds_latency_peer.py")
     with tempfile.TemporaryDirectory() as tmp:
@@ -120,9 +197,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timing repeats per codec setting")
     parser.add_argument("--messages", type=int, default=100, help="messages per DDS latency cell")
     parser.add_argument("--out", type=Path, help="also write the tables to this markdown file")
+    parser.add_argument("--tables", type=Path, metavar="BAG", help="only zstd's tables on real payloads (module doc)")
     opts = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
-    text = "\n\n".join(["### Codecs", codec_tables(opts.repeats), "### DDS one-way latency", dds_table(opts.messages)])
+    if opts.tables:
+        text = "\n\n".join(["### zstd's tables on the payloads of a frame", tables_table(opts.tables, opts.repeats)])
+    else:
+        text = "\n\n".join(
+            ["### Codecs", codec_tables(opts.repeats), "### DDS one-way latency", dds_table(opts.messages)]
+        )
     print(text)
     if opts.out:
         opts.out.write_text(text + "\n")

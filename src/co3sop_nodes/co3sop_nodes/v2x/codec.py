@@ -231,12 +231,31 @@ def check_choice(what: str, value: str, known) -> None:
         raise UnknownCodecError(f"unknown {what} {value!r} (known: {', '.join(known)})")
 
 
+# zstd's match-finder tables at most 2^12 entries (16 KB each, within a core's cache) instead of its defaults for a
+# megabyte input (2^17 and 2^16 at level 3): feature volumes, label grids and scans repeat little at long range, and
+# the small tables compress them as well or a little better, 10-15 % faster (BENCHMARKS.md, "zstd's tables")
+TABLE_LOG = 12
+
+
 def compress_payload(raw: bytes, codec: str, level: int) -> bytes:
     if codec == "none" or not raw:
         return bytes(raw)
     # The content size lets a receiver check the frame before decompressing;
     # the checksum catches corruption inside blocks stored raw.
-    return zstandard.ZstdCompressor(level=level, write_checksum=True, write_content_size=True).compress(raw)
+    return zstandard.ZstdCompressor(compression_params=_zstd_parameters(level, len(raw))).compress(raw)
+
+
+def _zstd_parameters(level: int, size: int) -> zstandard.ZstdCompressionParameters:
+    """`level`'s parameters for a payload of `size` bytes, its tables capped at TABLE_LOG."""
+    chosen = zstandard.ZstdCompressionParameters.from_level(level, source_size=size)
+    return zstandard.ZstdCompressionParameters.from_level(
+        level,
+        source_size=size,
+        hash_log=min(chosen.hash_log, TABLE_LOG),
+        chain_log=min(chosen.chain_log, TABLE_LOG),
+        write_checksum=1,
+        write_content_size=1,
+    )
 
 
 def decompress_payload(payload, codec: str, declared: int, expected: int, field: str, max_raw_bytes: int) -> bytes:
