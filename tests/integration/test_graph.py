@@ -85,14 +85,18 @@ class Graph:
             self.supervisor.wait_state(node, "active", timeout=180)
 
     def wait_linked(self, cavs: list[int], topic=topics.voxel_features, ego: str = "ego") -> None:
-        """Every CAV's `topic` linked at both ends by the nodes' own account (their links status, as the demo waits
-        before playing): the ego matched to the vehicle's publisher (or it fuses a first frame without it) and the
-        vehicle's publisher to the ego's reader (a frame it sends before that is lost)."""
+        """Every CAV's `topic` linked at both ends (`wait_links`)."""
+        self.wait_links({c: topic(c) for c in cavs}, ego)
+
+    def wait_links(self, links: dict[int, str], ego: str = "ego") -> None:
+        """Each vehicle's topic in `links` linked at both ends by the nodes' own account (their links status, as the
+        demo waits before playing): the ego matched to the vehicle's publisher (or it fuses a first frame without it)
+        and the vehicle's publisher to the ego's reader (a frame it sends before that is lost)."""
         sup = self.supervisor
-        for c in cavs:
+        for c, t in links.items():
             sup.wait(
-                f"{topic(c)} linked from vehicle cav_{c} to {ego}",
-                lambda t=topic(c), c=c: sup.linked(ego, receives=[t]) and sup.linked(f"vehicle cav_{c}", sends=[t]),
+                f"{t} linked from vehicle cav_{c} to {ego}",
+                lambda t=t, c=c: sup.linked(ego, receives=[t]) and sup.linked(f"vehicle cav_{c}", sends=[t]),
                 60,
             )
 
@@ -877,15 +881,8 @@ def test_namespaces_and_remapping_apply_to_every_node_topic(graph, scenario):
         "voxel_features:=/v2x/any_name",
     )
     graph.wait_active("/fleet/ego", "/fleet/car_a/vehicle", topics.vehicle_node(neighbour))
+    graph.wait_links({ego: "/fleet/car_a/voxel_features", neighbour: "/v2x/any_name"}, ego="fleet/ego")
     sup = graph.supervisor
-    for topic, vehicle in (("/fleet/car_a/voxel_features", ego), ("/v2x/any_name", neighbour)):
-        sup.wait(
-            f"{topic} linked",
-            lambda t=topic, v=vehicle: (
-                sup.linked("fleet/ego", receives=[t]) and sup.linked(f"vehicle cav_{v}", sends=[t])
-            ),
-            60,
-        )
     assert (
         sup.node.count_publishers("/fleet/ego/occupancy") == 1 and sup.node.count_publishers(topics.EGO_OCCUPANCY) == 0
     )

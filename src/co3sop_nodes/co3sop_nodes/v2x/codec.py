@@ -248,11 +248,14 @@ def compress_payload(raw: bytes, codec: str, level: int) -> bytes:
 def _zstd_parameters(level: int, size: int) -> zstandard.ZstdCompressionParameters:
     """`level`'s parameters for a payload of `size` bytes, its tables capped at TABLE_LOG."""
     chosen = zstandard.ZstdCompressionParameters.from_level(level, source_size=size)
-    return zstandard.ZstdCompressionParameters.from_level(
-        level,
-        source_size=size,
+    return zstandard.ZstdCompressionParameters(
+        window_log=chosen.window_log,
         hash_log=min(chosen.hash_log, TABLE_LOG),
         chain_log=min(chosen.chain_log, TABLE_LOG),
+        search_log=chosen.search_log,
+        min_match=chosen.min_match,
+        target_length=chosen.target_length,
+        strategy=chosen.strategy,
         write_checksum=1,
         write_content_size=1,
     )
