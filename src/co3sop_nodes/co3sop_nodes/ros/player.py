@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from operator import itemgetter
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -25,6 +26,7 @@ from rosgraph_msgs.msg import Clock
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.data.bags import open_reader
+from co3sop_nodes.data.playback import paced
 from co3sop_nodes.messages import time_msg
 from co3sop_nodes.ros.dds import flush_publishers, spin_node
 from co3sop_nodes.ros.message_types import RCLPY, message_class
@@ -69,10 +71,6 @@ class Player(Node):
         self._duration_ns = self._reader.end_time - self._reader.start_time
         self._loops = 0
         self.published = 0
-        self.get_logger().info(
-            f"playing {opts.bag}: {len(conns)} topics, {self._duration_ns / 1e9:.1f} s at rate {opts.rate}"
-            + (" (looping)" if opts.loop else "")
-        )
 
     def close(self) -> None:
         self._reader.close()
@@ -86,20 +84,22 @@ class Player(Node):
     def play(self) -> None:
         """Publishes the bag (once, or forever with --loop) in real time scaled by --rate; /clock once per bag time
         (a frame's messages share theirs: one clock message, not one per message)."""
+        opts = self._opts
+        self.get_logger().info(
+            f"playing {opts.bag}: {len(self._conns)} topics, {self._duration_ns / 1e9:.1f} s at rate {opts.rate}"
+            + (" (looping)" if opts.loop else "")
+        )
         clock = None
         while True:
-            wall0 = time.monotonic()
-            for conn, stamp, raw in self._reader.messages(connections=self._conns, start=self._start_ns):
-                delay = (stamp - self._start_ns) / 1e9 / self._opts.rate - (time.monotonic() - wall0)
-                if delay > 0:
-                    time.sleep(delay)
+            messages = self._reader.messages(connections=self._conns, start=self._start_ns)
+            for conn, stamp, raw in paced(messages, itemgetter(1), opts.rate, self._start_ns):
                 now = stamp + self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
                 if now != clock:
                     self._clock.publish(Clock(clock=time_msg(RCLPY, now)))
                     clock = now
                 self._pubs[conn.id].publish(bytes(raw))
                 self.published += 1
-            if not self._opts.loop:
+            if not opts.loop:
                 break
             self._loops += 1
         flush_publishers(self, self._pubs.values())
