@@ -1,7 +1,12 @@
 """The player's pace: recorded stamps scaled by the rate, counted from the first message read (no DDS, a fake
 clock)."""
 
-from co3sop_nodes.data.playback import paced
+import threading
+
+import pytest
+
+from co3sop_nodes.common.errors import DatasetError
+from co3sop_nodes.data.playback import ReadAhead, paced
 
 MS = 1_000_000
 
@@ -53,3 +58,56 @@ def test_a_reader_behind_its_schedule_sends_at_once_and_catches_up():
     out, t = played([0, 100 * MS, 200 * MS, 300 * MS], read_s=0.15)
     assert [t for _, t in out] == [0.0, 0.15, 0.3, 0.45]
     assert t.sleeps == []
+
+
+def test_read_ahead_yields_every_message_in_order_and_stays_within_its_bound():
+    read = []
+
+    def source():
+        for i in range(50):
+            read.append(i)
+            yield i
+
+    ahead = ReadAhead(source(), size=5)
+    ahead.fill()
+    # full: the queue's 5, and at most the one the reader holds while it waits for room
+    assert 5 <= len(read) <= 6
+    assert list(ahead) == list(range(50))
+
+
+def test_read_ahead_fill_returns_when_the_source_is_shorter_than_the_queue():
+    with ReadAhead(iter([1, 2]), size=100) as ahead:
+        ahead.fill(timeout=10)
+        assert list(ahead) == [1, 2]
+
+
+def test_read_ahead_raises_the_source_error_where_the_messages_stop():
+    def source():
+        yield 1
+        raise DatasetError("bag.mcap: a truncated chunk")
+
+    got = []
+    with pytest.raises(DatasetError, match="truncated chunk"):
+        for m in ReadAhead(source(), size=10):
+            got.append(m)
+    assert got == [1]
+
+
+def test_read_ahead_closed_early_stops_its_reader():
+    def endless():
+        i = 0
+        while True:
+            yield i
+            i += 1
+
+    ahead = ReadAhead(endless(), size=3)
+    for m in ahead:
+        if m == 10:
+            break
+    ahead.close()
+    assert not any(t.name == "read-ahead" and t.is_alive() for t in threading.enumerate())
+
+
+def test_read_ahead_needs_room_for_one_message():
+    with pytest.raises(ValueError, match="at least 1"):
+        ReadAhead(iter([]), size=0)

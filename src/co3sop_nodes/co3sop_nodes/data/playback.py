@@ -1,18 +1,87 @@
-"""A bag's messages at their recorded pace, scaled by a rate (ROS-free: the player publishes what it yields).
+"""A bag's messages at their recorded pace, scaled by a rate, read ahead of it (ROS-free: the player publishes
+what `paced` yields).
 
-The schedule starts when the first message is in hand, not when reading starts: opening a bag's first chunk
-takes milliseconds (more on a loaded machine), and a schedule started before it would send the first frame late
-and the second on time, closer to the first than the bag's period, bunching the graph's busiest frame, its
-first, with the next.
+Reading is not on the schedule's path: a thread reads the bag into a bounded queue (`ReadAhead`, as `ros2 bag
+play` reads ahead into its own), and playing starts once that queue is full or the bag read. A chunk read from
+disk takes milliseconds and, on a shared disk, now and then hundreds: read in turn with publishing, one slow
+read holds back every message after it and then sends them in a burst, several frames at once, which a graph
+at its sensors' rate cannot take. The schedule starts when the first message is in hand, so the first frame is
+not sent late and the second on time, bunched with it.
 """
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 M = TypeVar("M")
+
+_END = object()  # the source is exhausted
+
+
+class ReadAhead(Generic[M]):
+    """Iterates `messages` read on a thread of its own, at most `size` messages ahead of the consumer; the
+    source's exception, if it raises, is raised to the consumer where the messages stop. `close()` (or the end of
+    iteration) stops the thread; use as a context manager."""
+
+    def __init__(self, messages: Iterable[M], size: int):
+        if size < 1:
+            raise ValueError(f"read-ahead size {size}: at least 1")
+        self._queue: queue.Queue = queue.Queue(maxsize=size)
+        self._stop = threading.Event()
+        self._done = threading.Event()  # the source is exhausted or failed: nothing more will be queued
+        self._thread = threading.Thread(target=self._read, args=(iter(messages),), name="read-ahead", daemon=True)
+        self._thread.start()
+
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _read(self, messages: Iterator[M]) -> None:
+        try:
+            for message in messages:
+                if not self._put(message):
+                    return
+            self._put(_END)
+        except BaseException as exc:  # raised again on the consumer's side
+            self._put(exc)
+        finally:
+            self._done.set()
+
+    def fill(self, timeout: float | None = None) -> None:
+        """Waits until the queue is full or the source is read (at most `timeout` s)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._done.is_set() and not self._queue.full():
+            if deadline is not None and time.monotonic() >= deadline:
+                return
+            self._done.wait(0.01)
+
+    def __iter__(self) -> Iterator[M]:
+        try:
+            while (item := self._queue.get()) is not _END:
+                if isinstance(item, BaseException):
+                    raise item
+                yield item
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def __enter__(self) -> ReadAhead[M]:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def paced(

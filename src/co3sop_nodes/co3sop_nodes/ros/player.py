@@ -1,9 +1,11 @@
 """`player`: replay a rosbag2 bag (ours, or converted from OPV2V) onto its topics, with /clock.
 
-    ros2 run co3sop_nodes player BAG [--rate 1.0] [--start 0.0] [--loop] [--topics T ...]
+    ros2 run co3sop_nodes player BAG [--rate 1.0] [--start 0.0] [--loop] [--topics T ...] [--read-ahead-queue-size N]
 
 Messages go out raw (the bag's CDR bytes, never deserialised) at their
-recorded times scaled by --rate, after skipping the first --start seconds;
+recorded times scaled by --rate, after skipping the first --start seconds,
+read from the bag on a thread of their own up to --read-ahead-queue-size
+messages ahead (data/playback.py), so a slow read never holds frames back;
 /clock carries the bag time as the messages reach it (once per time: a frame's
 messages share one), so nodes with use_sim_time follow the bag. Each topic
 keeps the QoS it was recorded with (latched /tf_static stays latched). At the end of the bag the player exits, or starts
@@ -26,7 +28,7 @@ from rosgraph_msgs.msg import Clock
 from co3sop_nodes.common import topics
 from co3sop_nodes.common.errors import DatasetError
 from co3sop_nodes.data.bags import open_reader
-from co3sop_nodes.data.playback import paced
+from co3sop_nodes.data.playback import ReadAhead, paced
 from co3sop_nodes.messages import time_msg
 from co3sop_nodes.ros.dds import flush_publishers, spin_node
 from co3sop_nodes.ros.message_types import RCLPY, message_class
@@ -92,13 +94,15 @@ class Player(Node):
         clock = None
         while True:
             messages = self._reader.messages(connections=self._conns, start=self._start_ns)
-            for conn, stamp, raw in paced(messages, itemgetter(1), opts.rate, self._start_ns):
-                now = stamp + self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
-                if now != clock:
-                    self._clock.publish(Clock(clock=time_msg(RCLPY, now)))
-                    clock = now
-                self._pubs[conn.id].publish(bytes(raw))
-                self.published += 1
+            with ReadAhead(messages, opts.read_ahead_queue_size) as ahead:
+                ahead.fill()
+                for conn, stamp, raw in paced(ahead, itemgetter(1), opts.rate, self._start_ns):
+                    now = stamp + self._loops * (self._duration_ns + 1)  # the clock keeps going forward when looping
+                    if now != clock:
+                        self._clock.publish(Clock(clock=time_msg(RCLPY, now)))
+                        clock = now
+                    self._pubs[conn.id].publish(bytes(raw))
+                    self.published += 1
             if not opts.loop:
                 break
             self._loops += 1
@@ -114,6 +118,12 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
     parser.add_argument("--topics", nargs="*", default=[], help="only these topics (default: all)")
     parser.add_argument(
+        "--read-ahead-queue-size",
+        type=int,
+        default=1000,
+        help="messages read from the bag ahead of playing them (playing starts once that many are read)",
+    )
+    parser.add_argument(
         "--wait-subscribers",
         type=float,
         default=0.0,
@@ -123,6 +133,8 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.rate <= 0:
         parser.error("--rate must be positive")
+    if opts.read_ahead_queue_size < 1:
+        parser.error("--read-ahead-queue-size must be at least 1")
 
     def make() -> Node:
         player = Player(opts)
