@@ -94,13 +94,16 @@ def pairs(text: str) -> dict[int, int]:
     return {int(a): int(b) for a, b in (x.split(":") for x in text.split(",") if x)}
 
 
-def measure(mcap: Path) -> dict:
-    return measure_diagnostics(read_recording(mcap).diagnostics)
+def measure(mcap: Path, rate: float | None = None) -> dict:
+    return measure_diagnostics(read_recording(mcap).diagnostics, rate=rate)
 
 
-def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: str = "ego") -> dict:
+def measure_diagnostics(
+    diagnostics: dict[str, list[dict[str, str]]], status: str = "ego", rate: float | None = None
+) -> dict:
     """Bytes, latency, transport share, CPU and stage times from the nodes' /diagnostics (status name -> reports),
-    of the ego whose status is named `status` ("cav_3/ego" where every CAV runs one)."""
+    of the ego whose status is named `status` ("cav_3/ego" where every CAV runs one); with the `rate` the bag was
+    played at, how late its frames reached the vehicles."""
     ego = diagnostics[status]
     own = diagnostics.get(f"vehicle cav_{ego[-1]['received_wall_ns'].split(':')[0]}", [{}]) if ego else [{}]
     vehicles = {
@@ -143,7 +146,16 @@ def measure_diagnostics(diagnostics: dict[str, list[dict[str, str]]], status: st
             for a, v in sorted(vehicles.items())
         }
     )
+    # each frame's sensors against the bag's pace: when its first input reached a vehicle, less its stamp over the
+    # rate, from the run's earliest (ms; the latest vehicle's): a player or a machine that held frames back
+    arrival = {}
+    for v in vehicles.values() if rate else ():
+        for s, d in v.items():
+            arrival[s] = max(arrival.get(s, -np.inf), int(d["first_input_wall_ns"]) - s / rate)
+    late = np.array([arrival[s] for s in sorted(arrival)])
+    late = (late - late.min()) / 1e6 if len(late) else late
     return {
+        "inputs_late_ms": (float(np.median(late)), float(late.max()), int(late.argmax()) + 1) if len(late) else None,
         "bytes_per_agent_frame": float(np.mean(sizes)) if sizes else 0.0,
         "latency_ms_p50": float(np.percentile(latency, 50)),
         "latency_ms_p95": float(np.percentile(latency, 95)),
@@ -210,7 +222,7 @@ def sweep(demo: Path, opts) -> int:
         done, out = run_demo(demo, opts, f"rate-{rate:g}", ["--rate", f"{rate:g}"], complete=False)
         frames = int(re.search(r": (\d+) frames;", done.stdout).group(1))
         recorded = re.search(r"the recording holds (?:all )?(\d+)", done.stdout + done.stderr)
-        r = measure(out / "demo.mcap")
+        r = measure(out / "demo.mcap", rate)
         cpu, wall = r["cpu_ms_per_frame"], r["wall_ms_per_frame"]
         if r["frames"] == frames and done.returncode == 0:
             kept_up.append(rate)
@@ -233,6 +245,12 @@ def sweep(demo: Path, opts) -> int:
             + (
                 f"; own frames skipped before #{', #'.join(map(str, r['ego_skipped_before']))}"
                 if r["ego_skipped_before"]
+                else ""
+            )
+            + (
+                "\n  the sensors' arrival at the vehicles against the bag's pace (ms late, from the earliest): "
+                "p50 {:.0f}, max {:.0f} (frame #{} of those encoded)".format(*r["inputs_late_ms"])
+                if r["inputs_late_ms"]
                 else ""
             )
             + "\n  CPU of the first 3 frames (ms): "
