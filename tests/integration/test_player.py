@@ -49,13 +49,24 @@ def test_player_replays_ground_truth_to_monitor(processes, bag):
         assert re.search(r"n=2\b", lines[-1]), lines[-1]
 
 
-def test_the_clock_goes_out_once_per_bag_time_and_forward(processes, peer, bag):
-    """A frame's messages share their bag time: one /clock message for them, not one per message."""
+@pytest.mark.parametrize("read_ahead", ["1000", "1"])
+def test_the_clock_goes_out_once_per_bag_time_and_forward(processes, peer, bag, read_ahead):
+    """A frame's messages share their bag time: one /clock message for them, not one per message; whatever the
+    read-ahead queue holds (one message: the reader waits for room before each), every message is played."""
     clocks, received = [], []
     peer.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec), 100)
     for topic in TOPICS:  # the player waits for these subscriptions, made after the clock's
         peer.create_subscription(SemanticOccupancy, topic, received.append, 10)
-    player = processes.start(executable("player"), str(bag), "--topics", *TOPICS, "--wait-subscribers", "20")
+    player = processes.start(
+        executable("player"),
+        str(bag),
+        "--topics",
+        *TOPICS,
+        "--wait-subscribers",
+        "20",
+        "--read-ahead-queue-size",
+        read_ahead,
+    )
     deadline = time.monotonic() + 60
     while (player.poll() is None or len(received) < 4) and time.monotonic() < deadline:
         rclpy.spin_once(peer, timeout_sec=0.05)
@@ -69,3 +80,10 @@ def test_player_explains_a_missing_bag(tmp_path):
         [executable("player"), str(tmp_path / "nothing")], capture_output=True, text=True, timeout=60
     )
     assert result.returncode == 2 and "not a rosbag2 bag" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_player_refuses_an_empty_read_ahead_queue(bag):
+    result = subprocess.run(
+        [executable("player"), str(bag), "--read-ahead-queue-size", "0"], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2 and "--read-ahead-queue-size" in result.stderr and "Traceback" not in result.stderr
