@@ -29,7 +29,9 @@ from co3sop_nodes.viz.cloud import occupancy_cloud
 # The graph's CPU a frame over the work measured here: DDS, the nodes' message conversions, the player and the
 # recorder writing. bench_graph measured 1.55 on an AVX-512 BF16 CPU at 1.0 and 1.29-1.54 on one with half its
 # bfloat16 throughput (the higher in a slow spell): a ratio, as the overheads scale with the machine
-# (BENCHMARKS.md, "The demo's rate on a CPU with half the bfloat16 throughput").
+# (BENCHMARKS.md, "The demo's rate on a CPU with half the bfloat16 throughput"). On AMD's family 26, with int8 nodes
+# whose work shrinks more than the nodes' own costs, 1.51-2.39, while the graph fused every frame at 78-88 % of the
+# cores, above UTILISATION: HEADROOM, their ratio, held there ("The player reads ahead").
 OVERHEAD = 1.55
 # The share of the cores the graph may keep busy on average and still fuse every frame: its processes wake together
 # at each frame, and a slow spell of a shared machine costs a frame. On 2 cores, with the nodes' memory reserved at
