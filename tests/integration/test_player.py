@@ -87,3 +87,12 @@ def test_player_refuses_an_empty_read_ahead_queue(bag):
         [executable("player"), str(bag), "--read-ahead-queue-size", "0"], capture_output=True, text=True, timeout=60
     )
     assert result.returncode == 2 and "--read-ahead-queue-size" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(("start", "error"), [("60", "is past its last message"), ("-1", "--start must be at least 0")])
+def test_player_explains_a_start_outside_the_bag(bag, start, error):
+    """A start past the bag's end plays nothing (with --loop, forever): refused, as a negative one is."""
+    result = subprocess.run(
+        [executable("player"), str(bag), "--start", start, "--loop"], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2 and error in result.stderr and "Traceback" not in result.stderr, result.stderr

@@ -71,6 +71,11 @@ class Player(Node):
         self._clock = self.create_publisher(Clock, topics.CLOCK, 10)
         self._start_ns = self._reader.start_time + int(opts.start * 1e9)
         self._duration_ns = self._reader.end_time - self._reader.start_time
+        if self._start_ns >= self._reader.end_time:  # nothing to play (and, looping, nothing to wait for)
+            self._reader.close()
+            raise DatasetError(
+                f"{opts.bag}: --start {opts.start:g} s is past its last message ({self._duration_ns / 1e9:.1f} s in)"
+            )
         self._loops = 0
         self.published = 0
 
@@ -133,6 +138,8 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(remove_ros_args(argv)[1:])
     if opts.rate <= 0:
         parser.error("--rate must be positive")
+    if opts.start < 0:
+        parser.error("--start must be at least 0 s")
     if opts.read_ahead_queue_size < 1:
         parser.error("--read-ahead-queue-size must be at least 1")
 
