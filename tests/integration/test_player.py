@@ -89,10 +89,21 @@ def test_player_refuses_an_empty_read_ahead_queue(bag):
     assert result.returncode == 2 and "--read-ahead-queue-size" in result.stderr and "Traceback" not in result.stderr
 
 
-@pytest.mark.parametrize(("start", "error"), [("60", "is past its last message"), ("-1", "--start must be at least 0")])
-def test_player_explains_a_start_outside_the_bag(bag, start, error):
-    """A start past the bag's end plays nothing (with --loop, forever): refused, as a negative one is."""
+@pytest.mark.parametrize(
+    ("start", "topics", "error"),
+    [
+        ("60", [], "is past its last message"),
+        ("-1", [], "--start must be at least 0"),
+        # the mounts are latched at the bag's start: from its second frame on, nothing of that topic is left
+        ("0.05", ["--topics", "/tf_static"], "no message of the topics played at or after --start 0.05 s"),
+    ],
+)
+def test_player_explains_a_start_outside_the_bag(bag, start, topics, error):
+    """A start past what is played plays nothing (with --loop, forever): refused, as a negative one is."""
     result = subprocess.run(
-        [executable("player"), str(bag), "--start", start, "--loop"], capture_output=True, text=True, timeout=60
+        [executable("player"), str(bag), "--start", start, "--loop", *topics],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert result.returncode == 2 and error in result.stderr and "Traceback" not in result.stderr, result.stderr

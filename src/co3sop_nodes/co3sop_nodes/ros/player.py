@@ -98,6 +98,7 @@ class Player(Node):
         )
         clock = None
         while True:
+            before = self.published
             messages = self._reader.messages(connections=self._conns, start=self._start_ns)
             with ReadAhead(messages, opts.read_ahead_queue_size) as ahead:
                 ahead.fill()
@@ -110,6 +111,8 @@ class Player(Node):
                     self.published += 1
             if not opts.loop:
                 break
+            if self.published == before:  # the topics played have nothing from --start on: looping would spin
+                raise DatasetError(f"{opts.bag}: no message of the topics played at or after --start {opts.start:g} s")
             self._loops += 1
         flush_publishers(self, self._pubs.values())
         self.get_logger().info(f"end of bag: {self.published} messages published")
