@@ -41,6 +41,7 @@ from co3sop_nodes.data.bags import read_scans
 from co3sop_nodes.eval.codec_settings import STANDARD_FEATURE_SETTINGS
 from co3sop_nodes.inference import pace
 from co3sop_nodes.inference.checkpoint import load_graph_model, shipped_checkpoint
+from co3sop_nodes.inference.outputs import encode_output
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.v2x.codec import (
     TABLE_LOG,
@@ -51,7 +52,7 @@ from co3sop_nodes.v2x.codec import (
     encode_features,
     encode_labels,
 )
-from co3sop_nodes.v2x.scan import ScanCodecConfig
+from co3sop_nodes.v2x.scan import ScanCodecConfig, encode_scan
 
 HERE = Path(__file__).resolve().parent
 FEATURE_GRID = GridSpec((-12.8, -12.8, -2.0), 0.4, (64, 64, 12))
@@ -115,18 +116,19 @@ def real_payloads(bag: Path) -> dict[str, tuple[bytes, int]]:
         out = lidar.vehicle(**inputs)
         pred = predict_frame(lidar, out, np.eye(4), pace.shaped_neighbours(out))
         seen = camera.vehicle(**pace.shaped_inputs(camera))
-    occupied = inputs["occupancy"][0, 0].cpu().numpy().astype(bool)
+    # each payload as its codec lays it out, before compression (codec "none"), at the level the nodes compress it
+    raw = FeatureCodecConfig(codec="none")
+    lidar_features = encode_output(out, lidar.cfg.feature_grid, raw)
+    ego = encode_labels(pred.labels, lidar.cfg.grid, lidar.cfg.num_classes, confidence=pred.confidence, codec="none")
+    scan = encode_scan(inputs["occupancy"][0, 0].cpu().numpy(), lidar.cfg.grid, ScanCodecConfig(codec="none"))
     level, labels = FeatureCodecConfig().level, 1  # encode_labels' default level
     return {
-        "tiny-lidar features": (out.features.numpy().astype(np.float16).tobytes(), level),
-        "tiny-lidar confidence": (out.confidence.numpy().astype(np.float16).tobytes(), level),
-        "ego labels": (np.ascontiguousarray(pred.labels).tobytes(), labels),
-        "ego confidence": (np.ascontiguousarray(pred.confidence).tobytes(), labels),
-        "scan": (
-            np.packbits(occupied.transpose(2, 0, 1).reshape(-1), bitorder="little").tobytes(),
-            ScanCodecConfig().level,
-        ),
-        "tiny features": (seen.features.numpy().astype(np.float16).tobytes(), level),
+        "tiny-lidar features": (lidar_features.values, level),
+        "tiny-lidar confidence": (lidar_features.confidence, level),
+        "ego labels": (ego.labels, labels),
+        "ego confidence": (ego.confidence, labels),
+        "scan": (scan.occupancy, ScanCodecConfig().level),
+        "tiny features": (encode_output(seen, camera.cfg.feature_grid, raw).values, level),
     }
 
 
