@@ -98,6 +98,8 @@ class InferencePath:
             bias = None if bias is None else bias.to(x.dtype)
             out = torch.ops.mkldnn._linear_pointwise(rows, weight.to(x.dtype), bias, "relu" if relu else "none", [], "")
             return out.view(*x.shape[:-1], weight.shape[0])
+        if weight.dtype != x.dtype:  # a reduced x where oneDNN does not compute its precision: as autocast would
+            weight, bias = weight.to(x.dtype), None if bias is None else bias.to(x.dtype)
         out = F.linear(x, weight, bias)
         return out.relu_() if relu else out
 
