@@ -27,6 +27,19 @@ MICRO = dict(
 LIDAR_GRID = ((-12.8, -12.8, -3.0), 0.4, (64, 64, 24))
 
 
+def int8_pair_sums_saturate() -> bool:
+    """Whether oneDNN's int8 convolution on this CPU sums pairs of uint8 x int8 products in 16 bits before 32,
+    saturating (no VNNI: vpmaddubsw on AVX2): probed with 64 products of 255 x 127, whose pairs overflow 16 bits."""
+    x = torch.full((1, 64, 1, 1, 1), 255, dtype=torch.uint8).contiguous(memory_format=torch.channels_last_3d)
+    w = torch.full((1, 64, 1, 1, 1), 127, dtype=torch.int8)
+    one, zero, unit, none = torch.ones(1, dtype=torch.float64), torch.zeros(1, dtype=torch.long), [1] * 3, [0] * 3
+    packed = torch.ops.onednn.qconv_prepack(w, one, 1.0, 0, unit, none, unit, 1, None)
+    out = torch.ops.onednn.qconv_pointwise(
+        x, 1.0, 0, packed, one, zero, None, unit, none, unit, 1, 1.0, 0, torch.float32, "none", [], ""
+    )
+    return float(out.flatten()[0]) != 64 * 255 * 127
+
+
 def scans(count: int, seed: int, dims=LIDAR_GRID[2]) -> list[torch.Tensor]:
     """Random occupancy scans (1, 1, X, Y, Z) uint8, 8 % of voxels hit."""
     gen = torch.Generator().manual_seed(seed)

@@ -339,11 +339,13 @@ def peak_table(repeats: int) -> tuple[str, dict[str, float]]:
 
 @torch.no_grad()
 def int8_table(repeats: int, peak: dict[str, float]) -> str:
-    """What this CPU's int8 unit (VNNI where it has one) computes on one thread, against the bfloat16 peak: the
+    """What this CPU's int8 unit (VNNI where it has one) computes on one thread, against the peak of the float
+    precision the int8 path computes the rest in (bfloat16 where the CPU computes it, else float32): the
     1024^3 matrix product (torch._int_mm, int32 sums) and the head's 3x3x3 convolution by the int8 path's layer
     (model/quantized.py: oneDNN's quantized convolution, channels-last uint8 activations, per-channel int8 weights,
     requantized to uint8), on a volume stored (x, y, z) and on a z-outer one (the path's layout)."""
-    rows = ["| kernel | int8 GOP/s | int8 / bfloat16 peak |", "|---|---:|---:|"]
+    floats = "bfloat16" if cpu_bfloat16_unit() else "float32"
+    rows = [f"| kernel | int8 GOP/s | int8 / {floats} peak |", "|---|---:|---:|"]
     gen = torch.Generator().manual_seed(0)
     a, b = (torch.randint(-128, 128, (1024, 1024), generator=gen, dtype=torch.int8) for _ in range(2))
     conv3d, norm = torch.nn.Conv3d(32, 32, 3, padding=1), torch.nn.BatchNorm3d(32).eval()  # norm: the identity
@@ -367,7 +369,7 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
         call()
         t, _ = timed(call, repeats)
         rate = ops / t / 1e9
-        rows.append(f"| {name} | {rate:.0f} | {rate / peak['bfloat16']:.2f}x |")
+        rows.append(f"| {name} | {rate:.0f} | {rate / peak[floats]:.2f}x |")
         print(f"  int8 {name}: {rate:.0f} GOP/s", flush=True)
     return "\n".join(rows)
 
@@ -375,11 +377,13 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
 @torch.no_grad()
 def layout_table(repeats: int) -> str:
     """`tiny-lidar`'s 3x3x3 convolutions at 51.2 m (the head's 32 -> 32 channels at 1/4 and 16 -> 16 at 1/2, the LiDAR
-    vehicle half's dilated 32 -> 32 at 1/4) in bfloat16 on one thread, on channels-last volumes against z-outer ones
+    vehicle half's dilated 32 -> 32 at 1/4) in bfloat16 (float32 on a CPU that does not compute bfloat16) on one
+    thread, on channels-last volumes against z-outer ones
     (conv_norm.z_outer: the same tensor, z the outermost spatial axis in memory), the two calls alternating so that
     both see the same machine."""
     rows = ["| convolution | channels-last ms | z-outer ms | channels-last / z-outer |", "|---|---:|---:|---:|"]
     gen = torch.Generator().manual_seed(0)
+    dtype = torch.bfloat16 if cpu_bfloat16_unit() else torch.float32
     dims = preset("tiny-lidar").feature_grid.dims
     for c, scale, dilation, what in (
         (32, 1, 1, "head"),
@@ -388,11 +392,11 @@ def layout_table(repeats: int) -> str:
         (32, 1, 3, "LiDAR vehicle half"),
     ):
         shape = tuple(scale * n for n in dims)
-        conv = torch.nn.Conv3d(c, c, 3, padding=dilation, dilation=dilation, bias=False).to(torch.bfloat16)
-        x = torch.randn(1, c, *shape, generator=gen).to(torch.bfloat16)
+        conv = torch.nn.Conv3d(c, c, 3, padding=dilation, dilation=dilation, bias=False).to(dtype)
+        x = torch.randn(1, c, *shape, generator=gen).to(dtype)
         last = x.contiguous(memory_format=torch.channels_last_3d)
         outer = z_outer(x)
-        norm = torch.nn.BatchNorm3d(c).eval().to(torch.bfloat16)
+        norm = torch.nn.BatchNorm3d(c).eval().to(dtype)
         calls = {"last": lambda t=last: folded(conv, norm, t), "outer": lambda t=outer: folded(conv, norm, t)}
         times = {k: [] for k in calls}
         for call in calls.values():
@@ -601,7 +605,8 @@ def main() -> None:
             f"### This CPU's int8 unit on one thread (median of {opts.repeats}; the convolution by the int8 path's "
             "layer)",
             int8_table(opts.repeats, peak),
-            "### The 3x3x3 convolutions by memory layout (bfloat16, one thread, alternating calls)",
+            f"### The 3x3x3 convolutions by memory layout ({'bfloat16' if cpu_bfloat16_unit() else 'float32'}, one "
+            "thread, alternating calls)",
             layout_table(opts.repeats),
         ]
     elif opts.precision_only:

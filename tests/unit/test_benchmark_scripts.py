@@ -29,5 +29,5 @@ def test_the_int8_roofline_runs_the_int8_paths_layer(monkeypatch, capsys):
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, module)
     spec.loader.exec_module(module)
-    table = module.int8_table(1, {"bfloat16": 100.0})
+    table = module.int8_table(1, {"float32": 50.0, "bfloat16": 100.0})
     assert len(table.splitlines()) == 5 and "z-outer" in table  # header, rule, three kernels

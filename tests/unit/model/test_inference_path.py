@@ -34,6 +34,24 @@ def test_auto_takes_int8_only_for_a_vehicle_half_tuned_for_it_on_a_cpu_with_an_i
     assert inference_path("cpu", "auto", tuned_int8=True) == InferencePath("cpu", "bfloat16")
 
 
+@pytest.mark.parametrize(
+    ("flags", "unit"),
+    [
+        ("avx2 avx512f avx512bw amx_tile amx_int8 avx512_vnni", "AMX"),
+        ("avx2 avx512f avx512bw avx512_vnni", "AVX-512 VNNI"),
+        ("avx2 fma", "AVX2"),  # no VNNI: 16-bit pair sums, still 1.35-1.4x float32 on the shipped models
+        ("sse4_2", None),
+    ],
+)
+def test_the_int8_unit_is_read_from_the_cpu_flags(monkeypatch, flags, unit):
+    monkeypatch.setattr(path_module.kernels, "cpu_flags", lambda: tuple(flags.split()))
+    path_module.cpu_int8_unit.cache_clear()
+    try:
+        assert path_module.cpu_int8_unit() == unit
+    finally:
+        path_module.cpu_int8_unit.cache_clear()
+
+
 def test_a_shipped_module_is_tuned_for_int8_where_its_checkpoint_carries_its_int8_weights():
     for name in ("tiny-lidar.pt", "tiny-lidar-76.8m.pt", "tiny.pt"):
         model, data = load_model(shipped_checkpoint(name))

@@ -6,7 +6,7 @@ cannot take."""
 import numpy as np
 import pytest
 import torch
-from model_checks import lidar_model, scans
+from model_checks import int8_pair_sums_saturate, lidar_model, scans
 
 from co3sop_nodes.common.errors import Co3sopError
 from co3sop_nodes.inference.calibration import ActivationHistogram, calibrate
@@ -44,6 +44,12 @@ def test_the_int8_layers_run_here():
     """The pinned PyTorch has oneDNN's quantized convolution and the machine a C compiler: the int8 path is the one
     these tests take, never skipped."""
     assert quantized.available(32)
+
+
+def test_the_int8_products_saturate_in_pairs_exactly_where_the_cpu_has_no_int8_dot_product_unit():
+    """With VNNI or AMX oneDNN sums every product in 32 bits; without (AVX2), pairs in 16 bits first, saturating,
+    which the int8 path accepts there (model/quantized.py says what it costs): `cpu_int8_unit` names which."""
+    assert int8_pair_sums_saturate() == (path_module.cpu_int8_unit() not in ("AMX", "AVX-512 VNNI"))
 
 
 def test_the_residual_sum_is_requantized_as_pytorch_rounds():

@@ -1,6 +1,9 @@
 """Int8 layers for CPU inference: 3x3x3 convolutions of uint8 activations by oneDNN's quantized primitive
 (`torch.ops.onednn.qconv_pointwise`, the one PyTorch's own compiler lowers quantized models to), on VNNI or AMX
-where the CPU has them.
+where the CPU has them. Without VNNI (AVX2), oneDNN sums pairs of uint8 x int8 products in 16 bits first, saturating
+where both are large (two of 255 x 127 overflow): real activations rarely are, and on the benchmark's `validate`
+this cost the shipped `tiny-lidar` less than weights of 7 bits (exact there) did, so the weights keep 8 bits on
+every CPU (BENCHMARKS.md, "int8 on a CPU without VNNI").
 
 Activations are uint8 with zero point 0 on a per-tensor scale (a calibrated range / 255:
 `inference/calibration.py`), every one after a ReLU, so uint8's clamp at 0 is that ReLU; weights int8 per output
