@@ -344,7 +344,7 @@ def int8_table(repeats: int, peak: dict[str, float]) -> str:
     1024^3 matrix product (torch._int_mm, int32 sums) and the head's 3x3x3 convolution by the int8 path's layer
     (model/quantized.py: oneDNN's quantized convolution, channels-last uint8 activations, per-channel int8 weights,
     requantized to uint8), on a volume stored (x, y, z) and on a z-outer one (the path's layout)."""
-    floats = "bfloat16" if cpu_bfloat16_unit() else "float32"
+    floats = InferencePath(precision="int8").floats
     rows = [f"| kernel | int8 GOP/s | int8 / {floats} peak |", "|---|---:|---:|"]
     gen = torch.Generator().manual_seed(0)
     a, b = (torch.randint(-128, 128, (1024, 1024), generator=gen, dtype=torch.int8) for _ in range(2))
@@ -383,7 +383,7 @@ def layout_table(repeats: int) -> str:
     both see the same machine."""
     rows = ["| convolution | channels-last ms | z-outer ms | channels-last / z-outer |", "|---|---:|---:|---:|"]
     gen = torch.Generator().manual_seed(0)
-    dtype = torch.bfloat16 if cpu_bfloat16_unit() else torch.float32
+    dtype = InferencePath(precision="int8").float_dtype  # the precision the paths compute their convolutions in
     dims = preset("tiny-lidar").feature_grid.dims
     for c, scale, dilation, what in (
         (32, 1, 1, "head"),
@@ -605,8 +605,8 @@ def main() -> None:
             f"### This CPU's int8 unit on one thread (median of {opts.repeats}; the convolution by the int8 path's "
             "layer)",
             int8_table(opts.repeats, peak),
-            f"### The 3x3x3 convolutions by memory layout ({'bfloat16' if cpu_bfloat16_unit() else 'float32'}, one "
-            "thread, alternating calls)",
+            f"### The 3x3x3 convolutions by memory layout ({InferencePath(precision='int8').floats}, one thread, "
+            "alternating calls)",
             layout_table(opts.repeats),
         ]
     elif opts.precision_only:
