@@ -24,7 +24,7 @@ from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import build_model
 from co3sop_nodes.model.config import preset
 from co3sop_nodes.model.losses import downsample_labels, occupancy_loss
-from co3sop_nodes.model.path import InferencePath, inference_path
+from co3sop_nodes.model.path import InferencePath, cpu_units, inference_path
 from co3sop_nodes.train.dataset import OccupancyDataset
 
 
@@ -495,6 +495,9 @@ def test_evaluate_on_auto_runs_the_vehicle_halves_as_vehicle_nodes_take_auto(str
     assert result.returncode == 0, result.stderr
     runs = json.loads(next(tmp_path.glob("*_precision.json")).read_text())
     assert (ego if ego == vehicles else f"{ego} (vehicle halves {vehicles})") in runs, sorted(runs)
+    # what it ran on and, for int8, what the rest computed in: rows from different CPUs differ
+    assert runs["hardware"] == cpu_units()
+    assert runs.get("floats") == (InferencePath("cpu", "int8").floats if ego == "int8" else None)
 
 
 def trained_parameters(run: Path) -> dict[str, torch.Tensor]:

@@ -35,21 +35,30 @@ def test_auto_takes_int8_only_for_a_vehicle_half_tuned_for_it_on_a_cpu_with_an_i
 
 
 @pytest.mark.parametrize(
-    ("flags", "unit"),
+    ("flags", "unit", "words"),
     [
-        ("avx2 avx512f avx512bw amx_tile amx_int8 avx512_vnni", "AMX"),
-        ("avx2 avx512f avx512bw avx512_vnni", "AVX-512 VNNI"),
-        ("avx2 fma", "AVX2"),  # no VNNI: 16-bit pair sums, still 1.35-1.4x float32 on the shipped models
-        ("sse4_2", None),
+        (
+            "avx2 avx512f avx512bw amx_tile amx_int8 amx_bf16 avx512_bf16 avx512_vnni",
+            "AMX",
+            "int8: AMX; bfloat16: AMX",
+        ),
+        ("avx2 avx512f avx512bw avx512_vnni avx512_bf16", "AVX-512 VNNI", "int8: AVX-512 VNNI; bfloat16: AVX-512 BF16"),
+        ("avx2 fma", "AVX2", "int8: AVX2, no VNNI; bfloat16: none"),  # 16-bit pair sums, 1.35-1.4x float32 still
+        ("sse4_2", None, "int8: none; bfloat16: none"),
     ],
 )
-def test_the_int8_unit_is_read_from_the_cpu_flags(monkeypatch, flags, unit):
+def test_the_reduced_precision_units_are_read_from_the_cpu_flags(monkeypatch, flags, unit, words):
+    """The int8 unit `auto` decides by, and the words a result measured on the CPU names its units in."""
     monkeypatch.setattr(path_module.kernels, "cpu_flags", lambda: tuple(flags.split()))
-    path_module.cpu_int8_unit.cache_clear()
+    units = (path_module.cpu_int8_unit, path_module.cpu_bfloat16_unit)
+    for cached in units:
+        cached.cache_clear()
     try:
         assert path_module.cpu_int8_unit() == unit
+        assert path_module.cpu_units() == words
     finally:
-        path_module.cpu_int8_unit.cache_clear()
+        for cached in units:
+            cached.cache_clear()
 
 
 def test_a_shipped_module_is_tuned_for_int8_where_its_checkpoint_carries_its_int8_weights():

@@ -24,7 +24,7 @@ from co3sop_nodes.inference.inputs import to_batch
 from co3sop_nodes.inference.outputs import through_codec, through_scan
 from co3sop_nodes.inference.predict import predict_frame
 from co3sop_nodes.model.co3sop import Co3SOP, VehicleOutput
-from co3sop_nodes.model.path import InferencePath, inference_path
+from co3sop_nodes.model.path import InferencePath, cpu_units, inference_path
 from co3sop_nodes.train.dataset import OccupancyDataset, Sample, early_fused
 from co3sop_nodes.v2x.codec import FeatureCodecConfig, decode_request, encode_request
 from co3sop_nodes.v2x.neighbours import COMM_RANGE, nearest_collaborators, noisy_relative
@@ -546,7 +546,14 @@ def _precision(opts, cfg, stem, title, measure, boot) -> None:
         "float32",
         boot,
         f"Labels equal to float32's on {100 * agreement:.2f} % of {total} voxels ({len(labels['float32'])} samples).",
-        {"device": fast.device, "label_agreement": agreement, "voxels": total},
+        {
+            "device": fast.device,
+            # what the reduced path ran on and computed in: its rows differ from one CPU to another
+            **({"hardware": cpu_units()} if fast.torch_device.type == "cpu" else {}),
+            **({"floats": fast.floats} if fast.int8 else {}),
+            "label_agreement": agreement,
+            "voxels": total,
+        },
     )
 
 

@@ -61,6 +61,8 @@ META = {
     "differences",
     "splits",
     "device",
+    "hardware",
+    "floats",
     "label_agreement",
     "voxels",
 }
@@ -688,8 +690,10 @@ def precision_section(results: Path) -> list[str]:
         int8 = int8 or precision.startswith("int8")
         diff = report["differences"][precision]["co3sop-code"]
         name, rng = path.stem.removesuffix("_precision").rsplit("_", 1)
+        device = report["device"] + (f" ({report['hardware']})" if "hardware" in report else "")
+        shown = f"int8 (the rest {report['floats']})" if precision == "int8" and "floats" in report else precision
         lines.append(
-            f"| {name} | {rng} | {report['device']} | {precision} | {pct(point(report['float32'], 'co3sop-code'))} | "
+            f"| {name} | {rng} | {device} | {shown} | {pct(point(report['float32'], 'co3sop-code'))} | "
             f"{pct(point(report[precision], 'co3sop-code'))} | {pct(diff['delta'])} {span(diff['ci95'])} | "
             f"{100 * report['label_agreement']:.2f} % of {report['voxels']:,} |"
         )

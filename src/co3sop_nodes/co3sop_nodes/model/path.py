@@ -151,6 +151,14 @@ def cpu_int8_unit() -> str | None:
     return "AVX2" if "avx2" in flags else None
 
 
+def cpu_units() -> str:
+    """This CPU's reduced-precision hardware in words, as a result measured on it names it: its int8 and bfloat16
+    units (`cpu_int8_unit`, `cpu_bfloat16_unit`)."""
+    int8 = cpu_int8_unit()
+    int8 = "none" if int8 is None else int8 + (", no VNNI" if int8 == "AVX2" else "")
+    return f"int8: {int8}; bfloat16: {cpu_bfloat16_unit() or 'none'}"
+
+
 def resolve_device(name: str, what: str = "device") -> torch.device:
     """The torch device `name` names (auto: the first CUDA GPU if torch sees one, else cpu), checked against
     what this torch build can use; `what` names the option or parameter in errors."""
