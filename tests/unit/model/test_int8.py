@@ -69,6 +69,28 @@ def test_the_residual_sum_is_requantized_as_pytorch_rounds():
         quantized_add.quantized_add(a, 1.0, b, 1.0, 1.0, offset[:, :5], threads=1)
 
 
+def test_the_residual_sum_rounds_as_its_definition_does_bit_for_bit():
+    """In float32: a ka + b kb fused into one rounding (as the compiler contracts the plain loop, which the AVX-512
+    version keeps), then the offset added, clamped (NaN: 0) and rounded to nearest even. The fused product-sum is
+    exact in float64 for these magnitudes, so rounding it once to float32 is the fused multiply-add. On these values
+    either other order (b kb fused first, or the offset inside) differs in one to three sums."""
+    gen = torch.Generator().manual_seed(3)
+    a, b = (torch.randint(0, 256, (1, 32, 6, 64, 64), dtype=torch.uint8, generator=gen) for _ in range(2))
+    a, b = (t.contiguous(memory_format=torch.channels_last_3d) for t in (a, b))
+    offset = torch.randn(32, 6, generator=gen) * 3
+    offset[5, 2] = float("nan")
+    ka, kb = 0.61803, 1.2345  # in steps of the sum
+    got = quantized_add.quantized_add(a, ka * 0.07, b, kb * 0.07, 0.07, offset, threads=2)
+    ka, kb = np.float32(ka * 0.07 / 0.07), np.float32(kb * 0.07 / 0.07)  # the kernel's factors, as it takes them
+    an, bn = a.permute(0, 2, 3, 4, 1).numpy(), b.permute(0, 2, 3, 4, 1).numpy()  # (1, Z, X, Y, C) as stored
+    fused = (an.astype(np.float64) * np.float64(ka) + (bn.astype(np.float32) * kb).astype(np.float64)).astype(
+        np.float32
+    )
+    total = fused + offset.t().numpy()[None, :, None, None, :]
+    want = np.rint(np.clip(np.nan_to_num(total, nan=0.0), 0, 255)).astype(np.uint8)
+    assert np.array_equal(got.permute(0, 2, 3, 4, 1).numpy(), want)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 def test_a_quantized_volume_dequantizes_to_its_values_times_its_scale_plus_the_offset(dtype):
     torch.manual_seed(0)
