@@ -15,7 +15,7 @@ import torch
 
 from co3sop_nodes.inference.outputs import labels_from_logits
 from co3sop_nodes.kernels import deform as deform_kernel
-from co3sop_nodes.kernels import half_float, point_occupancy, quantized_add, visible_voxels
+from co3sop_nodes.kernels import half_float, lidar_output, point_occupancy, quantized_add, visible_voxels
 from co3sop_nodes.kernels import layer_norm as layer_norm_kernel
 from co3sop_nodes.kernels import occupancy_conv as occupancy_kernel
 from co3sop_nodes.kernels import octant as octant_kernel
@@ -94,6 +94,8 @@ def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
         kernels["scan's first layer"] = lambda: occupancy_kernel.available(cfg.lidar.channels // 2, encoder.first_dtype)
         if model.path.int8:
             kernels["int8 residual sum"] = lambda: quantized_add.available(cfg.lidar.channels)
+        if model.path.int8 and precision == "bfloat16":
+            kernels["scan's output layers"] = lambda: lidar_output.available(cfg.embed_dims)
     if cfg.modality == "camera" or cfg.fusion:  # the transformer layers' sums and norms
         kernels["layer norm"] = lambda: layer_norm_kernel.available(cfg.embed_dims)
     if model.path.int8 and cfg.head == "conv":

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from co3sop_nodes.common.errors import Co3sopError
+from co3sop_nodes.kernels import lidar_output as output_kernel
 from co3sop_nodes.kernels.transpose import channels_first_float32
 from co3sop_nodes.kernels.warp import compiled_available, warp_compiled, warp_with_mask
 from co3sop_nodes.model.backbone import ResNet
@@ -82,13 +83,37 @@ class VehicleHalf(nn.Module):
         LiDAR: occupancy (B, 1, X, Y, Z) 0/1. Features and confidence in float32 whatever the path's precision (the
         wire's codecs take float32), and the wire code where the model has one (in float32: its rounding is the
         message)."""
-        with self.path.autocast():
-            out = self._forward(images, lidar2img, occupancy)
-        # one copy each (widened and made contiguous together) where the path computed another layout or precision
-        features, confidence = (
-            channels_first_float32(t, torch.get_num_threads()) for t in (out.features, out.confidence)
-        )
+        compiled = self._int8_output(occupancy)
+        if compiled is not None:
+            features, confidence = compiled
+        else:
+            with self.path.autocast():
+                out = self._forward(images, lidar2img, occupancy)
+            # one copy each (widened and made contiguous together) where the path computed another layout or precision
+            features, confidence = (
+                channels_first_float32(t, torch.get_num_threads()) for t in (out.features, out.confidence)
+            )
         return VehicleOutput(features, confidence, self.encode(features, confidence))
+
+    def _int8_output(self, occupancy) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """An SSCNet-style LiDAR half's scan on an int8 path whose floats are bfloat16: its int8 layers, then both 1x1
+        output layers and the confidence's sigmoid from their last volume in one compiled pass, bit for bit what the
+        PyTorch layers compute under autocast (kernels/lidar_output.py; tested) -> features, confidence in float32,
+        channels-first. None on any other path, or where the kernel does not run."""
+        encoder = getattr(self, "encoder", None)
+        if occupancy is None or occupancy.shape[0] != 1 or not isinstance(encoder, SSCNetEncoder):
+            return None
+        c = encoder.out.out_channels
+        fits = encoder.out.in_channels == c and occupancy.shape[-1] // 4 <= output_kernel.MAX_HEIGHT
+        if self.path.floats != "bfloat16" or not (fits and output_kernel.available(c)):
+            return None
+        last = encoder.int8_volume(occupancy)
+        if last is None:
+            return None
+        threads = torch.get_num_threads()
+        return output_kernel.lidar_output(
+            last.values, last.scale, encoder.output_offset, encoder.out, self.confidence, threads
+        )
 
     def encode(self, features: torch.Tensor, confidence: torch.Tensor) -> torch.Tensor | None:
         """The wire code (B, K, X, Y, Z) of features (B, C, X, Y, Z) and confidence (B, 1, X, Y, Z), or None."""

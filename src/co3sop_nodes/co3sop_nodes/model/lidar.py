@@ -155,10 +155,10 @@ class SSCNetEncoder(quantized.Int8Weights, nn.Module):
         return f
 
     def forward(self, occupancy):  # (B, 1, X, Y, Z) 0/1
-        if self.path.int8 and self._int8 is not None and self._first_compiled(occupancy):
-            if occupancy.shape[-1] != 4 * self._offsets[-1].shape[-1]:
-                raise ValueError(f"int8 layers made for scans {4 * self._offsets[-1].shape[-1]} voxels high")
-            return self._forward_int8(occupancy)
+        last = self.int8_volume(occupancy)
+        if last is not None:  # the 1x1 output layer in the path's float precision
+            dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else torch.float32
+            return self.out(last.dequantize(dtype, self.output_offset))  # (B, C, X/4, Y/4, Z/4)
         f = self.down[1](self._first(occupancy)) if self._first_compiled(occupancy) else self.down(occupancy.float())
         reduced = self.path.reduced
         if reduced:  # the dilated 3x3x3 layers run 1.5-2x as fast on z-outer volumes (conv_norm): no copy if it is one
@@ -169,12 +169,20 @@ class SSCNetEncoder(quantized.Int8Weights, nn.Module):
             f = f.contiguous(memory_format=torch.channels_last_3d)
         return self.out(f)  # (B, C, X/4, Y/4, Z/4)
 
-    def _forward_int8(self, occupancy):
-        """forward on the int8 layers: (B, C, X/4, Y/4, Z/4) in the path's float precision (the 1x1 output layer's)."""
-        f = self._int8_layers(occupancy, self._offsets)
-        dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else torch.float32
-        tuned = self.int8_weights is not None  # its background correction is zero: not added
-        return self.out(f.dequantize(dtype, None if tuned else self._offsets[-1]))  # (B, C, X/4, Y/4, Z/4)
+    def int8_volume(self, occupancy) -> quantized.Int8Volume | None:
+        """The int8 layers' last volume (B, C, Z/4, X/4, Y/4) for a scan, where this path computes them (an int8 path
+        with the layers made, a scan as the nodes voxelise it), before the 1x1 output layer; None elsewhere."""
+        if not (self.path.int8 and self._int8 is not None and self._first_compiled(occupancy)):
+            return None
+        if occupancy.shape[-1] != 4 * self._offsets[-1].shape[-1]:
+            raise ValueError(f"int8 layers made for scans {4 * self._offsets[-1].shape[-1]} voxels high")
+        return self._int8_layers(occupancy, self._offsets)
+
+    @property
+    def output_offset(self) -> torch.Tensor | None:
+        """The background correction (C, Z/4) the int8 volume's dequantization adds; none for fine-tuned int8 weights,
+        which learnt the background's rounding themselves."""
+        return None if self.int8_weights is not None else self._offsets[-1]
 
     @torch.no_grad()
     def activations(self, occupancy) -> list[torch.Tensor]:
