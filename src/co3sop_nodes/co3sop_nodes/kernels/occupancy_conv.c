@@ -32,19 +32,19 @@ int occupancy_conv(const uint8_t *restrict occupancy, int64_t nx, int64_t ny, in
     for (int di = 0; di < 3; ++di) {
       const int64_t ix = 2 * ox - 1 + di;
       if (ix < 0 || ix >= nx) continue;
-      for (int64_t iy = 0; iy < ny; ++iy) {
-        const uint8_t *row = occupancy + (ix * ny + iy) * nz;
-        for (int64_t iz = next_nonzero(row, 0, nz); iz < nz; iz = next_nonzero(row, iz + 1, nz)) {
-          for (int dj = 0; dj < 3; ++dj) {  /* output oy reads input 2 oy - 1 + dj */
-            const int64_t ty = iy + 1 - dj, oy = ty / 2;
-            if ((ty & 1) || ty < 0 || oy >= ny2) continue;
-            for (int dk = 0; dk < 3; ++dk) {
-              const int64_t tz = iz + 1 - dk, oz = tz / 2;
-              if ((tz & 1) || tz < 0 || oz >= nz2) continue;
-              const float *tap = w + ((di * 3 + dj) * 3 + dk) * C;
-              float *sum = acc + (oy * nz2 + oz) * C;
-              for (int c = 0; c < C; ++c) sum[c] += tap[c];
-            }
+      /* the plane's rows one after another, as one run of bytes (a row alone is a few words), in its order */
+      const uint8_t *plane = occupancy + ix * ny * nz;
+      for (int64_t at = next_nonzero(plane, 0, ny * nz); at < ny * nz; at = next_nonzero(plane, at + 1, ny * nz)) {
+        const int64_t iy = at / nz, iz = at % nz;
+        for (int dj = 0; dj < 3; ++dj) {  /* output oy reads input 2 oy - 1 + dj */
+          const int64_t ty = iy + 1 - dj, oy = ty / 2;
+          if ((ty & 1) || ty < 0 || oy >= ny2) continue;
+          for (int dk = 0; dk < 3; ++dk) {
+            const int64_t tz = iz + 1 - dk, oz = tz / 2;
+            if ((tz & 1) || tz < 0 || oz >= nz2) continue;
+            const float *tap = w + ((di * 3 + dj) * 3 + dk) * C;
+            float *sum = acc + (oy * nz2 + oz) * C;
+            for (int c = 0; c < C; ++c) sum[c] += tap[c];
           }
         }
       }
