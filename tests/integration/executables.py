@@ -59,6 +59,17 @@ class Processes:
 
 
 def finish(proc: subprocess.Popen, timeout: float = 120) -> tuple[int, str]:
-    """Waits for a process; returns (exit code, its combined output)."""
-    out, _ = proc.communicate(timeout=timeout)
+    """Waits for a process; returns (exit code, its combined output). One still running after `timeout` s fails the
+    test with its output, which ends with every thread's stack: it is aborted, and a node's faulthandler prints them
+    as it dies (a hang otherwise says nothing of where)."""
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            out, _ = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
+        pytest.fail(f"{' '.join(map(str, proc.args))} still ran after {timeout:g} s; its output:\n{out}")
     return proc.returncode, out
