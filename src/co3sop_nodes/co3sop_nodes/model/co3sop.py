@@ -101,11 +101,13 @@ class VehicleHalf(nn.Module):
         PyTorch layers compute under autocast (kernels/lidar_output.py; tested) -> features, confidence in float32,
         channels-first. None on any other path, or where the kernel does not run."""
         encoder = getattr(self, "encoder", None)
-        if occupancy is None or occupancy.shape[0] != 1 or not isinstance(encoder, SSCNetEncoder):
+        if not (self.path.int8 and self.path.floats == "bfloat16" and isinstance(encoder, SSCNetEncoder)):
+            return None  # (before the kernel's availability, which compiles it: only a path that runs it does)
+        if occupancy is None or occupancy.shape[0] != 1:
             return None
         c = encoder.out.out_channels
         fits = encoder.out.in_channels == c and occupancy.shape[-1] // 4 <= output_kernel.MAX_HEIGHT
-        if self.path.floats != "bfloat16" or not (fits and output_kernel.available(c)):
+        if not (fits and output_kernel.available(c)):
             return None
         last = encoder.int8_volume(occupancy)
         if last is None:
