@@ -58,6 +58,21 @@ class Processes:
                 proc.wait()
 
 
+def exit_code(proc: subprocess.Popen, log: Path, timeout: float = 30) -> int:
+    """A stopped node's exit code, once it has exited. One still running after `timeout` s fails the test with its
+    log (its output), which then ends with every thread's stack: it is aborted, and its faulthandler prints them."""
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        pytest.fail(f"{' '.join(map(str, proc.args))} still ran {timeout:g} s after it was stopped:\n{log.read_text()}")
+
+
 def finish(proc: subprocess.Popen, timeout: float = 120) -> tuple[int, str]:
     """Waits for a process; returns (exit code, its combined output). One still running after `timeout` s fails the
     test with its output, which ends with every thread's stack: it is aborted, and a node's faulthandler prints them

@@ -7,7 +7,7 @@ import signal
 
 import pytest
 import rclpy
-from executables import executable
+from executables import executable, exit_code
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from test_node_faults import EGO, start, wait_for
@@ -78,4 +78,4 @@ def test_every_transition_from_every_state_is_taken_or_refused_and_the_node_live
         wait_for(log, "refused: not valid from state 'finalized'", proc)
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 0, log.read_text()
+        assert exit_code(proc, log) == 0, log.read_text()

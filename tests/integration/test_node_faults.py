@@ -16,7 +16,7 @@ import pytest
 import rclpy
 from ament_index_python.packages import get_package_share_directory
 from diagnostic_msgs.msg import DiagnosticArray
-from executables import executable
+from executables import executable, exit_code
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
@@ -56,7 +56,7 @@ def running(tmp_path: Path, name: str, *argv: str):
         yield proc, log
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 0, log.read_text()
+        assert exit_code(proc, log) == 0, log.read_text()
 
 
 def wait_for(log: Path, pattern: str, proc: subprocess.Popen, timeout: float = 120, n: int = 1) -> str:
@@ -177,7 +177,7 @@ def test_ego_drops_bad_messages_with_a_reason_and_keeps_going(tmp_path, peer, su
         assert ego.poll() is None and "Traceback" not in log.read_text()
     finally:
         ego.send_signal(signal.SIGINT)
-        ego.wait(30)
+        exit_code(ego, log)
 
 
 def test_the_ego_fuses_each_frame_once_and_refuses_stamps_ahead_of_its_clock(tmp_path, peer, sup):
@@ -251,7 +251,7 @@ def count(path: Path) -> int:
 def test_recorder_finalises_on_sigterm_with_every_message(tmp_path, peer):
     rec, log, out = record(tmp_path, peer, 40)
     rec.send_signal(signal.SIGTERM)
-    assert rec.wait(30) == 0, log.read_text()
+    assert exit_code(rec, log) == 0, log.read_text()
     assert "finalised" in log.read_text() and "/ego/occupancy 40" in log.read_text()
     assert count(out) == 80  # each prediction with the points the recorder draws of it
 
@@ -354,7 +354,7 @@ def test_vehicle_takes_the_installed_parameter_file(tmp_path, sup):
         assert "as int8-topk1024-zstd" in log.read_text()
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 0
+        assert exit_code(proc, log) == 0, log.read_text()
 
 
 # --- hostile input: malformed CDR, non-finite payloads, silent publishers, crafted checkpoints -------------------
@@ -426,7 +426,7 @@ def test_ego_encodes_a_neighbours_scan_and_drops_bad_ones_with_a_reason(tmp_path
         assert ego.poll() is None and "Traceback" not in log.read_text()
     finally:
         ego.send_signal(signal.SIGINT)
-        ego.wait(30)
+        exit_code(ego, log)
 
 
 def malformed(msg_type) -> dict[str, bytes]:
@@ -567,7 +567,7 @@ def test_nodes_survive_malformed_cdr_on_every_topic_they_subscribe_to(tmp_path, 
         for proc, _ in procs.values():
             proc.send_signal(signal.SIGINT)
         for name, (proc, log) in procs.items():
-            assert proc.wait(30) == 0, f"{name}:\n{log.read_text()}"
+            assert exit_code(proc, log) == 0, f"{name}:\n{log.read_text()}"
     assert count(tmp_path / "rec.mcap") >= 1 + 3 * 3  # the malformed bytes are recorded as they came
 
 
@@ -645,7 +645,7 @@ def test_ego_drops_non_finite_payloads_and_waits_only_for_neighbours_that_speak(
         assert ego.poll() is None and "Traceback" not in log.read_text()
     finally:
         ego.send_signal(signal.SIGINT)
-        ego.wait(30)
+        exit_code(ego, log)
 
 
 @pytest.fixture
@@ -780,8 +780,8 @@ def test_best_effort_sensors_are_encoded_and_best_effort_topics_recorded(tmp_pat
     finally:
         for proc, _ in procs.values():
             proc.send_signal(signal.SIGINT)
-        for proc, _ in procs.values():
-            assert proc.wait(30) == 0
+        for proc, log in procs.values():
+            assert exit_code(proc, log) == 0, log.read_text()
     with AnyReader([tmp_path / "rec.mcap"]) as reader:
         assert sum(c.msgcount for c in reader.connections if c.topic == truth_topic) >= 1
 
@@ -889,8 +889,8 @@ def test_parameters_are_described_and_checked_when_set_at_run_time(tmp_path, pee
     finally:
         for proc, _ in procs.values():
             proc.send_signal(signal.SIGINT)
-        for proc, _ in procs.values():
-            assert proc.wait(30) == 0
+        for proc, log in procs.values():
+            assert exit_code(proc, log) == 0, log.read_text()
 
 
 def runtime_values(param) -> tuple[list, object]:
@@ -971,7 +971,7 @@ def test_every_run_time_parameter_at_its_bounds_never_ends_a_node(tmp_path, peer
         for proc, _ in procs.values():
             proc.send_signal(signal.SIGINT)
         for proc, log in procs.values():
-            assert proc.wait(30) == 0, log.read_text()
+            assert exit_code(proc, log) == 0, log.read_text()
 
 
 def request_map(ego: int, stamp: int, x: float, fill: float) -> RequestMap:

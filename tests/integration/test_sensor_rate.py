@@ -9,7 +9,7 @@ from pathlib import Path
 
 import rclpy
 from ament_index_python.packages import get_package_share_directory
-from executables import executable
+from executables import executable, exit_code
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 from test_node_faults import (
@@ -37,7 +37,7 @@ def stop(*procs) -> None:
     for proc, _ in procs:
         proc.send_signal(signal.SIGINT)
     for proc, log in procs:
-        assert proc.wait(30) == 0, log.read_text()
+        assert exit_code(proc, log) == 0, log.read_text()
 
 
 def test_an_ego_fed_faster_than_it_fuses_stays_current_and_counts_what_it_skipped(tmp_path, peer, sup):
