@@ -5,7 +5,12 @@ import sys
 import pytest
 from executables import Processes, finish
 
-HANG = "import faulthandler, time\nfaulthandler.enable(all_threads=True)\ndef stuck_here():\n    time.sleep(60)\nstuck_here()"
+HANG = """import faulthandler, time
+faulthandler.enable(all_threads=True)
+def stuck_here():
+    time.sleep(60)
+stuck_here()
+"""
 
 
 def test_a_process_still_running_at_its_timeout_fails_with_its_stack():
