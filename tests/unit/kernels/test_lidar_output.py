@@ -1,7 +1,8 @@
 """The LiDAR vehicle half's output layers compiled: from the int8 layers' last volume, the features and confidence
-the PyTorch layers compute under bfloat16 autocast, bit for bit, with the background offset or without; a vehicle
-half on an int8 path whose floats are bfloat16 takes it, and gives what its PyTorch tail gives. Where the CPU has
-no bfloat16 products the kernel is not available and the half keeps its PyTorch tail."""
+the PyTorch layers compute under bfloat16 autocast, bit for bit, or in float32, within its rounding, with the
+background offset or without; a vehicle half on an int8 path takes it, and gives what its PyTorch tail gives. Where
+the CPU has no AVX-512 (for bfloat16: no bfloat16 products) the kernel is not available and the half keeps its
+PyTorch tail."""
 
 import pytest
 import torch
@@ -11,22 +12,39 @@ from co3sop_nodes.inference.calibration import calibrate
 from co3sop_nodes.kernels import lidar_output as output_kernel
 from co3sop_nodes.kernels.transpose import channels_first_float32
 from co3sop_nodes.model import co3sop
+from co3sop_nodes.kernels import cpu_flags
 from co3sop_nodes.model.path import InferencePath, cpu_bfloat16_unit
 from co3sop_nodes.model.quantized import Int8Volume
 
+# float32: the kernel's features are the PyTorch layer's multiply-adds in the same order; the confidence layer's sum
+# runs in another order and the sigmoid is the kernel's own, each within a few float32 roundings
+FLOAT32_TOLERANCE = {"rtol": 1e-6, "atol": 1e-6}
 
-def _pytorch_tail(volume: Int8Volume, offset, out, confidence):
-    """What the kernel replaces: the dequantized volume in bfloat16, the two 1x1 layers and the sigmoid under
-    autocast, widened to channels-first float32."""
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        features = out(volume.dequantize(torch.bfloat16, offset))
+
+def _pytorch_tail(volume: Int8Volume, offset, out, confidence, floats: str = "bfloat16"):
+    """What the kernel replaces: the dequantized volume in the path's floats, the two 1x1 layers and the sigmoid
+    (under autocast for bfloat16), widened to channels-first float32."""
+    dtype = torch.bfloat16 if floats == "bfloat16" else torch.float32
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=floats == "bfloat16"):
+        features = out(volume.dequantize(dtype, offset))
         conf = torch.sigmoid(confidence(features))
     return channels_first_float32(features), channels_first_float32(conf)
 
 
-def test_the_kernel_runs_where_the_cpu_computes_bfloat16_products():
-    assert output_kernel.available(32) == (cpu_bfloat16_unit() is not None)
-    assert not output_kernel.available(48)  # channels in pairs of 16-lane vectors
+def _layers(gen):
+    out, confidence = torch.nn.Conv3d(32, 32, 1), torch.nn.Conv3d(32, 1, 1)
+    for layer in (out, confidence):
+        layer.weight.data.normal_(0, 0.3, generator=gen)
+        layer.bias.data.normal_(0, 0.5, generator=gen)
+    return out, confidence
+
+
+def test_the_kernel_runs_where_the_cpu_computes_its_floats():
+    avx512 = "avx512f" in cpu_flags()
+    assert output_kernel.available(32) == (avx512 and cpu_bfloat16_unit() is not None)
+    assert output_kernel.available(32, "float32") == avx512
+    assert not output_kernel.available(48) and not output_kernel.available(48, "float32")  # 16-lane vector pairs
+    assert not output_kernel.available(32, "float16")
 
 
 @pytest.mark.skipif(not output_kernel.available(32), reason="needs AVX-512 BF16 (the test above checks that)")
@@ -34,10 +52,7 @@ def test_the_kernel_runs_where_the_cpu_computes_bfloat16_products():
 @torch.inference_mode()
 def test_the_output_layers_are_the_pytorch_layers_bit_for_bit(with_offset):
     gen = torch.Generator().manual_seed(1)
-    out, confidence = torch.nn.Conv3d(32, 32, 1), torch.nn.Conv3d(32, 1, 1)
-    for layer in (out, confidence):
-        layer.weight.data.normal_(0, 0.3, generator=gen)
-        layer.bias.data.normal_(0, 0.5, generator=gen)
+    out, confidence = _layers(gen)
     # (1, C, Z, X, Y) views of z-outer volumes, as the int8 layers leave them; a height and a width the kernel's
     # blocks of columns do not divide
     for dims in [(6, 64, 64), (5, 9, 7)]:
@@ -49,6 +64,42 @@ def test_the_output_layers_are_the_pytorch_layers_bit_for_bit(with_offset):
             got = output_kernel.lidar_output(volume.values, volume.scale, offset, out, confidence, threads)
             for g, w in zip(got, want):
                 assert g.dtype == torch.float32 and g.is_contiguous() and torch.equal(g, w)
+
+
+@pytest.mark.skipif(not output_kernel.available(32, "float32"), reason="needs AVX-512 (the test above checks that)")
+@pytest.mark.parametrize("with_offset", [False, True])
+@torch.inference_mode()
+def test_in_float32_the_output_layers_are_the_pytorch_layers_within_its_rounding(with_offset):
+    gen = torch.Generator().manual_seed(2)
+    out, confidence = _layers(gen)
+    for dims in [(6, 64, 64), (5, 9, 7)]:
+        values = torch.randint(0, 256, (1, 32, *dims), dtype=torch.uint8, generator=gen)
+        volume = Int8Volume(values.contiguous(memory_format=torch.channels_last_3d), 0.021)
+        offset = torch.randn(32, dims[0], generator=gen) * 0.3 if with_offset else None
+        want = _pytorch_tail(volume, offset, out, confidence, "float32")
+        assert float(want[1].min()) < 0.01 and float(want[1].max()) > 0.99  # the sigmoid's middle and its tails
+        for threads in (1, 2):
+            got = output_kernel.lidar_output(volume.values, volume.scale, offset, out, confidence, threads, "float32")
+            for g, w in zip(got, want):
+                assert g.dtype == torch.float32 and g.is_contiguous()
+                torch.testing.assert_close(g, w, **FLOAT32_TOLERANCE)
+
+
+@pytest.mark.skipif(not output_kernel.available(32, "float32"), reason="needs AVX-512")
+@torch.inference_mode()
+def test_the_float32_sigmoid_holds_in_its_tails():
+    """Confidence logits far out on both sides (e^-x past float32's range, or subnormal): 1 and 0 within rounding."""
+    out, confidence = torch.nn.Conv3d(32, 32, 1), torch.nn.Conv3d(32, 1, 1)
+    torch.nn.init.eye_(out.weight.data.view(32, 32))
+    out.bias.data.zero_()
+    confidence.weight.data.fill_(1.0)
+    logits = torch.tensor([-200.0, -100.0, -87.0, -30.0, -1.0, 0.0, 1.0, 30.0, 87.0, 100.0, 200.0])
+    values = torch.zeros(1, 32, 1, 1, 1, dtype=torch.uint8).contiguous(memory_format=torch.channels_last_3d)
+    got = []
+    for logit in logits:  # the volume's values are 0: the features are 0 and the logit the confidence's bias
+        confidence.bias.data.fill_(float(logit))
+        got.append(output_kernel.lidar_output(values, 1.0, None, out, confidence, 1, "float32")[1].flatten()[0])
+    torch.testing.assert_close(torch.stack(got), torch.sigmoid(logits), rtol=1e-6, atol=1e-30)
 
 
 @pytest.mark.skipif(not output_kernel.available(32), reason="needs AVX-512 BF16")
@@ -73,8 +124,13 @@ def test_an_int8_vehicle_half_gives_what_its_pytorch_tail_gives(monkeypatch):
     monkeypatch.setattr(output_kernel, "lidar_output", lambda *a: calls.append(1) or original(*a))
     held_out = scans(2, seed=2)
     got = [model.vehicle(occupancy=s) for s in held_out]
-    assert len(calls) == (len(held_out) if model.path.floats == "bfloat16" else 0)
+    floats = model.path.floats
+    assert len(calls) == (len(held_out) if output_kernel.available(32, floats) else 0)
     monkeypatch.setattr(co3sop.VehicleHalf, "_int8_output", lambda self, occupancy: None)
     for g, s in zip(got, held_out):
         want = model.vehicle(occupancy=s)
-        assert torch.equal(g.features, want.features) and torch.equal(g.confidence, want.confidence)
+        if floats == "bfloat16":
+            assert torch.equal(g.features, want.features) and torch.equal(g.confidence, want.confidence)
+        else:
+            torch.testing.assert_close(g.features, want.features, **FLOAT32_TOLERANCE)
+            torch.testing.assert_close(g.confidence, want.confidence, **FLOAT32_TOLERANCE)

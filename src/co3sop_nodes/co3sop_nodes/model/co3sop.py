@@ -96,25 +96,27 @@ class VehicleHalf(nn.Module):
         return VehicleOutput(features, confidence, self.encode(features, confidence))
 
     def _int8_output(self, occupancy) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """An SSCNet-style LiDAR half's scan on an int8 path whose floats are bfloat16: its int8 layers, then both 1x1
-        output layers and the confidence's sigmoid from their last volume in one compiled pass, bit for bit what the
-        PyTorch layers compute under autocast (kernels/lidar_output.py; tested) -> features, confidence in float32,
-        channels-first. None on any other path, or where the kernel does not run."""
+        """An SSCNet-style LiDAR half's scan on an int8 path: its int8 layers, then both 1x1 output layers and the
+        confidence's sigmoid from their last volume in one compiled pass, what the PyTorch layers compute in the
+        path's floats (bfloat16: bit for bit, under autocast; float32: within its rounding; kernels/lidar_output.py,
+        tested) -> features, confidence in float32, channels-first. None on any other path, or where the kernel does
+        not run."""
         encoder = getattr(self, "encoder", None)
-        if not (self.path.int8 and self.path.floats == "bfloat16" and isinstance(encoder, SSCNetEncoder)):
+        floats = self.path.floats
+        if not (self.path.int8 and floats in output_kernel.FLOATS and isinstance(encoder, SSCNetEncoder)):
             return None  # (before the kernel's availability, which compiles it: only a path that runs it does)
         if occupancy is None or occupancy.shape[0] != 1:
             return None
         c = encoder.out.out_channels
         fits = encoder.out.in_channels == c and occupancy.shape[-1] // 4 <= output_kernel.MAX_HEIGHT
-        if not (fits and output_kernel.available(c)):
+        if not (fits and output_kernel.available(c, floats)):
             return None
         last = encoder.int8_volume(occupancy)
         if last is None:
             return None
         threads = torch.get_num_threads()
         return output_kernel.lidar_output(
-            last.values, last.scale, encoder.output_offset, encoder.out, self.confidence, threads
+            last.values, last.scale, encoder.output_offset, encoder.out, self.confidence, threads, floats
         )
 
     def encode(self, features: torch.Tensor, confidence: torch.Tensor) -> torch.Tensor | None:
