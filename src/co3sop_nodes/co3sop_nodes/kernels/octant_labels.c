@@ -96,6 +96,37 @@ static inline void parent_lanes(const parent_t *a, const parent_t *b, f16 out[2]
 }
 #endif
 
+#if defined(__AVX512F__) && defined(__AVX512BW__) && defined(__AVX512VL__)
+/* On AVX-512 a parent's channels are read 16 at a time into one vector of floats, and each channel's lanes are
+ * taken from the two parents' vectors by one permutation (rather than a conversion and a broadcast per value) */
+#define PARENT_VECTORS 1
+#define CHUNKS ((C1 + 15) / 16)
+/* channels [16 k, 16 k + 16) of parents a and b as floats, one vector each (masked past C1: nothing read beyond a
+ * parent's channels) */
+static inline void parent_chunks(const parent_t *a, const parent_t *b, f16 ca[CHUNKS], f16 cb[CHUNKS]) {
+  for (int k = 0; k < CHUNKS; ++k) {
+    const __mmask16 m = (__mmask16)(C1 - 16 * k >= 16 ? 0xFFFF : (1u << (C1 - 16 * k)) - 1);
+#if PARENTS_U8
+    ca[k] = (f16)_mm512_cvtepi32_ps(_mm512_cvtepu8_epi32(_mm_maskz_loadu_epi8(m, a + 16 * k)));
+    cb[k] = (f16)_mm512_cvtepi32_ps(_mm512_cvtepu8_epi32(_mm_maskz_loadu_epi8(m, b + 16 * k)));
+#elif PARENTS_BF16
+    ca[k] = (f16)_mm512_slli_epi32(_mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(m, a + 16 * k)), 16);
+    cb[k] = (f16)_mm512_slli_epi32(_mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(m, b + 16 * k)), 16);
+#else
+    ca[k] = (f16)_mm512_maskz_loadu_ps(m, a + 16 * k);
+    cb[k] = (f16)_mm512_maskz_loadu_ps(m, b + 16 * k);
+#endif
+  }
+}
+/* channel c of parent a in half 0's lanes and of parent b in half 1's (indices 16 and up: the second vector's) */
+static inline f16 parent_channel(const f16 *ca, const f16 *cb, int c) {
+  const i16 idx = (i16){0} + c % 16 + (16 & ~HALF0);
+  return (f16)_mm512_permutex2var_ps((__m512)ca[c / 16], (__m512i)idx, (__m512)cb[c / 16]);
+}
+#else
+#define PARENT_VECTORS 0
+#endif
+
 /* the larger of a and b per lane (either, where equal) */
 #if defined(__AVX512F__)
 static inline f16 vmax(f16 a, f16 b) { return (f16)_mm512_max_ps((__m512)a, (__m512)b); }
@@ -103,7 +134,12 @@ static inline f16 vmax(f16 a, f16 b) { return (f16)_mm512_max_ps((__m512)a, (__m
 static inline f16 vmax(f16 a, f16 b) { return select(gt(b, a), b, a); }
 #endif
 
+#if defined(__AVX512F__)
+/* max(v, 0) returns its second operand, 0, where v is NaN or a zero, as the comparison below does */
+static inline f16 relu(f16 v) { return (f16)_mm512_max_ps((__m512)v, _mm512_setzero_ps()); }
+#else
 static inline f16 relu(f16 v) { return (f16)((i16)v & gt(v, (f16){0})); }
+#endif
 
 #if DOT_BF16
 #if !(PARENTS_BF16 || PARENTS_U8) || C2 % 2
@@ -256,6 +292,16 @@ UNROLLED
     pointwise_bf16(h, C2, point_pairs, point_b, C2, g);
     pointwise_bf16(g, C2, cls_pairs, b_cls, K, logits);
 #else
+#if PARENT_VECTORS
+    f16 ca[CHUNKS], cb[CHUNKS];
+    parent_chunks(xa, xb, ca, cb);
+UNROLLED
+    for (int c = 0; c < C1; ++c) {
+      const f16 xc = parent_channel(ca, cb, c);
+UNROLLED
+      for (int j = 0; j < C2; ++j) h[j] += xc * up_w[c * C2 + j];
+    }
+#else
 UNROLLED
     for (int c = 0; c < C1; c += 2) {
       f16 xc[2];
@@ -265,6 +311,7 @@ UNROLLED
 UNROLLED
         for (int j = 0; j < C2; ++j) h[j] += xc[k] * up_w[(c + k) * C2 + j];
     }
+#endif
 UNROLLED
     for (int d = 0; d < C2; ++d) g[d] = (f16){0} + point_b[d];
 UNROLLED
