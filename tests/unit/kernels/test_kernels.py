@@ -85,7 +85,8 @@ def test_the_camera_vehicle_half_at_inference_equals_its_training_path(name, mon
     torch.testing.assert_close(fast.confidence, ref.confidence.detach(), rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("dims, heads, agents", [(32, 4, 2), (64, 4, 3), (48, 4, 2)])
+# heads sampled 4 at a time, and one at a time where 4 does not divide them
+@pytest.mark.parametrize("dims, heads, agents", [(32, 4, 2), (64, 4, 3), (48, 4, 2), (48, 3, 2), (16, 2, 3)])
 def test_the_compiled_3d_sampler_equals_the_attention_training_path(dims, heads, agents, monkeypatch):
     torch.manual_seed(dims + agents)
     att = DeformableAttention3d(dims, heads, 4, slots=6, extent_voxels=(16, 12, 6)).eval()

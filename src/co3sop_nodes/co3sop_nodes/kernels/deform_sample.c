@@ -104,26 +104,42 @@ INLINE f8 exp8(f8 x) {
   return (f8)(keep & (i8)(e * scale));
 }
 
+typedef uint32_t u8v __attribute__((vector_size(32)));
+
+/* the larger of a and b per lane (b where they are equal or either is NaN) */
+INLINE f8 max8(f8 a, f8 b) {
+  const i8 more = a > b;
+  return (f8)((more & (i8)a) | (~more & (i8)b));
+}
+
 /* the attention weights of one query and head into `weights` (MAX_TERMS + 8 floats, 32-byte aligned): softmax over
  * `terms` logits, where `may` (per group of `group` terms; NULL: all) allows, each weight the term's exp times the
- * sum's reciprocal as PyTorch's softmax computes it; returns the sum, 0 where nothing is allowed */
-INLINE float softmax(const void *logits, int64_t at, int64_t terms, const uint8_t *may, int64_t group, int bf16,
-                     float *weights) {
+ * sum's reciprocal as PyTorch's softmax computes it; returns the sum, 0 where nothing is allowed. group_of: each
+ * term's group, 8 to a vector (where terms % 8 == 0 and there are at most 32 groups; else NULL) */
+INLINE float softmax(const void *logits, int64_t at, int64_t terms, const uint8_t *may, int64_t group,
+                     const u8v *group_of, int bf16, float *weights) {
   const int64_t vectors = (terms + 7) / 8;
   f8 *w = (f8 *)weights;
   if (!may && terms % 8 == 0) {  /* a vector at a time: a vector read of scalar writes would wait for them */
     for (int64_t v = 0; v < vectors; ++v) w[v] = load8(logits, at + 8 * v, bf16);
+  } else if (group_of) {  /* likewise, each lane allowed by its group's bit of a mask built in a register */
+    uint32_t bits = 0;
+    for (int64_t g = 0; g < terms / group; ++g) bits |= (uint32_t)(may[g] != 0) << g;
+    for (int64_t v = 0; v < vectors; ++v) {
+      const i8 allowed = -(i8)((((u8v){0} + bits) >> group_of[v]) & 1u);
+      w[v] = (f8)((allowed & (i8)load8(logits, at + 8 * v, bf16)) | (~allowed & (i8)((f8){0} - INFINITY)));
+    }
   } else {
     for (int64_t t = 0; t < terms; ++t) weights[t] = (!may || may[t / group]) ? load(logits, at + t, bf16) : -INFINITY;
     for (int64_t t = terms; t < 8 * vectors; ++t) weights[t] = -INFINITY;
   }
   f8 top = w[0];
-  for (int64_t v = 1; v < vectors; ++v) {
-    const i8 more = w[v] > top;
-    top = (f8)((more & (i8)w[v]) | (~more & (i8)top));
-  }
-  float most = top[0];
-  for (int j = 1; j < 8; ++j) most = top[j] > most ? top[j] : most;
+  for (int64_t v = 1; v < vectors; ++v) top = max8(w[v], top);
+  /* the lanes' maximum in every lane, by halves (exact in any order) */
+  top = max8(__builtin_shufflevector(top, top, 4, 5, 6, 7, 0, 1, 2, 3), top);
+  top = max8(__builtin_shufflevector(top, top, 2, 3, 0, 1, 6, 7, 4, 5), top);
+  top = max8(__builtin_shufflevector(top, top, 1, 0, 3, 2, 5, 4, 7, 6), top);
+  const float most = top[0];
   f8 sum = {0};
   for (int64_t v = 0; v < vectors; ++v) {
     w[v] = exp8(w[v] - most);  /* everything disallowed: -inf - -inf, NaN, exp 0 */
@@ -170,7 +186,7 @@ INLINE void sample_2d(const float *const *values, const int64_t *shapes, int64_t
       fv acc[NV];
       for (int j = 0; j < NV; ++j) acc[j] = (fv){0};
       if (seen) {
-        softmax(logits, (q * heads + h) * terms, terms, NULL, 1, bf16, weights);
+        softmax(logits, (q * heads + h) * terms, terms, NULL, 1, NULL, bf16, weights);
         const int64_t first = (q * heads + h) * terms;
         if (terms % 8 == 0)
           for (int64_t k = 0; k < vectors; ++k) load8_pairs(offsets, first + 8 * k, bf16, &ox[k], &oy[k]);
@@ -239,78 +255,113 @@ void deform_sample_2d_bf16(SAMPLE_2D_ARGS) { sample_2d(SAMPLE_2D_CALL, 1); }
  * nothing) -> out: (Q, heads * CH).
  * As the image sampler: a query's terms (agents x points) 8 to a vector for their locations, corners and weights,
  * a corner outside its volume adding the volume's first voxel times 0 (a volume's elements fit int32: deform.py
- * checks); most of the volumes' few z-layers' samples have a corner outside, unpredictably. */
+ * checks); most of the volumes' few z-layers' samples have a corner outside, unpredictably. A head's samples are
+ * one chain of dependent multiply-adds (its sum's order), so HB heads of a query are sampled together, their
+ * chains interleaved. */
+#define HB 4
+
+/* one query's head h: its terms' attention weights, and per term and corner (x, y, z the bits of the corner's
+ * number, z lowest) the corner's weight (0 outside) and element, into cw and at; returns the softmax's sum (0:
+ * nothing allowed, cw and at then 0) */
+INLINE float head_corners(int64_t q, int64_t h, int64_t heads, int64_t terms, int64_t points, const int64_t *dims,
+                          const int32_t *step, int64_t c, const float *restrict reference,
+                          const void *restrict offsets, const void *restrict logits, const uint8_t *may,
+                          const u8v *by_agent, int bf16, float *weights, f8 *ox, f8 *oy, f8 *oz,
+                          float cw[8][MAX_TERMS + 8], int32_t at[8][MAX_TERMS + 8]) {
+  const int64_t vectors = (terms + 7) / 8;
+  const int32_t nx = (int32_t)dims[0], ny = (int32_t)dims[1], nz = (int32_t)dims[2];
+  const float total = softmax(logits, (q * heads + h) * terms, terms, may, points, by_agent, bf16, weights);
+  if (!(total > 0.0f)) {
+    for (int n = 0; n < 8; ++n)
+      for (int64_t k = 0; k < vectors; ++k) *(f8 *)&cw[n][8 * k] = (f8){0}, *(i8 *)&at[n][8 * k] = (i8){0};
+    return 0.0f;
+  }
+  /* the reference's (reference + offset / dims) * dims - 0.5 as the query's voxel position plus the offset in
+   * voxels: the same location up to float rounding */
+  float centre[3];
+  for (int d = 0; d < 3; ++d) centre[d] = reference[3 * q + d] * dims[d] - 0.5f;
+  const int64_t first = (q * heads + h) * terms;
+  if (terms % 8 == 0)
+    for (int64_t k = 0; k < vectors; ++k) load8_triples(offsets, first + 8 * k, bf16, &ox[k], &oy[k], &oz[k]);
+  else
+    for (int64_t t = 0; t < terms; ++t) {
+      ox[t / 8][t % 8] = load(offsets, 3 * (first + t), bf16);
+      oy[t / 8][t % 8] = load(offsets, 3 * (first + t) + 1, bf16);
+      oz[t / 8][t % 8] = load(offsets, 3 * (first + t) + 2, bf16);
+    }
+  for (int64_t k = 0; k < vectors; ++k) {
+    const f8 px = centre[0] + ox[k], py = centre[1] + oy[k], pz = centre[2] + oz[k];
+    const i8 inside = (px > -1.0f) & (px < (float)nx) & (py > -1.0f) & (py < (float)ny) & (pz > -1.0f) &
+                      (pz < (float)nz);  /* NaN: outside */
+    const f8 sx = (f8)(inside & (i8)px), sy = (f8)(inside & (i8)py), sz = (f8)(inside & (i8)pz);
+    const i8 x0 = floor8(sx), y0 = floor8(sy), z0 = floor8(sz);  /* sx, sy, sz in (-1, size), 0 outside */
+    const f8 ax = sx - __builtin_convertvector(x0, f8), ay = sy - __builtin_convertvector(y0, f8);
+    const f8 az = sz - __builtin_convertvector(z0, f8);
+    const f8 w = (f8)(inside & (i8)((f8 *)weights)[k]);
+    const f8 wx[2] = {w * (1.0f - ax), w * ax}, wy[2] = {1.0f - ay, ay}, wz[2] = {1.0f - az, az};
+    const i8 vx[2] = {x0 >= 0, x0 + 1 < nx}, vy[2] = {y0 >= 0, y0 + 1 < ny}, vz[2] = {z0 >= 0, z0 + 1 < nz};
+    const i8 base = ((x0 * ny + y0) * nz + z0) * (int32_t)c;
+#pragma GCC unroll 8
+    for (int n = 0; n < 8; ++n) {
+      const int i = n >> 2, j = (n >> 1) & 1, l = n & 1;
+      const i8 valid = vx[i] & vy[j] & vz[l];
+      *(f8 *)&cw[n][8 * k] = (f8)(valid & (i8)(wx[i] * wy[j] * wz[l]));
+      *(i8 *)&at[n][8 * k] = valid & (base + (i * step[0] + j * step[1] + l * step[2]));
+    }
+  }
+  return total;
+}
+
+/* heads h0 .. h0 + hb - 1 of every query (hb a constant in each inlined copy: HB where the heads divide by it, else
+ * 1); a head whose softmax allowed nothing adds its terms' zero weights times the volume's first voxel, 0 */
 INLINE void sample_3d(const void *const *values, const int64_t *dims, int64_t agents, int64_t heads, int64_t points,
                       const float *restrict reference, const void *restrict offsets, const void *restrict logits,
-                      const uint8_t *restrict allowed, float *restrict out, int64_t start, int64_t end, int bf16) {
-  const int64_t c = heads * CH, terms = agents * points, vectors = (terms + 7) / 8;
-  const int32_t nx = (int32_t)dims[0], ny = (int32_t)dims[1], nz = (int32_t)dims[2];
+                      const uint8_t *restrict allowed, float *restrict out, int64_t start, int64_t end, int bf16,
+                      const int hb) {
+  const int64_t c = heads * CH, terms = agents * points;
+  const int32_t ny = (int32_t)dims[1], nz = (int32_t)dims[2];
   const int32_t step[3] = {ny * nz * (int32_t)c, nz * (int32_t)c, (int32_t)c};  /* elements per x, y, z */
   float weights[MAX_TERMS + 8] __attribute__((aligned(32)));  /* terms rounded up to whole vectors */
   f8 ox[MAX_TERMS / 8 + 1], oy[MAX_TERMS / 8 + 1], oz[MAX_TERMS / 8 + 1];  /* per term: its offset in voxels */
   for (int64_t k = 0; k <= MAX_TERMS / 8; ++k) ox[k] = oy[k] = oz[k] = (f8){0};
-  /* per term and corner (x, y, z the bits of the corner's number, z lowest): its weight (0 outside) and element */
-  float cw[8][MAX_TERMS + 8] __attribute__((aligned(32)));
-  int32_t at[8][MAX_TERMS + 8] __attribute__((aligned(32)));
-  for (int64_t q = start; q < end; ++q)
-    for (int64_t h = 0; h < heads; ++h) {
-      fv acc[NV];
-      for (int j = 0; j < NV; ++j) acc[j] = (fv){0};
-      const uint8_t *may = allowed + q * agents;
-      const float total = softmax(logits, (q * heads + h) * terms, terms, may, points, bf16, weights);
-      if (total > 0.0f) {
-        /* the reference's (reference + offset / dims) * dims - 0.5 as the query's voxel position plus the offset
-         * in voxels: the same location up to float rounding */
-        float centre[3];
-        for (int d = 0; d < 3; ++d) centre[d] = reference[3 * q + d] * dims[d] - 0.5f;
-        const int64_t first = (q * heads + h) * terms;
-        if (terms % 8 == 0)
-          for (int64_t k = 0; k < vectors; ++k) load8_triples(offsets, first + 8 * k, bf16, &ox[k], &oy[k], &oz[k]);
-        else
-          for (int64_t t = 0; t < terms; ++t) {
-            ox[t / 8][t % 8] = load(offsets, 3 * (first + t), bf16);
-            oy[t / 8][t % 8] = load(offsets, 3 * (first + t) + 1, bf16);
-            oz[t / 8][t % 8] = load(offsets, 3 * (first + t) + 2, bf16);
-          }
-        for (int64_t k = 0; k < vectors; ++k) {
-          const f8 px = centre[0] + ox[k], py = centre[1] + oy[k], pz = centre[2] + oz[k];
-          const i8 inside = (px > -1.0f) & (px < (float)nx) & (py > -1.0f) & (py < (float)ny) & (pz > -1.0f) &
-                            (pz < (float)nz);  /* NaN: outside */
-          const f8 sx = (f8)(inside & (i8)px), sy = (f8)(inside & (i8)py), sz = (f8)(inside & (i8)pz);
-          const i8 x0 = floor8(sx), y0 = floor8(sy), z0 = floor8(sz);  /* sx, sy, sz in (-1, size), 0 outside */
-          const f8 ax = sx - __builtin_convertvector(x0, f8), ay = sy - __builtin_convertvector(y0, f8);
-          const f8 az = sz - __builtin_convertvector(z0, f8);
-          const f8 w = (f8)(inside & (i8)((f8 *)weights)[k]);
-          const f8 wx[2] = {w * (1.0f - ax), w * ax}, wy[2] = {1.0f - ay, ay}, wz[2] = {1.0f - az, az};
-          const i8 vx[2] = {x0 >= 0, x0 + 1 < nx}, vy[2] = {y0 >= 0, y0 + 1 < ny}, vz[2] = {z0 >= 0, z0 + 1 < nz};
-          const i8 base = ((x0 * ny + y0) * nz + z0) * (int32_t)c;
-#pragma GCC unroll 8
-          for (int n = 0; n < 8; ++n) {
-            const int i = n >> 2, j = (n >> 1) & 1, l = n & 1;
-            const i8 valid = vx[i] & vy[j] & vz[l];
-            *(f8 *)&cw[n][8 * k] = (f8)(valid & (i8)(wx[i] * wy[j] * wz[l]));
-            *(i8 *)&at[n][8 * k] = valid & (base + (i * step[0] + j * step[1] + l * step[2]));
-          }
-        }
+  float cw[HB][8][MAX_TERMS + 8] __attribute__((aligned(32)));  /* per head of the hb: head_corners' */
+  int32_t at[HB][8][MAX_TERMS + 8] __attribute__((aligned(32)));
+  u8v agent_of[MAX_TERMS / 8];  /* each term's agent, for the softmax's mask */
+  const u8v *by_agent = terms % 8 == 0 && agents <= 32 ? agent_of : NULL;
+  for (int64_t t = 0; t < terms; ++t) agent_of[t / 8][t % 8] = (uint32_t)(t / points);
+  for (int64_t q = start; q < end; ++q) {
+    const uint8_t *may = allowed + q * agents;
+    for (int64_t h0 = 0; h0 < heads; h0 += hb) {
+      fv acc[HB][NV];
+      int any = 0;
+      for (int b = 0; b < hb; ++b) {
+        for (int j = 0; j < NV; ++j) acc[b][j] = (fv){0};
+        any |= head_corners(q, h0 + b, heads, terms, points, dims, step, c, reference, offsets, logits, may,
+                            by_agent, bf16, weights, ox, oy, oz, cw[b], at[b]) > 0.0f;
+      }
+      if (any)
         for (int64_t a = 0; a < agents; ++a) {
           if (!may[a]) continue;
           for (int64_t t = a * points; t < (a + 1) * points; ++t)
 #pragma GCC unroll 8
-            for (int n = 0; n < 8; ++n) {
-              const float s = cw[n][t];
-              if (!bf16) {
-                const fvu *src = (const fvu *)((const float *)values[a] + h * CH + at[n][t]);
-                for (int j = 0; j < NV; ++j) acc[j] += s * src[j];
-              } else {
-                const hvu *src = (const hvu *)((const uint16_t *)values[a] + h * CH + at[n][t]);
-                for (int j = 0; j < NV; ++j) acc[j] += s * (fv)(__builtin_convertvector(src[j], iv) << 16);
+            for (int n = 0; n < 8; ++n)
+              for (int b = 0; b < hb; ++b) {
+                const float s = cw[b][n][t];
+                if (!bf16) {
+                  const fvu *src = (const fvu *)((const float *)values[a] + (h0 + b) * CH + at[b][n][t]);
+                  for (int j = 0; j < NV; ++j) acc[b][j] += s * src[j];
+                } else {
+                  const hvu *src = (const hvu *)((const uint16_t *)values[a] + (h0 + b) * CH + at[b][n][t]);
+                  for (int j = 0; j < NV; ++j) acc[b][j] += s * (fv)(__builtin_convertvector(src[j], iv) << 16);
+                }
               }
-            }
         }
+      for (int b = 0; b < hb; ++b) {
+        fvu *dst = (fvu *)(out + q * c + (h0 + b) * CH);
+        for (int j = 0; j < NV; ++j) dst[j] = acc[b][j];
       }
-      fvu *dst = (fvu *)(out + q * c + h * CH);
-      for (int j = 0; j < NV; ++j) dst[j] = acc[j];
     }
+  }
 }
 
 #define SAMPLE_3D_ARGS                                                                                                \
@@ -318,5 +369,15 @@ INLINE void sample_3d(const void *const *values, const int64_t *dims, int64_t ag
       const float *reference, const void *offsets, const void *logits, const uint8_t *allowed, float *out,            \
       int64_t start, int64_t end
 #define SAMPLE_3D_CALL values, dims, agents, heads, points, reference, offsets, logits, allowed, out, start, end
-void deform_sample_3d(SAMPLE_3D_ARGS) { sample_3d(SAMPLE_3D_CALL, 0); }
-void deform_sample_3d_bf16(SAMPLE_3D_ARGS) { sample_3d(SAMPLE_3D_CALL, 1); }
+void deform_sample_3d(SAMPLE_3D_ARGS) {
+  if (heads % HB == 0)
+    sample_3d(SAMPLE_3D_CALL, 0, HB);
+  else
+    sample_3d(SAMPLE_3D_CALL, 0, 1);
+}
+void deform_sample_3d_bf16(SAMPLE_3D_ARGS) {
+  if (heads % HB == 0)
+    sample_3d(SAMPLE_3D_CALL, 1, HB);
+  else
+    sample_3d(SAMPLE_3D_CALL, 1, 1);
+}
