@@ -30,7 +30,7 @@ def main() -> None:
             if time.monotonic() > deadline:
                 sys.exit("no subscriber matched within 30 s")
             time.sleep(0.05)
-        enc = encoded(2)  # zstd-compressed float16 top-k features
+        enc = encoded(2)  # float16 top-k features, byte-shuffled and zstd-compressed
         for values in (enc.values[: len(enc.values) // 2], enc.values):
             msg = features_msg(RCLPY, enc, stamp_ns=1, frame_id="cav_9/lidar", agent_id=9, pose=Pose())
             msg.values = bytes(values)

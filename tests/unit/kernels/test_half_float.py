@@ -1,4 +1,5 @@
-"""The compiled float16 conversions give NumPy's bits, every special value included, and NumPy's where disabled."""
+"""The compiled float16 conversions give NumPy's bits, every special value included, and NumPy's where disabled; the
+byte-shuffled ones NumPy's bits as planes of low and high bytes."""
 
 import numpy as np
 import pytest
@@ -34,3 +35,20 @@ def test_strided_input_is_converted_in_order():
         want = x.astype(np.float16)
     got = half_float.to_float16(x)
     assert got.shape == x.shape and np.array_equal(got.view(np.uint16), want.view(np.uint16))
+
+
+@pytest.mark.parametrize("enabled", [True, False], ids=["compiled", "numpy"])
+@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, None], ids=lambda n: f"n{n}")  # the vector loop's edges, and all
+def test_byte_shuffled_conversions_are_planes_of_numpys_bits(enabled, n, monkeypatch):
+    monkeypatch.setattr(kernels, "ENABLED", enabled)
+    x = _values()[:n]
+    with np.errstate(over="ignore"):
+        bits = x.astype(np.float16).view(np.uint16)
+    planes = half_float.to_float16_planes(x)
+    assert planes.dtype == np.uint8 and planes.shape == (2 * x.size,)
+    assert np.array_equal(planes[: x.size], bits & 0xFF) and np.array_equal(planes[x.size :], bits >> 8)
+    back = half_float.from_float16_planes(planes)
+    want = bits.view(np.float16).astype(np.float32)
+    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), want.view(np.uint32))
+    with pytest.raises(ValueError, match="not two planes"):
+        half_float.from_float16_planes(planes[:1] if x.size else np.zeros(3, np.uint8))

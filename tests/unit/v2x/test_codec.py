@@ -127,11 +127,15 @@ def _quant_range(values: np.ndarray, dtype: str) -> tuple[np.ndarray, np.ndarray
     return lo, hi
 
 
-def _raw_field(payload: bytes, codec_name: str) -> bytes:
-    """Independent decompression of one wire payload (not via codec._decompress)."""
+def _raw_field(payload: bytes, codec_name: str, itemsize: int = 1) -> bytes:
+    """Independent decompression of one wire payload of `itemsize`-byte elements (not via codec._decompress),
+    unshuffled where the codec shuffles: shuffle-zstd sends byte k of every element as plane k."""
     if codec_name == "none" or not payload:
         return payload
-    return zstandard.ZstdDecompressor().decompress(payload)
+    raw = zstandard.ZstdDecompressor().decompress(payload)
+    if codec_name == "shuffle-zstd" and itemsize > 1:
+        return np.frombuffer(raw, np.uint8).reshape(itemsize, -1).T.tobytes()
+    return raw
 
 
 # ---------------------------------------------------------------------------
@@ -236,7 +240,8 @@ def _check_sizes_and_wire(enc, features, confidence, cfg, mask):
     n = int(mask.sum())
     itemsize = FEATURE_DTYPES[cfg.dtype].itemsize
     quantized = cfg.dtype in QUANT_LEVELS
-    assert enc.channels == channels and enc.dtype == cfg.dtype and enc.codec == cfg.codec
+    assert enc.channels == channels and enc.dtype == cfg.dtype and enc.codec == cfg.wire_codec
+    assert enc.codec == ("zstd" if cfg.codec == "shuffle-zstd" and quantized else cfg.codec)
     assert enc.sparse == (cfg.selection != "dense")
     assert enc.num_voxels == n
     assert enc.values_raw_size == (-(-channels * n // 2) if cfg.dtype == "int4" else channels * n * itemsize)
@@ -254,8 +259,8 @@ def _check_sizes_and_wire(enc, features, confidence, cfg, mask):
     assert enc.raw_bytes == enc.voxel_mask_raw_size + enc.values_raw_size + enc.confidence_raw_size
 
     mask_raw = _raw_field(enc.voxel_mask, cfg.codec)
-    values_raw = _raw_field(enc.values, cfg.codec)
-    conf_raw = _raw_field(enc.confidence, cfg.codec)
+    values_raw = _raw_field(enc.values, cfg.codec, FEATURE_DTYPES[cfg.dtype].itemsize)
+    conf_raw = _raw_field(enc.confidence, cfg.codec, 1 if quantized else FEATURE_DTYPES[cfg.dtype].itemsize)
     assert len(mask_raw) == enc.voxel_mask_raw_size
     assert len(values_raw) == enc.values_raw_size
     assert len(conf_raw) == enc.confidence_raw_size
@@ -345,12 +350,12 @@ def test_feature_round_trip(setting):
 
 
 def test_all_settings_are_covered():
-    # 4 dtypes x 4 selections x 2 codecs x {with, without confidence}, minus threshold without confidence
+    # 4 dtypes x 4 selections x 3 codecs x {with, without confidence}, minus threshold without confidence
     # ("request" without a request map ranks as "topk": what a vehicle sends before the first request arrives)
-    assert len(ALL_SETTINGS) == 4 * 4 * 2 * 2 - 4 * 2
+    assert len(ALL_SETTINGS) == 4 * 4 * 3 * 2 - 4 * 3
     assert set(FEATURE_DTYPES) == {"float32", "float16", "int8", "int4"}
     assert set(SELECTIONS) == {"dense", "topk", "threshold", "request"}
-    assert set(CODECS) == {"zstd", "none"}
+    assert set(CODECS) == {"shuffle-zstd", "zstd", "none"}
 
 
 @pytest.mark.parametrize("codec_name", CODECS)
@@ -501,14 +506,19 @@ def test_encode_accepts_other_float_inputs():
 
 def test_config_name_and_defaults():
     cfg = FeatureCodecConfig()
-    assert (cfg.dtype, cfg.selection, cfg.codec) == ("float16", "dense", "zstd")
-    assert cfg.name == "float16-dense-zstd"
-    assert FeatureCodecConfig(selection="topk").name == "float16-topk4096-zstd"
+    assert (cfg.dtype, cfg.selection, cfg.codec, cfg.zstd_level) == ("float16", "dense", "shuffle-zstd", 1)
+    assert cfg.name == "float16-dense-shuffle-zstd"
+    assert FeatureCodecConfig(selection="topk").name == "float16-topk4096-shuffle-zstd"
     assert (
         FeatureCodecConfig(dtype="int8", selection="threshold", threshold=0.25, codec="none").name
         == "int8-conf0.25-none"
     )
-    assert FeatureCodecConfig(dtype="float32", selection="topk", topk=7).name == "float32-topk7-zstd"
+    assert FeatureCodecConfig(dtype="float32", selection="topk", topk=7, codec="zstd").name == "float32-topk7-zstd"
+    # one-byte values are their own shuffle: zstd, at zstd's level
+    int8 = FeatureCodecConfig(dtype="int8", selection="topk")
+    assert (int8.wire_codec, int8.zstd_level, int8.name) == ("zstd", 3, "int8-topk4096-zstd")
+    assert FeatureCodecConfig(codec="zstd", level=0).zstd_level == 3
+    assert FeatureCodecConfig(level=5).zstd_level == 5
     assert DEFAULT_MAX_RAW_BYTES == 256 * MIB
 
 
@@ -770,9 +780,11 @@ def _forge(enc: EncodedFeatures, field: str, fill) -> EncodedFeatures:
     if field in ("quant_scale", "quant_offset"):
         return dataclasses.replace(enc, **{field: tuple(fill(np.asarray(getattr(enc, field), np.float32)))})
     cdtype = codec._confidence_dtype(enc.dtype) if field == "confidence" else dtype
-    raw = zstandard.ZstdDecompressor().decompress(getattr(enc, field))
-    array = fill(np.frombuffer(raw, cdtype).copy())
-    payload = zstandard.ZstdCompressor(write_checksum=True, write_content_size=True).compress(array.tobytes())
+    raw = _raw_field(getattr(enc, field), enc.codec, cdtype.itemsize)
+    forged = fill(np.frombuffer(raw, cdtype).copy()).tobytes()
+    if enc.codec == "shuffle-zstd":  # as it was sent: byte k of every element as plane k
+        forged = np.frombuffer(forged, np.uint8).reshape(-1, cdtype.itemsize).T.tobytes()
+    payload = zstandard.ZstdCompressor(write_checksum=True, write_content_size=True).compress(forged)
     return dataclasses.replace(enc, **{field: payload})
 
 
@@ -1435,7 +1447,9 @@ def test_rank_wire_layout_decodes_independently(dtype, selection):
     assert enc.values_raw_size == (-(-rank * n // 2) if dtype == "int4" else rank * n * FEATURE_DTYPES[dtype].itemsize)
     assert len(enc.quant_scale) == (rank if dtype in QUANT_LEVELS else 0)
     assert enc.budget_bytes == enc.payload_bytes + 4 * (len(enc.quant_scale) + len(enc.quant_offset) + 12 * rank + 12)
-    wire = _wire_values(_raw_field(enc.values, cfg.codec), dtype, rank, n).astype(np.float64)
+    wire = _wire_values(_raw_field(enc.values, enc.codec, FEATURE_DTYPES[dtype].itemsize), dtype, rank, n).astype(
+        np.float64
+    )
     if dtype in QUANT_LEVELS:
         wire = (
             wire * np.asarray(enc.quant_scale, np.float64)[:, None] + np.asarray(enc.quant_offset, np.float64)[:, None]

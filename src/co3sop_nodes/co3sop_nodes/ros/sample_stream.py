@@ -101,7 +101,7 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--dtype", choices=sorted(FEATURE_DTYPES), default="float16")
     parser.add_argument("--selection", choices=SELECTIONS, default="dense")
     parser.add_argument("--topk", type=int, default=4096)
-    parser.add_argument("--codec", choices=CODECS, default="zstd")
+    parser.add_argument("--codec", choices=CODECS, default=FeatureCodecConfig.codec)
     parser.add_argument(
         "--wait-subscribers",
         type=float,

@@ -161,8 +161,15 @@ PARAMS = (
     ),
     Param("codec.topk", int, "voxels kept by topk", 4096, True, (1, 2**31 - 1)),
     Param("codec.threshold", float, "confidence kept by threshold", 0.5, True, (0.0, 1.0)),
-    Param("codec.compression", str, "payload compression", "zstd", True, choices=CODECS),
-    Param("codec.level", int, "zstd level", 3, True, (1, 22)),
+    Param(
+        "codec.compression",
+        str,
+        "payload compression: shuffle-zstd (zstd of the values byte-shuffled), zstd or none",
+        FeatureCodecConfig.codec,
+        True,
+        choices=CODECS,
+    ),
+    Param("codec.level", int, "zstd level (0: the compression's own, shuffle-zstd 1, zstd 3)", 0, True, (0, 22)),
     Param(
         "request_timeout",
         float,

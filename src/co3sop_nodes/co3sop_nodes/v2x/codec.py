@@ -13,9 +13,12 @@ most: confidence x its request, Where2comm-style), optionally transform coded
 (`rank` K: the K principal directions of the voxels' features, those selected
 or, under a budget, every candidate; computed per message and sent with it, and K coefficients per voxel instead of C
 channels), or a learned code (`learned`: the model's own K integers per voxel,
-model/wire.py, sent as they are: no scale, basis or confidence), then zstd; a
-byte budget (`max_bytes`) keeps the best-scored voxels that fit. Labels: uint8
-grids, lossless zstd.
+model/wire.py, sent as they are: no scale, basis or confidence), then zstd, by
+default on the values byte-shuffled (`shuffle-zstd`: every value's low byte,
+then every next byte, as Blosc's and HDF5's shuffle filter: a float's sign and
+exponent bytes repeat and compress, its low mantissa bytes are noise); a byte
+budget (`max_bytes`) keeps the best-scored voxels that fit. Labels: uint8
+grids, lossless zstd (single bytes: shuffle-zstd is zstd).
 """
 
 from __future__ import annotations
@@ -35,9 +38,14 @@ from co3sop_nodes.common.errors import (
     UnknownCodecError,
 )
 from co3sop_nodes.common.grid import GridSpec
-from co3sop_nodes.kernels.half_float import from_float16, to_float16
+from co3sop_nodes.kernels.half_float import from_float16, from_float16_planes, to_float16, to_float16_planes
 
-CODECS = ("zstd", "none")
+CODECS = ("shuffle-zstd", "zstd", "none")
+# zstd on the values byte-shuffled; values of one byte (int8, int4) are their own shuffle and go as zstd
+SHUFFLED = "shuffle-zstd"
+# each codec's zstd level where the config leaves it at 0: on a float16 volume shuffled at 1 takes 5-10 % fewer
+# bytes than zstd at 3 in half the time (shuffled at 3: no fewer bytes, twice the time)
+ZSTD_LEVELS = {SHUFFLED: 1, "zstd": 3, "none": 0}
 # element types of the values; int4's are packed two per byte on the wire (low nibble first)
 FEATURE_DTYPES = {
     "float32": np.dtype("<f4"),
@@ -66,8 +74,8 @@ class FeatureCodecConfig:
     selection: str = "dense"  # "dense" | "topk" | "threshold"
     topk: int = 4096  # voxels kept by "topk" (highest confidence, else highest feature norm)
     threshold: float = 0.5  # "threshold" keeps voxels whose confidence is >= this
-    codec: str = "zstd"  # "zstd" | "none"
-    level: int = 3  # zstd level
+    codec: str = SHUFFLED  # "shuffle-zstd" | "zstd" | "none" (`wire_codec`: what a message of this dtype says)
+    level: int = 0  # zstd level; 0: the codec's own (ZSTD_LEVELS)
     # > 0: "topk" / "request" keep as many of their best-scored voxels as fit this many bytes (payload and
     # quantisation constants), instead of `topk`
     max_bytes: int = 0
@@ -141,7 +149,18 @@ class FeatureCodecConfig:
             "request": f"request{count}" + ("-fill" if self.fill else ""),
         }[self.selection]
         transform = f"-pca{self.rank}" if self.rank else "-learned" if self.learned else ""
-        return f"{self.dtype}-{sel}{transform}-{self.codec}"
+        return f"{self.dtype}-{sel}{transform}-{self.wire_codec}"
+
+    @property
+    def wire_codec(self) -> str:
+        """The codec the messages say: `codec`, but zstd for shuffle-zstd of int8 or int4 values (one byte each,
+        confidence too: the shuffle changes nothing)."""
+        return "zstd" if self.codec == SHUFFLED and self.dtype in QUANTIZED else self.codec
+
+    @property
+    def zstd_level(self) -> int:
+        """`level`, or where it is 0 the wire codec's own (ZSTD_LEVELS)."""
+        return self.level or ZSTD_LEVELS[self.wire_codec]
 
 
 @dataclass(frozen=True)
@@ -238,6 +257,7 @@ TABLE_LOG = 12
 
 
 def compress_payload(raw: bytes, codec: str, level: int) -> bytes:
+    """raw (already byte-shuffled where `codec` shuffles it: see _wire_bytes) compressed by `codec`."""
     if codec == "none" or not raw:
         return bytes(raw)
     # The content size lets a receiver check the frame before decompressing;
@@ -521,6 +541,8 @@ def _encode(
         mask_raw = np.packbits(bits, bitorder="little").tobytes()
 
     scale = offset = ()
+    codec, level = cfg.wire_codec, cfg.zstd_level
+    shuffled = codec == SHUFFLED
     if cfg.learned:
         q = values.astype(np.int8)
         values_raw = _pack_int4(q) if cfg.dtype == "int4" else q.tobytes()
@@ -530,7 +552,7 @@ def _encode(
         values_raw = _pack_int4(q) if cfg.dtype == "int4" else q.tobytes()
         scale, offset = tuple(s.tolist()), tuple(o.tolist())
     else:
-        values_raw = _wire_floats(values, cfg.dtype).tobytes()
+        values_raw = _wire_bytes(values, cfg.dtype, shuffled)
 
     conf_raw = b""
     if confidence is not None:
@@ -538,21 +560,21 @@ def _encode(
         if cfg.dtype in QUANTIZED:
             conf_raw = np.rint(conf * 255).astype(np.uint8).tobytes()
         else:
-            conf_raw = _wire_floats(conf, cfg.dtype).tobytes()
+            conf_raw = _wire_bytes(conf, cfg.dtype, shuffled)
 
     return EncodedFeatures(
         grid=grid,
         channels=channels,
         dtype=cfg.dtype,
-        codec=cfg.codec,
+        codec=codec,
         quant_scale=scale,
         quant_offset=offset,
         sparse=keep is not None,
         num_voxels=num_voxels,
         has_confidence=confidence is not None,
-        voxel_mask=compress_payload(mask_raw, cfg.codec, cfg.level),
-        values=compress_payload(values_raw, cfg.codec, cfg.level),
-        confidence=compress_payload(conf_raw, cfg.codec, cfg.level),
+        voxel_mask=compress_payload(mask_raw, codec, level),
+        values=compress_payload(values_raw, codec, level),
+        confidence=compress_payload(conf_raw, codec, level),
         voxel_mask_raw_size=len(mask_raw),
         values_raw_size=len(values_raw),
         confidence_raw_size=len(conf_raw),
@@ -591,13 +613,25 @@ def _basis(
     return directions, mean, coefficients.astype(np.float32)
 
 
-def _wire_floats(values: np.ndarray, dtype: str) -> np.ndarray:
-    """float32 values as the float dtype on the wire (float32 or float16), C order."""
-    return to_float16(values) if dtype == "float16" else np.ascontiguousarray(values, FEATURE_DTYPES[dtype])
+def _wire_bytes(values: np.ndarray, dtype: str, shuffled: bool) -> bytes:
+    """float32 values as the float dtype on the wire (float32 or float16), C order; `shuffled`: byte-shuffled
+    (every value's byte 0, then every value's byte 1, ...)."""
+    if dtype == "float16":
+        return (to_float16_planes(values) if shuffled else to_float16(values)).tobytes()
+    wire = np.ascontiguousarray(values, FEATURE_DTYPES[dtype])
+    return (
+        np.ascontiguousarray(wire.view(np.uint8).reshape(-1, wire.itemsize).T).tobytes() if shuffled else wire.tobytes()
+    )
 
 
-def _as_float32(values: np.ndarray) -> np.ndarray:
-    """Values read off the wire (float32, float16 or integers) as float32: `_wire_floats`'s inverse for floats."""
+def _from_wire(raw: bytes, dtype: np.dtype, shuffled: bool) -> np.ndarray:
+    """`_wire_bytes`' inverse, and integers as they are: raw -> (n,) float32."""
+    if shuffled and dtype.itemsize > 1:
+        planes = np.frombuffer(raw, np.uint8)
+        if dtype == np.float16:
+            return from_float16_planes(planes)
+        return np.ascontiguousarray(planes.reshape(dtype.itemsize, -1).T).view(dtype).reshape(-1).astype(np.float32)
+    values = np.frombuffer(raw, dtype)
     return from_float16(values) if values.dtype == np.float16 else values.astype(np.float32)
 
 
@@ -639,8 +673,11 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
     raw = decompress_payload(
         enc.values, enc.codec, enc.values_raw_size, _values_raw_size(enc.dtype, rows * n), "values", max_raw_bytes
     )
-    wire = _unpack_int4(raw, rows * n) if enc.dtype == "int4" else np.frombuffer(raw, FEATURE_DTYPES[enc.dtype])
-    values = _as_float32(wire).reshape(rows, n)  # (C, N), or (K, N) coefficients or code
+    shuffled = enc.codec == SHUFFLED
+    if enc.dtype == "int4":
+        values = _unpack_int4(raw, rows * n).astype(np.float32).reshape(rows, n)
+    else:
+        values = _from_wire(raw, FEATURE_DTYPES[enc.dtype], shuffled).reshape(rows, n)  # (C, N), (K, N) or a code
     if enc.learned_code:
         levels = _LEVELS[enc.dtype]
         if n and np.abs(values).max() > levels:
@@ -675,7 +712,7 @@ def decode_features(enc: EncodedFeatures, max_raw_bytes: int = DEFAULT_MAX_RAW_B
         craw = decompress_payload(
             enc.confidence, enc.codec, enc.confidence_raw_size, n * cdtype.itemsize, "confidence", max_raw_bytes
         )
-        conf = _as_float32(np.frombuffer(craw, cdtype))
+        conf = _from_wire(craw, cdtype, shuffled)
         if enc.dtype in QUANTIZED:
             conf = conf / np.float32(255)
         else:

@@ -21,7 +21,9 @@ from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.v2x.codec import (
     CODECS,
     DEFAULT_MAX_RAW_BYTES,
+    SHUFFLED,
     SIZE_NOISE_SHIFT,
+    ZSTD_LEVELS,
     check_choice,
     compress_payload,
     decompress_payload,
@@ -32,8 +34,8 @@ from co3sop_nodes.v2x.codec import (
 class ScanCodecConfig:
     """How a vehicle sends its scan."""
 
-    codec: str = "zstd"  # "zstd" | "none"
-    level: int = 3  # zstd level
+    codec: str = "zstd"  # "zstd" | "shuffle-zstd" (the same on bits) | "none"
+    level: int = 3  # zstd level (0: the codec's own, ZSTD_LEVELS)
     max_bytes: int = 0  # > 0: the nearest occupied voxels that fit this many bytes (0: the whole scan)
     # > max_bytes: max_bytes is the average per message to one receiver and this the most one message may take
     # (v2x/sender_budget.py)
@@ -82,7 +84,9 @@ class EncodedScan:
 def _encode(occupied: np.ndarray, grid: GridSpec, cfg: ScanCodecConfig) -> EncodedScan:
     """occupied (nx, ny, nz) bool -> its message."""
     raw = np.packbits(occupied.transpose(2, 0, 1).reshape(-1), bitorder="little").tobytes()
-    return EncodedScan(grid, cfg.codec, int(occupied.sum()), compress_payload(raw, cfg.codec, cfg.level), len(raw))
+    codec = "zstd" if cfg.codec == SHUFFLED else cfg.codec  # bits: shuffled as they are
+    level = cfg.level or ZSTD_LEVELS[codec]
+    return EncodedScan(grid, codec, int(occupied.sum()), compress_payload(raw, codec, level), len(raw))
 
 
 def encode_scan(occupancy: np.ndarray, grid: GridSpec, cfg: ScanCodecConfig) -> EncodedScan:
