@@ -9,10 +9,10 @@ import torch
 from model_checks import lidar_model, scans
 
 from co3sop_nodes.inference.calibration import calibrate
+from co3sop_nodes.kernels import cpu_flags
 from co3sop_nodes.kernels import lidar_output as output_kernel
 from co3sop_nodes.kernels.transpose import channels_first_float32
 from co3sop_nodes.model import co3sop
-from co3sop_nodes.kernels import cpu_flags
 from co3sop_nodes.model.path import InferencePath, cpu_bfloat16_unit
 from co3sop_nodes.model.quantized import Int8Volume
 

@@ -94,8 +94,8 @@ def compile_kernels(model: Co3SOP, points: bool = False) -> list[str]:
         kernels["scan's first layer"] = lambda: occupancy_kernel.available(cfg.lidar.channels // 2, encoder.first_dtype)
         if model.path.int8:
             kernels["int8 residual sum"] = lambda: quantized_add.available(cfg.lidar.channels)
-        if model.path.int8 and precision == "bfloat16":
-            kernels["scan's output layers"] = lambda: lidar_output.available(cfg.embed_dims)
+        if model.path.int8 and precision in lidar_output.FLOATS:
+            kernels["scan's output layers"] = lambda: lidar_output.available(cfg.embed_dims, precision)
     if cfg.modality == "camera" or cfg.fusion:  # the transformer layers' sums and norms
         kernels["layer norm"] = lambda: layer_norm_kernel.available(cfg.embed_dims)
     if model.path.int8 and cfg.head == "conv":
