@@ -2,6 +2,7 @@
 
     ros2_ws/benchmarks/bench_codec_dds.py [--repeats 5] [--messages 100] [--out FILE.md]
     ros2_ws/benchmarks/bench_codec_dds.py --tables BAG [--repeats 30]
+    ros2_ws/benchmarks/bench_codec_dds.py --shuffle BAG [--repeats 30]
 
 Run with the workspace environment (`. ros2_ws/env.sh`). Prints markdown tables:
 
@@ -17,6 +18,11 @@ Run with the workspace environment (`. ros2_ws/env.sh`). Prints markdown tables:
 With --tables BAG, only the payloads the demo's nodes compress each frame, made by the shipped models on the bag's
 first LiDAR scan (one thread): zstd's own tables for the payload's size against the shipped setting's (at most
 2^TABLE_LOG entries, `v2x/codec.py`), bytes and compression time alternating.
+
+With --shuffle BAG, only a LiDAR vehicle's features as the demo's vehicles send them (the shipped `tiny-lidar` on
+the path a vehicle takes, float16 dense, with confidence), on the bag's scans in turn: plain zstd at level 3 (the
+codec before shuffle-zstd) against shuffle-zstd at level 1 (the default) and 3; payload bytes, and encoding (the
+vehicle's output to its message's payloads) and decoding (payloads to features) on one thread, alternating.
 """
 
 from __future__ import annotations
@@ -121,7 +127,7 @@ def real_payloads(bag: Path) -> dict[str, tuple[bytes, int]]:
     lidar_features = encode_output(out, lidar.cfg.feature_grid, raw)
     ego = encode_labels(pred.labels, lidar.cfg.grid, lidar.cfg.num_classes, confidence=pred.confidence, codec="none")
     scan = encode_scan(inputs["occupancy"][0, 0].cpu().numpy(), lidar.cfg.grid, ScanCodecConfig(codec="none"))
-    level, labels = FeatureCodecConfig().level, 1  # encode_labels' default level
+    level, labels = FeatureCodecConfig(codec="zstd").zstd_level, 1  # plain zstd's level, encode_labels' default
     return {
         "tiny-lidar features": (lidar_features.values, level),
         "tiny-lidar confidence": (lidar_features.confidence, level),
@@ -194,15 +200,59 @@ def dds_table(count: int) -> str:
     return "\n".join(rows)
 
 
+def shuffle_table(bag: Path, repeats: int, frames: int = 100) -> str:
+    torch.set_num_threads(1)
+    scans = read_scans(bag, frames)
+    if not scans:
+        raise SystemExit(f"bench_codec_dds: error: {bag} holds no PointCloud2 scan")
+    model, _ = load_graph_model(shipped_checkpoint("tiny-lidar.pt"))
+    model.use(model.vehicle_path("auto", "auto"))
+    with torch.inference_mode():
+        outs = [model.vehicle(**pace.shaped_inputs(model, scan=scan)) for scan in scans]
+    settings = [
+        FeatureCodecConfig(codec="zstd"),
+        FeatureCodecConfig(),
+        FeatureCodecConfig(level=3),
+    ]
+    grid = model.cfg.feature_grid
+    groups, sizes = {}, {}
+    for cfg in settings:
+        turn = iter(range(1 << 62))
+        encoded = [encode_output(out, grid, cfg) for out in outs]
+        sizes[cfg] = float(np.mean([e.payload_bytes for e in encoded]))
+        groups[cfg] = {
+            "encode": lambda cfg=cfg, turn=turn: encode_output(outs[next(turn) % len(outs)], grid, cfg),
+            "decode": lambda encoded=encoded, turn=turn: decode_features(encoded[next(turn) % len(encoded)]),
+        }
+    times = alternated(groups, repeats)
+    base = settings[0]
+    rows = [
+        f"{len(scans)} scans of {bag}; {model.path.describe()}; one thread, median of {repeats}",
+        "",
+        "| codec | level | payload KB | bytes / zstd's | encode ms | decode ms | encode: zstd's / this |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for cfg in settings:
+        rows.append(
+            f"| {cfg.name} | {cfg.zstd_level} | {sizes[cfg] / 1024:.1f} | {sizes[cfg] / sizes[base]:.3f} | "
+            f"{1e3 * times[cfg, 'encode']:.2f} | {1e3 * times[cfg, 'decode']:.2f} | "
+            f"{times[base, 'encode'] / times[cfg, 'encode']:.2f}x |"
+        )
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=5, help="timing repeats per codec setting")
     parser.add_argument("--messages", type=int, default=100, help="messages per DDS latency cell")
     parser.add_argument("--out", type=Path, help="also write the tables to this markdown file")
     parser.add_argument("--tables", type=Path, metavar="BAG", help="only zstd's tables on real payloads (module doc)")
+    parser.add_argument("--shuffle", type=Path, metavar="BAG", help="only shuffle-zstd against zstd (module doc)")
     opts = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
-    if opts.tables:
+    if opts.shuffle:
+        text = "\n\n".join(["### A vehicle's features byte-shuffled", shuffle_table(opts.shuffle, opts.repeats)])
+    elif opts.tables:
         text = "\n\n".join(["### zstd's tables on the payloads of a frame", tables_table(opts.tables, opts.repeats)])
     else:
         text = "\n\n".join(
