@@ -591,7 +591,8 @@ def spoiled(field: str, stamp: int) -> VoxelFeatures:
     dtype, spoil = NON_FINITE[field]
     grid = preset("tiny").feature_grid
     volume = np.random.default_rng(OTHER).normal(size=(32, *grid.dims)).astype(np.float32)
-    enc = encode_features(volume, np.full(grid.dims, 0.5, np.float32), grid, FeatureCodecConfig(dtype))
+    # plain zstd: its payload is the values in order, spoiled in place (the codec's tests spoil shuffle-zstd's too)
+    enc = encode_features(volume, np.full(grid.dims, 0.5, np.float32), grid, FeatureCodecConfig(dtype, codec="zstd"))
     msg = features_msg(
         RCLPY, enc, stamp_ns=stamp, frame_id=f"cav_{OTHER}/lidar", agent_id=OTHER, pose=Pose((10.0, 5.0, 1.8))
     )
