@@ -47,11 +47,14 @@ def test_the_kernel_runs_where_the_cpu_computes_its_floats():
     assert not output_kernel.available(32, "float16")
 
 
-@pytest.mark.skipif(not output_kernel.available(32), reason="needs AVX-512 BF16 (the test above checks that)")
+@pytest.mark.parametrize("floats", output_kernel.FLOATS)
 @pytest.mark.parametrize("with_offset", [False, True])
 @torch.inference_mode()
-def test_the_output_layers_are_the_pytorch_layers_bit_for_bit(with_offset):
-    gen = torch.Generator().manual_seed(1)
+def test_the_output_layers_are_the_pytorch_layers(floats, with_offset):
+    """bfloat16: bit for bit; float32: within FLOAT32_TOLERANCE."""
+    if not output_kernel.available(32, floats):
+        pytest.skip(f"no kernel for {floats} on this CPU (the test above checks where there is one)")
+    gen = torch.Generator().manual_seed(2)
     out, confidence = _layers(gen)
     # (1, C, Z, X, Y) views of z-outer volumes, as the int8 layers leave them; a height and a width the kernel's
     # blocks of columns do not divide
@@ -59,30 +62,16 @@ def test_the_output_layers_are_the_pytorch_layers_bit_for_bit(with_offset):
         values = torch.randint(0, 256, (1, 32, *dims), dtype=torch.uint8, generator=gen)
         volume = Int8Volume(values.contiguous(memory_format=torch.channels_last_3d), 0.021)
         offset = torch.randn(32, dims[0], generator=gen) * 0.3 if with_offset else None
-        want = _pytorch_tail(volume, offset, out, confidence)
-        for threads in (1, 2):
-            got = output_kernel.lidar_output(volume.values, volume.scale, offset, out, confidence, threads)
-            for g, w in zip(got, want):
-                assert g.dtype == torch.float32 and g.is_contiguous() and torch.equal(g, w)
-
-
-@pytest.mark.skipif(not output_kernel.available(32, "float32"), reason="needs AVX-512 (the test above checks that)")
-@pytest.mark.parametrize("with_offset", [False, True])
-@torch.inference_mode()
-def test_in_float32_the_output_layers_are_the_pytorch_layers_within_its_rounding(with_offset):
-    gen = torch.Generator().manual_seed(2)
-    out, confidence = _layers(gen)
-    for dims in [(6, 64, 64), (5, 9, 7)]:
-        values = torch.randint(0, 256, (1, 32, *dims), dtype=torch.uint8, generator=gen)
-        volume = Int8Volume(values.contiguous(memory_format=torch.channels_last_3d), 0.021)
-        offset = torch.randn(32, dims[0], generator=gen) * 0.3 if with_offset else None
-        want = _pytorch_tail(volume, offset, out, confidence, "float32")
+        want = _pytorch_tail(volume, offset, out, confidence, floats)
         assert float(want[1].min()) < 0.01 and float(want[1].max()) > 0.99  # the sigmoid's middle and its tails
         for threads in (1, 2):
-            got = output_kernel.lidar_output(volume.values, volume.scale, offset, out, confidence, threads, "float32")
+            got = output_kernel.lidar_output(volume.values, volume.scale, offset, out, confidence, threads, floats)
             for g, w in zip(got, want):
                 assert g.dtype == torch.float32 and g.is_contiguous()
-                torch.testing.assert_close(g, w, **FLOAT32_TOLERANCE)
+                if floats == "bfloat16":
+                    assert torch.equal(g, w)
+                else:
+                    torch.testing.assert_close(g, w, **FLOAT32_TOLERANCE)
 
 
 @pytest.mark.skipif(not output_kernel.available(32, "float32"), reason="needs AVX-512")
