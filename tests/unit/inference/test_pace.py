@@ -31,6 +31,9 @@ def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
     # 3 x 0.05 + 2 x (0.1 + 0.02) = 0.39 s of CPU over 2 cores
     assert pace.sustainable_rate(drawn, 3, 0.1, 2, egos=2) == pytest.approx(0.1 / (0.39 / 2 * h))
     assert pace.sustainable_rate(drawn, 3, 0.1, 64) == pytest.approx(0.1 / (0.1 * h))
+    # what the demo says binds
+    assert pace.rate_bound(cost, 3, 2) == "the frame's CPU over the cores"
+    assert pace.rate_bound(cost, 3, 64) == pace.rate_bound(cost, 3, 2, scans=True) == "one ego's frame"
 
 
 @pytest.mark.parametrize(

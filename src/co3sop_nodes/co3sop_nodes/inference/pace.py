@@ -166,3 +166,10 @@ def sustainable_rate(
     cpu, ego_s = graph_work(cost, vehicles, egos, scans)
     wall = max(cpu / max(1, n_cores), ego_s, cost.vehicle_s) * headroom
     return float(min(1.0, period_s / wall))
+
+
+def rate_bound(cost: FrameCost, vehicles: int, n_cores: int, egos: int = 1, scans: bool = False) -> str:
+    """What bounds `sustainable_rate`, in words: the frame's CPU over the cores, or one ego's frame (a process that
+    takes every frame in turn)."""
+    cpu, ego_s = graph_work(cost, vehicles, egos, scans)
+    return "one ego's frame" if ego_s > cpu / max(1, n_cores) else "the frame's CPU over the cores"

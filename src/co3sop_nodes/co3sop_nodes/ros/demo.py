@@ -136,7 +136,9 @@ def measured_rate(
         f"the recorder's pictures {1e3 * cost.recording_s:.0f} ms"
         + (" and a vehicle half per neighbour's scan" if scans else "")
         + f"; {vehicles} vehicles + {egos} ego{'s' if egos > 1 else ''} on {n} cores keep up with rate {rate:g} "
-        f"(a frame every {period / max(rate, 0.01):.2f} s)"
+        f"(a frame every {period / max(rate, 0.01):.2f} s"
+        + ("" if rate >= 1 else f", bound by {pace.rate_bound(cost, vehicles, n, egos=egos, scans=scans)}")
+        + ")"
     )
     return max(rate, 0.01)
 
