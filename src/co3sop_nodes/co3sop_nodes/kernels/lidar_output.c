@@ -51,7 +51,6 @@ typedef __m512bh weight_t;  /* a feature layer weight vector: bfloat16 pairs of 
 typedef __m512 weight_t;    /* a feature layer weight vector: one input channel's weights to 16 outputs */
 #endif
 #define WEIGHT_ROWS (BF16 ? C / 2 : C)  /* weight vectors per output vector */
-#define CONF_VECTORS (BF16 ? NV / 2 : NV)
 
 /* voxels (x, y, z .. z + n - 1) of a column, n a constant in each call: their chains of multiply-adds interleaved
  * (one voxel's C / 16 chains of dependent products would leave the unit idle for their latency); each voxel's
