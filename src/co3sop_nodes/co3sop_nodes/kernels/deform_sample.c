@@ -104,7 +104,7 @@ INLINE f8 exp8(f8 x) {
   return (f8)(keep & (i8)(e * scale));
 }
 
-typedef uint32_t u8v __attribute__((vector_size(32)));
+typedef uint32_t u32x8 __attribute__((vector_size(32)));  /* 8 lanes of uint32: a mask's shift counts */
 
 /* the larger of a and b per lane (b where they are equal or either is NaN) */
 INLINE f8 max8(f8 a, f8 b) {
@@ -117,7 +117,7 @@ INLINE f8 max8(f8 a, f8 b) {
  * sum's reciprocal as PyTorch's softmax computes it; returns the sum, 0 where nothing is allowed. group_of: each
  * term's group, 8 to a vector (where terms % 8 == 0 and there are at most 32 groups; else NULL) */
 INLINE float softmax(const void *logits, int64_t at, int64_t terms, const uint8_t *may, int64_t group,
-                     const u8v *group_of, int bf16, float *weights) {
+                     const u32x8 *group_of, int bf16, float *weights) {
   const int64_t vectors = (terms + 7) / 8;
   f8 *w = (f8 *)weights;
   if (!may && terms % 8 == 0) {  /* a vector at a time: a vector read of scalar writes would wait for them */
@@ -126,7 +126,7 @@ INLINE float softmax(const void *logits, int64_t at, int64_t terms, const uint8_
     uint32_t bits = 0;
     for (int64_t g = 0; g < terms / group; ++g) bits |= (uint32_t)(may[g] != 0) << g;
     for (int64_t v = 0; v < vectors; ++v) {
-      const i8 allowed = -(i8)((((u8v){0} + bits) >> group_of[v]) & 1u);
+      const i8 allowed = -(i8)((((u32x8){0} + bits) >> group_of[v]) & 1u);
       w[v] = (f8)((allowed & (i8)load8(logits, at + 8 * v, bf16)) | (~allowed & (i8)((f8){0} - INFINITY)));
     }
   } else {
@@ -266,7 +266,7 @@ void deform_sample_2d_bf16(SAMPLE_2D_ARGS) { sample_2d(SAMPLE_2D_CALL, 1); }
 INLINE float head_corners(int64_t q, int64_t h, int64_t heads, int64_t terms, int64_t points, const int64_t *dims,
                           const int32_t *step, int64_t c, const float *restrict reference,
                           const void *restrict offsets, const void *restrict logits, const uint8_t *may,
-                          const u8v *by_agent, int bf16, float *weights, f8 *ox, f8 *oy, f8 *oz,
+                          const u32x8 *by_agent, int bf16, float *weights, f8 *ox, f8 *oy, f8 *oz,
                           float cw[8][MAX_TERMS + 8], int32_t at[8][MAX_TERMS + 8]) {
   const int64_t vectors = (terms + 7) / 8;
   const int32_t nx = (int32_t)dims[0], ny = (int32_t)dims[1], nz = (int32_t)dims[2];
@@ -326,8 +326,8 @@ INLINE void sample_3d(const void *const *values, const int64_t *dims, int64_t ag
   for (int64_t k = 0; k <= MAX_TERMS / 8; ++k) ox[k] = oy[k] = oz[k] = (f8){0};
   float cw[HB][8][MAX_TERMS + 8] __attribute__((aligned(32)));  /* per head of the hb: head_corners' */
   int32_t at[HB][8][MAX_TERMS + 8] __attribute__((aligned(32)));
-  u8v agent_of[MAX_TERMS / 8];  /* each term's agent, for the softmax's mask */
-  const u8v *by_agent = terms % 8 == 0 && agents <= 32 ? agent_of : NULL;
+  u32x8 agent_of[MAX_TERMS / 8];  /* each term's agent, for the softmax's mask */
+  const u32x8 *by_agent = terms % 8 == 0 && agents <= 32 ? agent_of : NULL;
   for (int64_t t = 0; t < terms; ++t) agent_of[t / 8][t % 8] = (uint32_t)(t / points);
   for (int64_t q = start; q < end; ++q) {
     const uint8_t *may = allowed + q * agents;
