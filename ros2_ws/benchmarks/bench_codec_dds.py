@@ -28,6 +28,7 @@ vehicle's output to its message's payloads) and decoding (payloads to features) 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import subprocess
@@ -216,13 +217,13 @@ def shuffle_table(bag: Path, repeats: int, frames: int = 100) -> str:
     ]
     grid = model.cfg.feature_grid
     groups, sizes = {}, {}
-    for cfg in settings:
-        turn = iter(range(1 << 62))
+    for cfg in settings:  # each call on the next output, or message, in turn
         encoded = [encode_output(out, grid, cfg) for out in outs]
         sizes[cfg] = float(np.mean([e.payload_bytes for e in encoded]))
+        inputs, messages = itertools.cycle(outs), itertools.cycle(encoded)
         groups[cfg] = {
-            "encode": lambda cfg=cfg, turn=turn: encode_output(outs[next(turn) % len(outs)], grid, cfg),
-            "decode": lambda encoded=encoded, turn=turn: decode_features(encoded[next(turn) % len(encoded)]),
+            "encode": lambda cfg=cfg, inputs=inputs: encode_output(next(inputs), grid, cfg),
+            "decode": lambda messages=messages: decode_features(next(messages)),
         }
     times = alternated(groups, repeats)
     base = settings[0]

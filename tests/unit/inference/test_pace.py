@@ -34,6 +34,7 @@ def test_the_rate_is_bound_by_the_cores_and_by_the_ego():
     # what the demo says binds
     assert pace.rate_bound(cost, 3, 2) == "the frame's CPU over the cores"
     assert pace.rate_bound(cost, 3, 64) == pace.rate_bound(cost, 3, 2, scans=True) == "one ego's frame"
+    assert pace.rate_bound(pace.FrameCost(vehicle_s=0.2, ego_s=0.1), 3, 64) == "one vehicle's frame"
 
 
 @pytest.mark.parametrize(

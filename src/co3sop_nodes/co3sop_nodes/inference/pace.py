@@ -163,13 +163,22 @@ def sustainable_rate(
     """The playback rate (1 = real time) at which the graph keeps up: the frame's CPU over the cores (graph_work),
     and an ego (one process, every frame in turn) each bound the wall time per frame; with headroom, at most real
     time."""
-    cpu, ego_s = graph_work(cost, vehicles, egos, scans)
-    wall = max(cpu / max(1, n_cores), ego_s, cost.vehicle_s) * headroom
+    wall = max(_bounds(cost, vehicles, n_cores, egos, scans).values()) * headroom
     return float(min(1.0, period_s / wall))
 
 
 def rate_bound(cost: FrameCost, vehicles: int, n_cores: int, egos: int = 1, scans: bool = False) -> str:
-    """What bounds `sustainable_rate`, in words: the frame's CPU over the cores, or one ego's frame (a process that
-    takes every frame in turn)."""
+    """What bounds `sustainable_rate`, in words."""
+    bounds = _bounds(cost, vehicles, n_cores, egos, scans)
+    return max(bounds, key=bounds.get)
+
+
+def _bounds(cost: FrameCost, vehicles: int, n_cores: int, egos: int, scans: bool) -> dict[str, float]:
+    """Each bound on the wall time of a frame, in words -> seconds: the frame's CPU over the cores, and an ego's and
+    a vehicle's frame (each one process that takes every frame in turn)."""
     cpu, ego_s = graph_work(cost, vehicles, egos, scans)
-    return "one ego's frame" if ego_s > cpu / max(1, n_cores) else "the frame's CPU over the cores"
+    return {
+        "the frame's CPU over the cores": cpu / max(1, n_cores),
+        "one ego's frame": ego_s,
+        "one vehicle's frame": cost.vehicle_s,
+    }

@@ -154,14 +154,24 @@ class FeatureCodecConfig:
 
     @property
     def wire_codec(self) -> str:
-        """The codec the messages say: `codec`, but zstd for shuffle-zstd of int8 or int4 values (one byte each,
-        confidence too: the shuffle changes nothing)."""
-        return "zstd" if self.codec == SHUFFLED and self.dtype in QUANTIZED else self.codec
+        """The codec the messages say (`payload_codec`: int8 and int4 values, one byte each, confidence too, go as
+        zstd where the config says shuffle-zstd)."""
+        return payload_codec(self.codec, FEATURE_DTYPES[self.dtype].itemsize)
 
     @property
     def zstd_level(self) -> int:
-        """`level`, or where it is 0 the wire codec's own (ZSTD_LEVELS)."""
-        return self.level or ZSTD_LEVELS[self.wire_codec]
+        return resolved_level(self.wire_codec, self.level)
+
+
+def payload_codec(codec: str, element_bytes: int) -> str:
+    """The codec a payload of `element_bytes`-byte elements goes as: `codec`, but zstd for shuffle-zstd of single
+    bytes (their own shuffle)."""
+    return "zstd" if codec == SHUFFLED and element_bytes == 1 else codec
+
+
+def resolved_level(codec: str, level: int) -> int:
+    """`level`, or where it is 0 `codec`'s own (ZSTD_LEVELS)."""
+    return level or ZSTD_LEVELS[codec]
 
 
 @dataclass(frozen=True)

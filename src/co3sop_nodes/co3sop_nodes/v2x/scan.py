@@ -21,12 +21,12 @@ from co3sop_nodes.common.grid import GridSpec
 from co3sop_nodes.v2x.codec import (
     CODECS,
     DEFAULT_MAX_RAW_BYTES,
-    SHUFFLED,
     SIZE_NOISE_SHIFT,
-    ZSTD_LEVELS,
     check_choice,
     compress_payload,
     decompress_payload,
+    payload_codec,
+    resolved_level,
 )
 
 
@@ -84,9 +84,10 @@ class EncodedScan:
 def _encode(occupied: np.ndarray, grid: GridSpec, cfg: ScanCodecConfig) -> EncodedScan:
     """occupied (nx, ny, nz) bool -> its message."""
     raw = np.packbits(occupied.transpose(2, 0, 1).reshape(-1), bitorder="little").tobytes()
-    codec = "zstd" if cfg.codec == SHUFFLED else cfg.codec  # bits: shuffled as they are
-    level = cfg.level or ZSTD_LEVELS[codec]
-    return EncodedScan(grid, codec, int(occupied.sum()), compress_payload(raw, codec, level), len(raw))
+    codec = payload_codec(cfg.codec, 1)  # bytes of bits
+    return EncodedScan(
+        grid, codec, int(occupied.sum()), compress_payload(raw, codec, resolved_level(codec, cfg.level)), len(raw)
+    )
 
 
 def encode_scan(occupancy: np.ndarray, grid: GridSpec, cfg: ScanCodecConfig) -> EncodedScan:
